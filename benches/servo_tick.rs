@@ -1,0 +1,84 @@
+//! One servo tick's hot path: decode → FOAW state estimate → controller → safety → encode.
+//!
+//! `cargo bench --bench servo_tick`. Input reports come from the mock-HID device (a PD-held
+//! simulated point mass, so positions and velocities are realistic); `core` times only what the
+//! servo thread does per report, `with_mock_device` adds the simulated firmware and plant.
+
+use std::hint::black_box;
+use std::time::Duration;
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use nalgebra::Vector3;
+
+use hgcd::config::Config;
+use hgcd::control::pd::{LinearisedGains, PdHold};
+use hgcd::grid::MassGrid;
+use hgcd::protocol::INPUT_REPORT_LEN;
+use hgcd::servo::{ServoCore, ServoOptions};
+use hgcd::transport::sim::SimDevice;
+
+fn hold() -> PdHold {
+    PdHold {
+        set_point: Vector3::new(0.01, 0.0, 0.02),
+        gains: LinearisedGains::from_rise_time(0.1, 1.0),
+        field: MassGrid::uniform(
+            0.12,
+            9.81,
+            Vector3::z(),
+            Vector3::new(-0.04, -0.04, -0.04),
+            0.04,
+            [3, 3, 3],
+        ),
+    }
+}
+
+fn bench_tick(c: &mut Criterion) {
+    let config = Config::default();
+    let options = ServoOptions::from_config(&config);
+    let mut group = c.benchmark_group("servo_tick");
+    group.measurement_time(Duration::from_secs(5));
+
+    // Record 4096 input reports of a held, moving handle from the mock device.
+    let mut device = SimDevice::from_config("point-mass", &config).unwrap();
+    let mut core = ServoCore::new(&options).unwrap();
+    let mut controller = hold();
+    let mut reports = Vec::with_capacity(4096);
+    for k in 0..4096 {
+        let mut report = [0u8; INPUT_REPORT_LEN];
+        device.input_report(&mut report);
+        reports.push(report);
+        core.tick(&report, k as f64 * 1e-3, &mut controller, None)
+            .unwrap();
+        device.receive_output(core.output()).unwrap();
+        device.advance();
+    }
+
+    let mut core = ServoCore::new(&options).unwrap();
+    let mut k = 0usize;
+    group.bench_function("core", |b| {
+        b.iter(|| {
+            let report = &reports[k % reports.len()];
+            k += 1;
+            let outcome = core.tick(black_box(report), k as f64 * 1e-3, &mut controller, None);
+            let _ = black_box((outcome, core.output()));
+        })
+    });
+
+    let mut core = ServoCore::new(&options).unwrap();
+    let mut k = 0usize;
+    group.bench_function("with_mock_device", |b| {
+        b.iter(|| {
+            let mut report = [0u8; INPUT_REPORT_LEN];
+            device.input_report(&mut report);
+            k += 1;
+            let outcome = core.tick(&report, k as f64 * 1e-3, &mut controller, None);
+            device.receive_output(core.output()).unwrap();
+            device.advance();
+            black_box(outcome)
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_tick);
+criterion_main!(benches);

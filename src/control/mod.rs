@@ -1,0 +1,56 @@
+//! Controllers: tick functions from device state to force. Calibration and compensation are
+//! controllers too, so each is unit-testable without threads or devices.
+
+pub mod pd;
+
+use nalgebra::Vector3;
+
+use crate::protocol::Status;
+
+/// What the servo loop knows about the device at one tick. SI units throughout.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DeviceState {
+    /// Device time since the first report, s.
+    pub time: f64,
+    /// End-effector position, m.
+    pub position: Vector3<f64>,
+    /// FOAW velocity estimate, m/s.
+    pub velocity: Vector3<f64>,
+    /// Status flags of the latest input report.
+    pub status: Status,
+    /// Ticks since the loop started.
+    pub tick: u64,
+}
+
+/// A controller's answer for one tick.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ControlOutput {
+    /// Force to render on the end effector, N (the safety layer limits it).
+    pub force: Vector3<f64>,
+    /// The controller has finished; the loop ends after writing this tick's force.
+    pub done: bool,
+}
+
+impl ControlOutput {
+    pub fn force(force: Vector3<f64>) -> Self {
+        Self { force, done: false }
+    }
+    pub fn done(force: Vector3<f64>) -> Self {
+        Self { force, done: true }
+    }
+}
+
+/// A tick function run by the servo loop. Must not allocate, lock, block or log synchronously.
+pub trait Controller: Send {
+    fn tick(&mut self, state: &DeviceState) -> ControlOutput;
+}
+
+/// Renders no force at all.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ZeroForce;
+
+impl Controller for ZeroForce {
+    fn tick(&mut self, _: &DeviceState) -> ControlOutput {
+        ControlOutput::force(Vector3::zeros())
+    }
+}

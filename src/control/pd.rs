@@ -1,0 +1,95 @@
+//! Feedback-linearised PD hold (paper Eqs. 3–5): F = k_P (X_D − X) − k_D V̂ + F_G(X), with
+//! k_D = α M and k_P = β M, so that Ẍ = −α Ẋ + β (X_D − X) when M is right.
+
+use nalgebra::Vector3;
+
+use super::{ControlOutput, Controller, DeviceState};
+use crate::grid::MassGrid;
+
+/// α and β of the linearised closed loop Ẍ = −α Ẋ + β (X_D − X), chosen from a 10–90 % rise
+/// time and a damping ratio ζ: β = ω_n², α = 2 ζ ω_n.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LinearisedGains {
+    pub alpha: f64,
+    pub beta: f64,
+}
+
+impl LinearisedGains {
+    /// Gains whose unit step response rises from 10 % to 90 % in `rise_time` s with damping `zeta`.
+    pub fn from_rise_time(rise_time: f64, zeta: f64) -> Self {
+        let omega = normalised_rise_time(zeta) / rise_time;
+        Self {
+            alpha: 2.0 * zeta * omega,
+            beta: omega * omega,
+        }
+    }
+
+    /// k_P = β M, N/m.
+    pub fn stiffness(&self, mass: f64) -> f64 {
+        self.beta * mass
+    }
+
+    /// k_D = α M, N·s/m.
+    pub fn damping(&self, mass: f64) -> f64 {
+        self.alpha * mass
+    }
+}
+
+/// 10–90 % rise time of ẍ = −2ζẋ − x + 1 (ω_n = 1) from rest, found by integrating the step
+/// response (exact for any ζ > 0, unlike the textbook approximations).
+fn normalised_rise_time(zeta: f64) -> f64 {
+    let dt = 1e-4;
+    let (mut x, mut v, mut t) = (0.0f64, 0.0f64, 0.0f64);
+    let mut t10 = None;
+    while t < 1e4 {
+        let a = 1.0 - x - 2.0 * zeta * v;
+        v += a * dt;
+        x += v * dt;
+        t += dt;
+        if t10.is_none() && x >= 0.1 {
+            t10 = Some(t);
+        }
+        if x >= 0.9 {
+            return t - t10.unwrap_or(0.0);
+        }
+    }
+    t
+}
+
+/// Holds the end effector at a set point with a feedback-linearised PD and a gravity term taken
+/// from a mass grid (exact when the grid is the plant's truth).
+#[derive(Clone, Debug)]
+pub struct PdHold {
+    pub set_point: Vector3<f64>,
+    pub gains: LinearisedGains,
+    pub field: MassGrid,
+}
+
+impl Controller for PdHold {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        let m = self.field.mass_at(&s.position);
+        let force = (self.set_point - s.position) * self.gains.stiffness(m)
+            - s.velocity * self.gains.damping(m)
+            + self.field.gravity_force(&s.position);
+        ControlOutput::force(force)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn critically_damped_rise_time_matches_the_closed_form() {
+        // For ζ = 1 the 10–90 % rise time is 3.3579/ω_n (solve (1+t)e^{−t} = 0.9 and 0.1).
+        assert!((normalised_rise_time(1.0) - 3.3579).abs() < 1e-3);
+        let g = LinearisedGains::from_rise_time(0.1, 1.0);
+        assert!((g.beta.sqrt() - 33.579).abs() < 0.02);
+        assert!((g.alpha - 2.0 * g.beta.sqrt()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn underdamped_rise_time_is_shorter() {
+        assert!(normalised_rise_time(0.5) < normalised_rise_time(1.0));
+    }
+}

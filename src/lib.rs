@@ -1,0 +1,13 @@
+//! hgcd: autocalibrated gravity compensation for 3-DoF impedance haptic devices
+//! (Formaglio et al.). The servo loop lives in [`servo`], controllers in [`control`], device
+//! transports in [`transport`], simulated plants in [`sim`].
+
+pub mod config; //     typed configuration, defaults, validation
+pub mod control; //    controllers: PD hold, calibration, compensation
+pub mod daemon; //     `hgcd run`: device, servo thread, event logging, signals
+pub mod estimate; //   FOAW velocity estimation
+pub mod grid; //       apparent-mass grid, trilinear interpolation, hgcd-grid/1 files
+pub mod protocol; //   HID report layout v1: encode/decode
+pub mod servo; //      the 1 kHz tick loop, safety layer, timing statistics
+pub mod sim; //        simulated plants
+pub mod transport; //  hid, sim (mock-HID firmware) and socket transports

@@ -1,0 +1,382 @@
+//! The servo loop: once per input report, decode → state estimate → controller → safety → encode.
+//!
+//! The loop is paced by the device's input reports (as a USB interrupt endpoint paces the host)
+//! and guarded by a deadline watchdog. Inside the loop nothing allocates, locks, logs or blocks on
+//! anything but the device; events leave through a bounded channel with `try_send`.
+
+pub mod rt;
+pub mod safety;
+pub mod stats;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::Sender;
+use nalgebra::Vector3;
+use thiserror::Error;
+
+use crate::config::{Config, EstimateConfig, SafetyConfig};
+use crate::control::{Controller, DeviceState};
+use crate::estimate::{Foaw, FoawError};
+use crate::protocol::{InputReport, OutputReport, ProtocolError, Status, OUTPUT_REPORT_LEN};
+use crate::transport::{Transport, TransportError, MAX_REPORT_LEN};
+use safety::SafetyLayer;
+pub use stats::TimingStats;
+
+/// How the loop runs.
+#[derive(Clone, Debug)]
+pub struct ServoOptions {
+    /// Nominal report period, s.
+    pub period: f64,
+    /// No report for this long is a fault, s.
+    pub watchdog: f64,
+    /// Stop after this much time on the transport's clock, s.
+    pub duration: Option<f64>,
+    /// End the run at the first fault (calibration) instead of waiting for the device (daemon).
+    pub stop_on_fault: bool,
+    pub safety: SafetyConfig,
+    pub estimate: EstimateConfig,
+}
+
+impl ServoOptions {
+    pub fn from_config(config: &Config) -> Self {
+        Self {
+            period: config.servo_period(),
+            watchdog: config.servo.watchdog_ms * 1e-3,
+            duration: None,
+            stop_on_fault: false,
+            safety: config.safety.clone(),
+            estimate: config.estimate.clone(),
+        }
+    }
+}
+
+/// Something the loop wants logged; sent with `try_send`, dropped if the channel is full.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ServoEvent {
+    /// No report within the watchdog deadline; force zeroed.
+    WatchdogFault {
+        silent_for: f64,
+    },
+    /// Reports are arriving again after a watchdog fault.
+    ReportsResumed {
+        after: f64,
+    },
+    /// The device raised its fault flag; force zeroed.
+    DeviceFault,
+    DeviceFaultCleared,
+    /// An input report failed to decode.
+    GarbledReport(ProtocolError),
+    /// The controller produced a non-finite force; zero was sent.
+    NonFiniteForce,
+    /// The loop fell behind and skipped `missed` reports.
+    Overrun {
+        missed: u16,
+    },
+}
+
+/// Why the loop ended.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ExitReason {
+    /// The stop flag was set (Ctrl-C, SIGTERM, shutdown request).
+    Stopped,
+    /// The requested duration elapsed.
+    DurationReached,
+    /// The controller said it was done.
+    ControllerDone,
+    /// A fault ended the run (`stop_on_fault`).
+    Fault(&'static str),
+}
+
+/// What a finished run reports.
+#[derive(Clone, Debug)]
+pub struct ServoReport {
+    pub exit: ExitReason,
+    pub stats: TimingStats,
+    pub last_state: Option<DeviceState>,
+}
+
+#[derive(Debug, Error)]
+pub enum ServoError {
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    #[error("velocity estimator: {0}")]
+    Estimator(#[from] FoawError),
+}
+
+/// Unwraps the device's 32-bit microsecond clock into seconds since the first report.
+#[derive(Clone, Copy, Debug, Default)]
+struct DeviceClock {
+    first: Option<u32>,
+    last: u32,
+    wraps: u64,
+}
+
+impl DeviceClock {
+    fn seconds(&mut self, raw: u32) -> f64 {
+        let first = *self.first.get_or_insert(raw);
+        if raw < self.last && self.last - raw > u32::MAX / 2 {
+            self.wraps += 1;
+        }
+        self.last = raw;
+        let total = (self.wraps << 32) + u64::from(raw);
+        (total - u64::from(first)) as f64 * 1e-6
+    }
+}
+
+fn emit(events: Option<&Sender<ServoEvent>>, event: ServoEvent) {
+    if let Some(tx) = events {
+        let _ = tx.try_send(event);
+    }
+}
+
+/// What one tick decided.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum TickOutcome {
+    /// An output report is ready in [`ServoCore::output`].
+    Continue,
+    /// The controller is done; the output report is ready.
+    Done,
+    /// The device reported a fault and the run should end (`stop_on_fault`); zero force is ready.
+    Fault,
+}
+
+/// The hot path of one tick, without I/O: decode → state estimate → controller → safety → encode.
+/// Everything it needs is allocated when it is built.
+pub struct ServoCore {
+    foaw: Foaw,
+    safety: SafetyLayer,
+    clock: DeviceClock,
+    last_sequence: Option<u16>,
+    last_report_at: f64,
+    device_fault: bool,
+    stop_on_fault: bool,
+    out_sequence: u16,
+    output: [u8; OUTPUT_REPORT_LEN],
+    pub stats: TimingStats,
+    pub last_state: Option<DeviceState>,
+}
+
+impl ServoCore {
+    pub fn new(options: &ServoOptions) -> Result<Self, FoawError> {
+        let est = &options.estimate;
+        Ok(Self {
+            foaw: Foaw::new(
+                est.foaw_variant,
+                est.noise_bound_mm * 1e-3,
+                est.max_window,
+                options.period,
+            )?,
+            safety: SafetyLayer::new(&options.safety, options.period),
+            clock: DeviceClock::default(),
+            last_sequence: None,
+            last_report_at: 0.0,
+            device_fault: false,
+            stop_on_fault: options.stop_on_fault,
+            out_sequence: 0,
+            output: [0; OUTPUT_REPORT_LEN],
+            stats: TimingStats::new(options.period),
+            last_state: None,
+        })
+    }
+
+    /// The output report the last call prepared.
+    pub fn output(&self) -> &[u8; OUTPUT_REPORT_LEN] {
+        &self.output
+    }
+
+    /// Prepare a zero-force report (faults, shutdown) and forget the last force.
+    pub fn prepare_zero(&mut self) -> &[u8; OUTPUT_REPORT_LEN] {
+        self.safety.reset();
+        self.encode(&Vector3::zeros());
+        &self.output
+    }
+
+    fn encode(&mut self, force: &Vector3<f64>) {
+        let report = OutputReport {
+            sequence: self.out_sequence,
+            force: *force,
+            enable: true,
+        };
+        self.out_sequence = self.out_sequence.wrapping_add(1);
+        // The safety layer keeps forces finite and far inside the protocol's range.
+        if report.encode(&mut self.output).is_err() {
+            OutputReport::zero(report.sequence)
+                .encode(&mut self.output)
+                .expect("zero force always encodes");
+        }
+    }
+
+    /// The device went silent and came back: restart the velocity filter.
+    pub fn resume_after_silence(&mut self) {
+        self.foaw.reset();
+    }
+
+    /// Handle one input report that arrived at `arrived` (transport clock, s).
+    pub fn tick(
+        &mut self,
+        bytes: &[u8],
+        arrived: f64,
+        controller: &mut dyn Controller,
+        events: Option<&Sender<ServoEvent>>,
+    ) -> Result<TickOutcome, ProtocolError> {
+        let report = InputReport::decode(bytes)?;
+        if let Some(prev) = self.last_sequence {
+            self.stats.record_period(arrived - self.last_report_at);
+            let gap = report.sequence.wrapping_sub(prev).wrapping_sub(1);
+            if gap != 0 && gap < u16::MAX / 2 {
+                self.stats.missed += u64::from(gap);
+                self.stats.overruns += 1;
+                emit(events, ServoEvent::Overrun { missed: gap });
+            }
+        }
+        self.last_sequence = Some(report.sequence);
+        self.last_report_at = arrived;
+
+        let faulted = report.status.contains(Status::FAULT);
+        if faulted != self.device_fault {
+            self.device_fault = faulted;
+            let event = if faulted {
+                ServoEvent::DeviceFault
+            } else {
+                ServoEvent::DeviceFaultCleared
+            };
+            emit(events, event);
+        }
+        if faulted {
+            self.stats.device_fault_ticks += 1;
+            if self.stop_on_fault {
+                self.prepare_zero();
+                return Ok(TickOutcome::Fault);
+            }
+        }
+
+        let state = DeviceState {
+            time: self.clock.seconds(report.timestamp_us),
+            position: report.position,
+            velocity: self.foaw.update(&report.position),
+            status: report.status,
+            tick: self.stats.ticks,
+        };
+        let output = controller.tick(&state);
+        let (force, limited) = self.safety.limit(&output.force, faulted);
+        if limited.non_finite {
+            self.stats.non_finite_forces += 1;
+            emit(events, ServoEvent::NonFiniteForce);
+        }
+        self.encode(&force);
+        self.stats.ticks += 1;
+        self.last_state = Some(state);
+        Ok(if output.done {
+            TickOutcome::Done
+        } else {
+            TickOutcome::Continue
+        })
+    }
+}
+
+/// Run the loop on the calling thread until `stop` is set, the duration elapses, the controller is
+/// done, or (with `stop_on_fault`) a fault occurs. Always ends by writing a zero-force report.
+pub fn run(
+    transport: &mut dyn Transport,
+    controller: &mut dyn Controller,
+    options: &ServoOptions,
+    stop: &AtomicBool,
+    events: Option<&Sender<ServoEvent>>,
+) -> Result<ServoReport, ServoError> {
+    let mut core = ServoCore::new(options)?;
+    let mut buf = [0u8; MAX_REPORT_LEN];
+    let start = transport.now();
+    let mut last_report_at = start;
+    let mut silent = false;
+
+    let result = loop {
+        if stop.load(Ordering::Relaxed) {
+            break Ok(ExitReason::Stopped);
+        }
+        let now = transport.now();
+        if options.duration.is_some_and(|d| now - start >= d) {
+            break Ok(ExitReason::DurationReached);
+        }
+        let wait = if silent {
+            options.watchdog
+        } else {
+            (last_report_at + options.watchdog - now).max(0.0)
+        };
+        let n = match transport.read_input(&mut buf, Duration::from_secs_f64(wait)) {
+            Err(e) => break Err(e),
+            Ok(Some(n)) => n.min(MAX_REPORT_LEN),
+            Ok(None) => {
+                let silent_for = transport.now() - last_report_at;
+                if !silent && silent_for >= options.watchdog {
+                    silent = true;
+                    core.stats.watchdog_faults += 1;
+                    emit(events, ServoEvent::WatchdogFault { silent_for });
+                    if let Err(e) = transport.write_output(core.prepare_zero()) {
+                        break Err(e);
+                    }
+                    if options.stop_on_fault {
+                        break Ok(ExitReason::Fault("device stopped reporting"));
+                    }
+                }
+                continue;
+            }
+        };
+        let received = Instant::now();
+        let arrived = transport.now();
+        let outcome = match core.tick(&buf[..n], arrived, controller, events) {
+            Ok(outcome) => outcome,
+            Err(e) => {
+                // Garbage does not count as the device being alive: the watchdog keeps running.
+                core.stats.garbled += 1;
+                emit(events, ServoEvent::GarbledReport(e));
+                continue;
+            }
+        };
+        if silent {
+            silent = false;
+            core.resume_after_silence();
+            emit(
+                events,
+                ServoEvent::ReportsResumed {
+                    after: arrived - last_report_at,
+                },
+            );
+        }
+        last_report_at = arrived;
+        if let Err(e) = transport.write_output(core.output()) {
+            break Err(e);
+        }
+        core.stats
+            .compute
+            .record_ns(received.elapsed().as_nanos() as u64);
+        match outcome {
+            TickOutcome::Continue => {}
+            TickOutcome::Done => break Ok(ExitReason::ControllerDone),
+            TickOutcome::Fault => break Ok(ExitReason::Fault("device reported a fault")),
+        }
+    };
+
+    // Whatever happened, the last thing the device hears is zero force.
+    let zeroed = transport.write_output(core.prepare_zero());
+    let exit = result?;
+    zeroed?;
+    Ok(ServoReport {
+        exit,
+        stats: core.stats,
+        last_state: core.last_state,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn device_clock_unwraps() {
+        let mut c = DeviceClock::default();
+        assert_eq!(c.seconds(u32::MAX - 999), 0.0);
+        assert!((c.seconds(u32::MAX) - 999e-6).abs() < 1e-12);
+        assert!((c.seconds(1000) - 2000e-6).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,75 @@
+//! Real-time setup of the servo thread: SCHED_FIFO where permitted, optional CPU pinning, memory
+//! locking and no timer slack. Anything refused becomes a warning and the loop runs anyway.
+
+use thread_priority::{
+    set_thread_priority_and_policy, thread_native_id, RealtimeThreadSchedulePolicy, ThreadPriority,
+    ThreadSchedulePolicy,
+};
+
+use crate::config::ServoConfig;
+
+/// What the servo thread got.
+#[derive(Clone, Debug, Default)]
+pub struct RealtimeSetup {
+    pub fifo_priority: Option<u8>,
+    pub pinned_cpu: Option<usize>,
+    pub memory_locked: bool,
+    /// One line per thing that was asked for and refused.
+    pub warnings: Vec<String>,
+}
+
+/// Apply `config` to the calling thread (call it on the servo thread before the loop).
+pub fn prepare_current_thread(config: &ServoConfig) -> RealtimeSetup {
+    let mut setup = RealtimeSetup::default();
+    // SAFETY: prctl with PR_SET_TIMERSLACK takes an integer argument and affects this thread only.
+    unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0) };
+    if config.lock_memory {
+        // SAFETY: mlockall has no memory-safety preconditions.
+        if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } == 0 {
+            setup.memory_locked = true;
+        } else {
+            setup.warnings.push(format!(
+                "cannot lock memory ({}); page faults may delay the loop (raise LimitMEMLOCK, see docs/install.md)",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    if config.cpu >= 0 {
+        let cpu = config.cpu as usize;
+        // SAFETY: cpu_set_t is plain data; sched_setaffinity(0, ..) affects the calling thread.
+        let ok = unsafe {
+            let mut set: libc::cpu_set_t = std::mem::zeroed();
+            libc::CPU_SET(cpu, &mut set);
+            libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) == 0
+        };
+        if ok {
+            setup.pinned_cpu = Some(cpu);
+        } else {
+            setup.warnings.push(format!(
+                "cannot pin the servo thread to CPU {cpu}: {}",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    if config.realtime_priority > 0 {
+        let result = ThreadPriority::try_from(config.realtime_priority)
+            .map_err(|e| e.to_string())
+            .and_then(|p| {
+                set_thread_priority_and_policy(
+                    thread_native_id(),
+                    p,
+                    ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo),
+                )
+                .map_err(|e| format!("{e:?}"))
+            });
+        match result {
+            Ok(()) => setup.fifo_priority = Some(config.realtime_priority),
+            Err(e) => setup.warnings.push(format!(
+                "cannot use SCHED_FIFO priority {} ({e}); running at normal priority — expect more \
+                 jitter (grant LimitRTPRIO or CAP_SYS_NICE, see docs/install.md)",
+                config.realtime_priority
+            )),
+        }
+    }
+    setup
+}

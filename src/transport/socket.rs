@@ -1,0 +1,199 @@
+//! `socket:PATH`: HID reports framed over a Unix stream socket, so an external simulator or a
+//! hardware-in-the-loop bridge can stand in for the device. hgcd connects as the client; the device
+//! side listens. Each frame is one length byte N (1–64) followed by the N bytes of one report,
+//! report ID first, exactly as over HID (`docs/hid-protocol.md`, "Socket framing").
+
+use std::io::{ErrorKind, Read, Write};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use super::sim::SimDevice;
+use super::{Transport, TransportError, MAX_REPORT_LEN};
+use crate::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
+
+/// Host side of the socket transport.
+pub struct SocketTransport {
+    stream: UnixStream,
+    path: String,
+    /// Bytes received but not yet consumed (at most one partial frame plus one whole one).
+    pending: [u8; 2 * (MAX_REPORT_LEN + 1)],
+    filled: usize,
+    start: Instant,
+    dropped_writes: u64,
+}
+
+impl SocketTransport {
+    pub fn connect(path: &Path) -> Result<Self, TransportError> {
+        let stream = UnixStream::connect(path).map_err(|e| TransportError::Open {
+            spec: format!("socket:{}", path.display()),
+            reason: format!("{e} (is the device-side program listening there?)"),
+        })?;
+        // A full socket buffer must never stall the servo loop: writes give up after 200 µs.
+        stream
+            .set_write_timeout(Some(Duration::from_micros(200)))
+            .map_err(|e| TransportError::Io(e.to_string()))?;
+        Ok(Self {
+            stream,
+            path: path.display().to_string(),
+            pending: [0; 2 * (MAX_REPORT_LEN + 1)],
+            filled: 0,
+            start: Instant::now(),
+            dropped_writes: 0,
+        })
+    }
+
+    /// Output reports dropped because the peer was not reading.
+    pub fn dropped_writes(&self) -> u64 {
+        self.dropped_writes
+    }
+
+    /// Take one complete frame from `pending` into `buf`, if there is one.
+    fn take_frame(
+        &mut self,
+        buf: &mut [u8; MAX_REPORT_LEN],
+    ) -> Result<Option<usize>, TransportError> {
+        if self.filled == 0 {
+            return Ok(None);
+        }
+        let n = self.pending[0] as usize;
+        if n == 0 || n > MAX_REPORT_LEN {
+            return Err(TransportError::Io(format!(
+                "bad frame length {n} from socket peer"
+            )));
+        }
+        if self.filled < n + 1 {
+            return Ok(None);
+        }
+        buf[..n].copy_from_slice(&self.pending[1..=n]);
+        self.pending.copy_within(n + 1..self.filled, 0);
+        self.filled -= n + 1;
+        Ok(Some(n))
+    }
+}
+
+impl Transport for SocketTransport {
+    fn read_input(
+        &mut self,
+        buf: &mut [u8; MAX_REPORT_LEN],
+        timeout: Duration,
+    ) -> Result<Option<usize>, TransportError> {
+        let deadline = Instant::now() + timeout;
+        let mut newest = None;
+        loop {
+            // Drain every complete frame; keep the newest (skip ahead after an overrun).
+            while let Some(n) = self.take_frame(buf)? {
+                newest = Some(n);
+            }
+            let now = Instant::now();
+            let wait = if newest.is_some() {
+                // Something to return: only pick up what is already queued.
+                Duration::from_micros(1)
+            } else if now >= deadline {
+                return Ok(None);
+            } else {
+                deadline - now
+            };
+            self.stream
+                .set_read_timeout(Some(wait))
+                .map_err(|e| TransportError::Io(e.to_string()))?;
+            let space = self.pending.len() - self.filled;
+            match self
+                .stream
+                .read(&mut self.pending[self.filled..self.filled + space])
+            {
+                Ok(0) => {
+                    return Err(TransportError::Disconnected(format!(
+                        "{} closed",
+                        self.path
+                    )))
+                }
+                Ok(n) => self.filled += n,
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                    if newest.is_some() {
+                        return Ok(newest);
+                    }
+                }
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(e) => return Err(TransportError::Disconnected(e.to_string())),
+            }
+        }
+    }
+
+    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+        let mut frame = [0u8; OUTPUT_REPORT_LEN + 1];
+        frame[0] = OUTPUT_REPORT_LEN as u8;
+        frame[1..].copy_from_slice(report);
+        match self.stream.write_all(&frame) {
+            Ok(()) => Ok(()),
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                self.dropped_writes += 1;
+                Ok(())
+            }
+            Err(e) => Err(TransportError::Disconnected(e.to_string())),
+        }
+    }
+
+    fn now(&self) -> f64 {
+        self.start.elapsed().as_secs_f64()
+    }
+
+    fn describe(&self) -> String {
+        format!("socket {}", self.path)
+    }
+}
+
+/// Device side: serve `device` to one host connected to `listener`. In lock-step mode each input
+/// report waits for the host's output report (deterministic, as fast as both sides allow); otherwise
+/// reports go out in real time, one per period. Returns when the host disconnects or `stop` is set.
+pub fn serve(
+    listener: &UnixListener,
+    device: &mut SimDevice,
+    lockstep: bool,
+    stop: &AtomicBool,
+) -> std::io::Result<()> {
+    let (mut stream, _) = listener.accept()?;
+    stream.set_read_timeout(Some(Duration::from_millis(1)))?;
+    let period = Duration::from_secs_f64(device.period());
+    let mut next = Instant::now();
+    let mut inbuf = Vec::with_capacity(256);
+    let mut chunk = [0u8; 256];
+    while !stop.load(Ordering::Relaxed) {
+        device.advance();
+        if !device.is_silent() {
+            let mut report = [0u8; INPUT_REPORT_LEN];
+            device.input_report(&mut report);
+            let mut frame = vec![INPUT_REPORT_LEN as u8];
+            frame.extend_from_slice(&report);
+            if stream.write_all(&frame).is_err() {
+                return Ok(());
+            }
+        }
+        let mut got_output = false;
+        let deadline = Instant::now() + Duration::from_millis(100);
+        while lockstep && !got_output || !lockstep && Instant::now() < next + period {
+            match stream.read(&mut chunk) {
+                Ok(0) => return Ok(()),
+                Ok(n) => inbuf.extend_from_slice(&chunk[..n]),
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(_) => return Ok(()),
+            }
+            while let Some(&n) = inbuf.first() {
+                let n = n as usize;
+                if inbuf.len() < n + 1 {
+                    break;
+                }
+                let _ = device.receive_output(&inbuf[1..=n]);
+                inbuf.drain(..=n);
+                got_output = true;
+            }
+            if stop.load(Ordering::Relaxed) || lockstep && Instant::now() > deadline {
+                break;
+            }
+        }
+        next += period;
+    }
+    Ok(())
+}

@@ -1,0 +1,349 @@
+//! The device path end to end: simulated firmware, byte protocol, servo loop and safety layer, in
+//! virtual time. Assertions compare with the simulator's physics, not with printed output.
+
+use std::os::unix::net::UnixListener;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use nalgebra::Vector3;
+
+use hgcd::config::Config;
+use hgcd::control::pd::{LinearisedGains, PdHold};
+use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
+use hgcd::grid::MassGrid;
+use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions};
+use hgcd::transport::sim::{SimDevice, SimTransport};
+use hgcd::transport::socket::{self, SocketTransport};
+use hgcd::transport::{Pacing, Transport, TransportError, MAX_REPORT_LEN};
+
+fn sim_transport(config: &Config) -> SimTransport {
+    SimTransport::new(
+        SimDevice::from_config("point-mass", config).unwrap(),
+        Pacing::Virtual,
+    )
+}
+
+/// Wraps a controller and records every state it sees.
+struct Recorder<C> {
+    inner: C,
+    states: Vec<DeviceState>,
+}
+
+impl<C: Controller> Controller for Recorder<C> {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        self.states.push(*s);
+        self.inner.tick(s)
+    }
+}
+
+fn options(config: &Config, duration: f64) -> ServoOptions {
+    let mut o = ServoOptions::from_config(config);
+    o.duration = Some(duration);
+    o
+}
+
+/// A non-uniform mass field with gravity tilted away from −z, as a test truth.
+fn truth_field() -> MassGrid {
+    let mut g = MassGrid::uniform(
+        0.1,
+        9.81,
+        Vector3::new(0.05, -0.03, 1.0),
+        Vector3::new(-0.08, -0.08, -0.08),
+        0.08,
+        [3, 3, 3],
+    );
+    for (n, m) in g.masses.iter_mut().enumerate() {
+        *m = 0.05 + 0.2 * ((n * 37) % 27) as f64 / 26.0;
+    }
+    g
+}
+
+#[test]
+fn zero_force_falls_with_g_until_the_workspace_limit() {
+    let config = Config::default();
+    let mut transport = sim_transport(&config);
+    let mut rec = Recorder {
+        inner: ZeroForce,
+        states: Vec::with_capacity(1000),
+    };
+    let stop = AtomicBool::new(false);
+    let report = servo::run(
+        &mut transport,
+        &mut rec,
+        &options(&config, 0.5),
+        &stop,
+        None,
+    )
+    .unwrap();
+    assert_eq!(report.exit, ExitReason::DurationReached);
+
+    // Least-squares fit z = c0 + c1 t + c2 t² over the free flight (well before the floor at
+    // −80 mm, reached after about 128 ms).
+    let flight: Vec<_> = rec
+        .states
+        .iter()
+        .filter(|s| s.time > 0.005 && s.time < 0.11)
+        .collect();
+    assert!(flight.len() > 90);
+    let mut ata = nalgebra::Matrix3::<f64>::zeros();
+    let mut atb = Vector3::<f64>::zeros();
+    for s in &flight {
+        let row = Vector3::new(1.0, s.time, s.time * s.time);
+        ata += row * row.transpose();
+        atb += row * s.position.z;
+    }
+    let c = ata.lu().solve(&atb).unwrap();
+    let acceleration = 2.0 * c[2];
+    assert!(
+        (acceleration + 9.81).abs() < 0.01 * 9.81,
+        "fall acceleration {acceleration} m/s², expected −9.81"
+    );
+    // Gravity is along −z: nothing moves sideways.
+    assert!(flight.iter().all(|s| s.position.xy().norm() < 2e-5));
+    // It meets the stop at −80 mm and stays there.
+    let end = rec.states.iter().filter(|s| s.time > 0.2);
+    for s in end {
+        assert!((s.position.z + 0.08).abs() < 2e-5, "z = {}", s.position.z);
+    }
+}
+
+#[test]
+fn pd_hold_with_exact_gravity_stays_within_50_micrometres_for_10_s() {
+    let field = truth_field();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("truth.toml");
+    field.save_atomic(&path).unwrap();
+    let set_point = Vector3::new(0.012, -0.021, 0.017);
+    let mut config = Config::default();
+    config.sim.mass_grid = Some(path);
+    config.sim.start_position_mm = [12.0, -21.0, 17.0];
+    let mut transport = sim_transport(&config);
+    let mut rec = Recorder {
+        inner: PdHold {
+            set_point,
+            gains: LinearisedGains::from_rise_time(0.1, 1.0),
+            field,
+        },
+        states: Vec::with_capacity(10_100),
+    };
+    let stop = AtomicBool::new(false);
+    let report = servo::run(
+        &mut transport,
+        &mut rec,
+        &options(&config, 10.0),
+        &stop,
+        None,
+    )
+    .unwrap();
+    assert_eq!(report.exit, ExitReason::DurationReached);
+    assert!(report.stats.ticks >= 9_999);
+    let worst = rec
+        .states
+        .iter()
+        .map(|s| (s.position - set_point).norm())
+        .fold(0.0, f64::max);
+    assert!(
+        worst < 5e-5,
+        "measured position strayed {worst} m from the set point"
+    );
+    let truth = transport.device().plant().position();
+    assert!((truth - set_point).norm() < 5e-5);
+}
+
+#[test]
+fn silent_device_trips_the_watchdog_and_the_last_report_is_zero_force() {
+    let mut config = Config::default();
+    config.sim.stop_reporting_after_s = Some(1.0);
+    let mut transport = sim_transport(&config);
+    // A controller that pushes: the last command before the silence is not zero.
+    let mut hold = PdHold {
+        set_point: Vector3::new(0.0, 0.0, 0.01),
+        gains: LinearisedGains::from_rise_time(0.1, 1.0),
+        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
+    };
+    let (tx, rx) = crossbeam_channel::bounded(64);
+    let stop = AtomicBool::new(false);
+    let report = servo::run(
+        &mut transport,
+        &mut hold,
+        &options(&config, 1.5),
+        &stop,
+        Some(&tx),
+    )
+    .unwrap();
+    assert_eq!(report.stats.watchdog_faults, 1);
+    let events: Vec<_> = rx.try_iter().collect();
+    let silent_for = events
+        .iter()
+        .find_map(|e| match e {
+            ServoEvent::WatchdogFault { silent_for } => Some(*silent_for),
+            _ => None,
+        })
+        .expect("a watchdog event");
+    let deadline = config.servo.watchdog_ms * 1e-3;
+    assert!(
+        silent_for >= deadline && silent_for <= deadline + 1e-3 + 1e-9,
+        "detected after {silent_for} s, deadline {deadline} s"
+    );
+    let last = transport.device().last_output().unwrap();
+    assert_eq!(last.force, Vector3::zeros());
+    // Before the silence the loop was really pushing.
+    assert!(report.last_state.unwrap().time > 0.99);
+
+    // With stop_on_fault the run ends at the fault instead.
+    let mut transport = sim_transport(&config);
+    let mut o = options(&config, 5.0);
+    o.stop_on_fault = true;
+    let report = servo::run(&mut transport, &mut hold, &o, &stop, None).unwrap();
+    assert!(matches!(report.exit, ExitReason::Fault(_)));
+    assert!(transport.device().time() < 1.0 + 2.0 * deadline);
+    assert_eq!(
+        transport.device().last_output().unwrap().force,
+        Vector3::zeros()
+    );
+}
+
+/// Sets the stop flag (as the SIGINT handler does) after a number of ticks, while pushing.
+struct StopAfter {
+    ticks: u64,
+    stop: Arc<AtomicBool>,
+}
+
+impl Controller for StopAfter {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        if s.tick == self.ticks {
+            self.stop.store(true, Ordering::SeqCst);
+        }
+        ControlOutput::force(Vector3::new(0.5, 0.0, 1.0))
+    }
+}
+
+#[test]
+fn stop_request_writes_zero_force_last() {
+    let config = Config::default();
+    let mut transport = sim_transport(&config);
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut c = StopAfter {
+        ticks: 300,
+        stop: stop.clone(),
+    };
+    let report = servo::run(&mut transport, &mut c, &options(&config, 10.0), &stop, None).unwrap();
+    assert_eq!(report.exit, ExitReason::Stopped);
+    assert_eq!(report.stats.ticks, 301);
+    assert_eq!(
+        transport.device().last_output().unwrap().force,
+        Vector3::zeros()
+    );
+}
+
+/// A transport that corrupts every seventh input report.
+struct Garbling {
+    inner: SimTransport,
+    count: u64,
+}
+
+impl Transport for Garbling {
+    fn read_input(
+        &mut self,
+        buf: &mut [u8; MAX_REPORT_LEN],
+        timeout: Duration,
+    ) -> Result<Option<usize>, TransportError> {
+        let r = self.inner.read_input(buf, timeout)?;
+        self.count += 1;
+        Ok(r.map(|n| {
+            if self.count % 7 == 0 {
+                buf[1] = 0xee; // unknown protocol version
+                n
+            } else if self.count % 7 == 3 {
+                n - 5 // short report
+            } else {
+                n
+            }
+        }))
+    }
+    fn write_output(
+        &mut self,
+        report: &[u8; hgcd::protocol::OUTPUT_REPORT_LEN],
+    ) -> Result<(), TransportError> {
+        self.inner.write_output(report)
+    }
+    fn now(&self) -> f64 {
+        self.inner.now()
+    }
+    fn describe(&self) -> String {
+        "garbling".into()
+    }
+}
+
+#[test]
+fn garbled_reports_are_counted_and_skipped() {
+    let config = Config::default();
+    let mut transport = Garbling {
+        inner: sim_transport(&config),
+        count: 0,
+    };
+    let stop = AtomicBool::new(false);
+    let report = servo::run(
+        &mut transport,
+        &mut ZeroForce,
+        &options(&config, 1.0),
+        &stop,
+        None,
+    )
+    .unwrap();
+    // 2 of every 7 reports are bad; the good ones drive the loop. Skipped good-report sequence
+    // numbers show up as missed reports, not as faults.
+    assert!((report.stats.garbled as f64 - 1000.0 * 2.0 / 7.0).abs() <= 2.0);
+    assert_eq!(report.stats.watchdog_faults, 0);
+    assert!(report.stats.ticks > 700);
+}
+
+#[test]
+fn socket_transport_carries_the_same_protocol() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("device.sock");
+    let listener = UnixListener::bind(&path).unwrap();
+    let mut config = Config::default();
+    config.sim.start_position_mm = [0.0, 0.0, 5.0];
+    let device_config = config.clone();
+    let server_stop = Arc::new(AtomicBool::new(false));
+    let flag = server_stop.clone();
+    let server = std::thread::spawn(move || {
+        let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
+        socket::serve(&listener, &mut device, true, &flag).unwrap();
+        device
+    });
+    let mut transport = SocketTransport::connect(&path).unwrap();
+    let set_point = Vector3::new(0.0, 0.0, 0.005);
+    let mut hold = PdHold {
+        set_point,
+        gains: LinearisedGains::from_rise_time(0.1, 1.0),
+        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
+    };
+    let stop = AtomicBool::new(false);
+    // Lock-step: the device advances one period per exchanged report pair, so count ticks.
+    struct Ticks<'a>(&'a mut PdHold, u64);
+    impl Controller for Ticks<'_> {
+        fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+            let out = self.0.tick(s);
+            if s.tick + 1 >= self.1 {
+                ControlOutput::done(out.force)
+            } else {
+                out
+            }
+        }
+    }
+    let mut c = Ticks(&mut hold, 500);
+    let mut o = ServoOptions::from_config(&config);
+    o.watchdog = 1.0; // wall-clock watchdog: generous on a loaded CI machine
+    let report = servo::run(&mut transport, &mut c, &o, &stop, None).unwrap();
+    assert_eq!(report.exit, ExitReason::ControllerDone);
+    let last = report.last_state.unwrap();
+    assert!((last.position - set_point).norm() < 5e-5);
+    drop(transport);
+    server_stop.store(true, Ordering::SeqCst);
+    let device = server.join().unwrap();
+    assert_eq!(device.last_output().unwrap().force, Vector3::zeros());
+    assert_eq!(device.rejected_outputs(), 0);
+}
