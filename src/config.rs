@@ -426,7 +426,14 @@ impl Config {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::from_toml_str(&text, path)
+        let mut config = Self::from_toml_str(&text, path)?;
+        // A relative mass-grid path is relative to the config file, not to the working directory.
+        if let (Some(grid), Some(dir)) = (&config.sim.mass_grid, path.parent()) {
+            if grid.is_relative() {
+                config.sim.mass_grid = Some(dir.join(grid));
+            }
+        }
+        Ok(config)
     }
 
     /// Check every value; the error names the offending key.

@@ -282,7 +282,11 @@ impl MassGrid {
         out.push_str("]\n");
         if !self.extra.is_empty() {
             out.push('\n');
-            out.push_str(&toml::to_string(&self.extra).unwrap_or_default());
+            // A toml::Table always serialises; the fallback only keeps the type honest.
+            match toml::to_string(&self.extra) {
+                Ok(text) => out.push_str(&text),
+                Err(e) => out.push_str(&format!("# extra keys could not be written: {e}\n")),
+            }
         }
         out
     }
@@ -311,7 +315,9 @@ impl MassGrid {
             file.sync_all()?;
             drop(file);
             if path.exists() {
-                fs::copy(path, dir.join(format!("{name}.bak")))?;
+                let backup = dir.join(format!("{name}.bak"));
+                fs::copy(path, &backup)?;
+                fs::File::open(&backup)?.sync_all()?;
             }
             fs::rename(&tmp, path)?;
             fs::File::open(&dir)?.sync_all()

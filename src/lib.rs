@@ -2,6 +2,7 @@
 //! (Formaglio et al.). The servo loop lives in [`servo`], controllers in [`control`], device
 //! transports in [`transport`], simulated plants in [`sim`].
 
+pub mod calibrate; //  `hgcd calibrate`: run Algorithm 1 on a device and persist the grid
 pub mod config; //     typed configuration, defaults, validation
 pub mod control; //    controllers: PD hold, calibration, compensation
 pub mod daemon; //     `hgcd run`: device, servo thread, event logging, signals

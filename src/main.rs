@@ -8,8 +8,11 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 
+use hgcd::calibrate::{calibrate, CalibrateRequest};
 use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH};
 use hgcd::daemon::{self, RunRequest};
+
+mod progress;
 use hgcd::transport::{hid, Pacing};
 
 #[derive(Parser, Debug)]
@@ -22,6 +25,9 @@ struct Cli {
     /// Configuration file (default: /etc/hgcd/hgcd.toml if it exists, else built-in defaults).
     #[arg(long, global = true, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// Directory of calibration grids (default: config `paths.state_dir`, $STATE_DIRECTORY, /var/lib/hgcd).
+    #[arg(long, global = true, value_name = "DIR")]
+    state_dir: Option<PathBuf>,
     /// Log level: error, warn, info, debug or trace (RUST_LOG overrides).
     #[arg(long, global = true, default_value = "info", value_name = "LEVEL")]
     log_level: String,
@@ -42,6 +48,21 @@ enum Command {
         /// Run a simulated device in virtual time (as fast as possible) instead of real time.
         #[arg(long)]
         virtual_time: bool,
+    },
+    /// Run the off-line autocalibration (paper Algorithm 1) and save the mass grid.
+    Calibrate {
+        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+        #[arg(long, value_name = "SPEC")]
+        device: Option<String>,
+        /// Write the grid to this file instead of <state-dir>/<device-id>.toml.
+        #[arg(long, value_name = "FILE")]
+        output: Option<PathBuf>,
+        /// Run a simulated device in real time (default for simulated devices: virtual time).
+        #[arg(long)]
+        real_time: bool,
+        /// Do not ask for confirmation before starting on a real device.
+        #[arg(long)]
+        yes: bool,
     },
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
@@ -88,7 +109,10 @@ fn device_spec(arg: Option<&str>, config: &Config) -> Result<DeviceSpec> {
 
 fn real_main(cli: Cli) -> Result<()> {
     init_logging(&cli.log_level)?;
-    let config = load_config(cli.config.as_deref())?;
+    let mut config = load_config(cli.config.as_deref())?;
+    if let Some(dir) = cli.state_dir {
+        config.paths.state_dir = Some(dir);
+    }
     match cli.command {
         Command::Run {
             device,
@@ -115,6 +139,41 @@ fn real_main(cli: Cli) -> Result<()> {
             println!("{}", report.stats);
             Ok(())
         }
+        Command::Calibrate {
+            device,
+            output,
+            real_time,
+            yes,
+        } => {
+            let device = device_spec(device.as_deref(), &config)?;
+            let simulated = matches!(device, DeviceSpec::Sim { .. });
+            if !simulated && !yes {
+                confirm_start()?;
+            }
+            let request = CalibrateRequest {
+                device,
+                pacing: if simulated && !real_time {
+                    Pacing::Virtual
+                } else {
+                    Pacing::RealTime
+                },
+                output,
+                state_dir: config.state_dir(),
+            };
+            let stop = install_stop_handler()?;
+            let mut display = progress::Display::new(
+                hgcd::control::calibration::GridPlan::new(
+                    &hgcd::control::calibration::CalibrationParams::from_config(&config),
+                )
+                .map(|p| p.path.len())
+                .unwrap_or(0),
+            );
+            let run = calibrate(&config, &request, stop, &mut |e| display.show(e));
+            display.finish();
+            let run = run?;
+            print!("{}", progress::summary(&run));
+            Ok(())
+        }
         Command::Devices => {
             let devices = hid::list_devices()?;
             if devices.is_empty() {
@@ -135,6 +194,25 @@ fn real_main(cli: Cli) -> Result<()> {
             Ok(())
         }
     }
+}
+
+/// On a real device the user brings the handle near the workspace centre first (paper §3.1).
+fn confirm_start() -> Result<()> {
+    use std::io::{BufRead, IsTerminal, Write};
+    let stdin = std::io::stdin();
+    anyhow::ensure!(
+        stdin.is_terminal(),
+        "calibrating a real device needs confirmation: run it on a terminal or pass --yes once the \
+         handle rests near the centre of the workspace"
+    );
+    eprint!(
+        "Bring the handle near the centre of the workspace and let go of it; hgcd will hold it with \
+         a soft spring.\nPress Enter to start (Ctrl-C aborts). "
+    );
+    std::io::stderr().flush().ok();
+    let mut line = String::new();
+    stdin.lock().read_line(&mut line)?;
+    Ok(())
 }
 
 fn main() -> ExitCode {

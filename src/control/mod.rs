@@ -1,6 +1,7 @@
 //! Controllers: tick functions from device state to force. Calibration and compensation are
 //! controllers too, so each is unit-testable without threads or devices.
 
+pub mod calibration;
 pub mod pd;
 
 use nalgebra::Vector3;

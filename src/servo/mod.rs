@@ -7,6 +7,7 @@
 pub mod rt;
 pub mod safety;
 pub mod stats;
+pub mod thread;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -104,23 +105,24 @@ pub enum ServoError {
     Estimator(#[from] FoawError),
 }
 
-/// Unwraps the device's 32-bit microsecond clock into seconds since the first report.
+/// Unwraps the device's 32-bit microsecond clock into seconds since the first report. The result
+/// never runs backwards: a clock that jumps back (a device reset) just adds no time.
 #[derive(Clone, Copy, Debug, Default)]
 struct DeviceClock {
-    first: Option<u32>,
-    last: u32,
-    wraps: u64,
+    last: Option<u32>,
+    elapsed_us: u64,
 }
 
 impl DeviceClock {
     fn seconds(&mut self, raw: u32) -> f64 {
-        let first = *self.first.get_or_insert(raw);
-        if raw < self.last && self.last - raw > u32::MAX / 2 {
-            self.wraps += 1;
+        if let Some(last) = self.last {
+            let step = raw.wrapping_sub(last);
+            if step < u32::MAX / 2 {
+                self.elapsed_us += u64::from(step);
+            }
         }
-        self.last = raw;
-        let total = (self.wraps << 32) + u64::from(raw);
-        (total - u64::from(first)) as f64 * 1e-6
+        self.last = Some(raw);
+        self.elapsed_us as f64 * 1e-6
     }
 }
 
@@ -185,18 +187,25 @@ impl ServoCore {
         &self.output
     }
 
-    /// Prepare a zero-force report (faults, shutdown) and forget the last force.
+    /// Prepare a zero-force report (faults) and forget the last force.
     pub fn prepare_zero(&mut self) -> &[u8; OUTPUT_REPORT_LEN] {
         self.safety.reset();
-        self.encode(&Vector3::zeros());
+        self.encode(&Vector3::zeros(), true);
         &self.output
     }
 
-    fn encode(&mut self, force: &Vector3<f64>) {
+    /// Prepare the last report of a run: zero force, motors disabled.
+    pub fn prepare_shutdown(&mut self) -> &[u8; OUTPUT_REPORT_LEN] {
+        self.safety.reset();
+        self.encode(&Vector3::zeros(), false);
+        &self.output
+    }
+
+    fn encode(&mut self, force: &Vector3<f64>, enable: bool) {
         let report = OutputReport {
             sequence: self.out_sequence,
             force: *force,
-            enable: true,
+            enable,
         };
         self.out_sequence = self.out_sequence.wrapping_add(1);
         // The safety layer keeps forces finite and far inside the protocol's range.
@@ -264,7 +273,7 @@ impl ServoCore {
             self.stats.non_finite_forces += 1;
             emit(events, ServoEvent::NonFiniteForce);
         }
-        self.encode(&force);
+        self.encode(&force, true);
         self.stats.ticks += 1;
         self.last_state = Some(state);
         Ok(if output.done {
@@ -357,8 +366,8 @@ pub fn run(
         }
     };
 
-    // Whatever happened, the last thing the device hears is zero force.
-    let zeroed = transport.write_output(core.prepare_zero());
+    // Whatever happened, the last thing the device hears is zero force with motors disabled.
+    let zeroed = transport.write_output(core.prepare_shutdown());
     let exit = result?;
     zeroed?;
     Ok(ServoReport {
@@ -378,5 +387,8 @@ mod tests {
         assert_eq!(c.seconds(u32::MAX - 999), 0.0);
         assert!((c.seconds(u32::MAX) - 999e-6).abs() < 1e-12);
         assert!((c.seconds(1000) - 2000e-6).abs() < 1e-12);
+        // A reset clock does not make time run backwards.
+        assert!((c.seconds(10) - 2000e-6).abs() < 1e-12);
+        assert!((c.seconds(20) - 2010e-6).abs() < 1e-12);
     }
 }

@@ -125,14 +125,35 @@ impl Transport for SocketTransport {
         let mut frame = [0u8; OUTPUT_REPORT_LEN + 1];
         frame[0] = OUTPUT_REPORT_LEN as u8;
         frame[1..].copy_from_slice(report);
-        match self.stream.write_all(&frame) {
-            Ok(()) => Ok(()),
-            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
-                self.dropped_writes += 1;
-                Ok(())
+        let mut sent = 0;
+        while sent < frame.len() {
+            match self.stream.write(&frame[sent..]) {
+                Ok(0) => {
+                    return Err(TransportError::Disconnected(format!(
+                        "{} closed",
+                        self.path
+                    )))
+                }
+                Ok(n) => sent += n,
+                // Nothing sent: drop this report (the next one supersedes it).
+                Err(e)
+                    if sent == 0
+                        && matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) =>
+                {
+                    self.dropped_writes += 1;
+                    return Ok(());
+                }
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                // Half a frame on the wire would desynchronise the stream: give up on the peer.
+                Err(e) => {
+                    return Err(TransportError::Disconnected(format!(
+                        "{}: {e} after a partial frame",
+                        self.path
+                    )))
+                }
             }
-            Err(e) => Err(TransportError::Disconnected(e.to_string())),
         }
+        Ok(())
     }
 
     fn now(&self) -> f64 {
@@ -159,8 +180,13 @@ pub fn serve(
     let mut next = Instant::now();
     let mut inbuf = Vec::with_capacity(256);
     let mut chunk = [0u8; 256];
+    let mut first = true;
     while !stop.load(Ordering::Relaxed) {
-        device.advance();
+        // The first report shows the power-on state, as over HID.
+        if !first {
+            device.advance();
+        }
+        first = false;
         if !device.is_silent() {
             let mut report = [0u8; INPUT_REPORT_LEN];
             device.input_report(&mut report);
@@ -182,6 +208,12 @@ pub fn serve(
             }
             while let Some(&n) = inbuf.first() {
                 let n = n as usize;
+                if n == 0 || n > MAX_REPORT_LEN {
+                    return Err(std::io::Error::new(
+                        ErrorKind::InvalidData,
+                        format!("bad frame length {n} from host"),
+                    ));
+                }
                 if inbuf.len() < n + 1 {
                     break;
                 }

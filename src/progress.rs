@@ -1,0 +1,145 @@
+//! Calibration progress for the terminal (a progress bar) or for logs (plain lines), and the
+//! closing summary. Part of the binary: the library only emits events.
+
+use std::io::IsTerminal;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use tracing::info;
+
+use hgcd::calibrate::CalibrationRun;
+use hgcd::control::calibration::CalibrationEvent;
+
+pub struct Display {
+    bar: Option<ProgressBar>,
+}
+
+impl Display {
+    /// A bar over `vertices` vertices when stderr is a terminal, log lines otherwise.
+    pub fn new(vertices: usize) -> Self {
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let bar = ProgressBar::new(vertices as u64);
+            bar.set_style(
+                ProgressStyle::with_template(
+                    "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} vertices  {msg}",
+                )
+                .expect("valid template"),
+            );
+            bar.set_message("initialising");
+            bar
+        });
+        Self { bar }
+    }
+
+    pub fn show(&mut self, event: &CalibrationEvent) {
+        let line = match event {
+            CalibrationEvent::InitStarted => {
+                "initialisation: holding the handle with k_init to find gravity".to_string()
+            }
+            CalibrationEvent::InitDone {
+                gravity_direction: v,
+                initial_mass,
+            } => format!(
+                "gravity direction v_G = ({:.4}, {:.4}, {:.4}), rough mass M̂0 = {:.1} g",
+                v.x,
+                v.y,
+                v.z,
+                initial_mass * 1e3
+            ),
+            CalibrationEvent::VertexStarted { vertex, of, at } => {
+                format!("vertex {}/{}: moving to {at}", vertex + 1, of)
+            }
+            CalibrationEvent::Iteration {
+                vertex,
+                iteration,
+                mass,
+                error,
+            } => format!(
+                "vertex {}: iteration {iteration}, M = {:.2} g, error {:.1} µm",
+                vertex + 1,
+                mass * 1e3,
+                error * 1e6
+            ),
+            CalibrationEvent::GainsReduced { vertex, scale } => format!(
+                "vertex {}: no steady state yet, PD gains scaled by {scale}",
+                vertex + 1
+            ),
+            CalibrationEvent::VertexDone {
+                vertex,
+                of,
+                mass,
+                iterations,
+            } => {
+                if let Some(bar) = &self.bar {
+                    bar.set_position(*vertex as u64 + 1);
+                }
+                format!(
+                    "vertex {}/{} done: M = {:.2} g after {iterations} updates",
+                    vertex + 1,
+                    of,
+                    mass * 1e3
+                )
+            }
+            CalibrationEvent::Finished => "calibration finished".to_string(),
+            CalibrationEvent::Failed(f) => format!("calibration failed: {f}"),
+        };
+        match &self.bar {
+            Some(bar) => bar.set_message(line),
+            None => {
+                // Iterations are chatty; logs get the milestones.
+                if !matches!(event, CalibrationEvent::Iteration { .. }) {
+                    info!("{line}");
+                }
+            }
+        }
+    }
+
+    pub fn finish(&mut self) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+/// What `hgcd calibrate` prints when it succeeds.
+pub fn summary(run: &CalibrationRun) -> String {
+    let r = &run.result;
+    let v = r.gravity_direction;
+    let mut out = format!(
+        "grid written to {}\n\
+         gravity direction v_G = ({:.4}, {:.4}, {:.4}); rough mass M̂0 = {:.1} g\n\
+         {} vertices ({}×{}×{}), {:.1} s device time, {:.2} s wall time\n",
+        run.path.display(),
+        v.x,
+        v.y,
+        v.z,
+        r.initial_mass * 1e3,
+        r.vertices.len(),
+        r.dims[0],
+        r.dims[1],
+        r.dims[2],
+        r.duration,
+        run.wall_time
+    );
+    out.push_str(
+        "  vertex (n, m, p)   position mm              mass g   updates  final error µm\n",
+    );
+    for vr in &r.vertices {
+        let p = vr.vertex.position * 1e3;
+        out.push_str(&format!(
+            "  ({:>2}, {:>2}, {:>2})       ({:>6.1}, {:>6.1}, {:>6.1})   {:>7.2}   {:>6}   {:>8.1}\n",
+            vr.vertex.index[0],
+            vr.vertex.index[1],
+            vr.vertex.index[2],
+            p.x,
+            p.y,
+            p.z,
+            vr.mass * 1e3,
+            vr.iterations,
+            vr.final_error * 1e6
+        ));
+    }
+    for lo in &r.left_out {
+        out.push_str(&format!("  left out (outside the workspace): {lo}\n"));
+    }
+    out
+}

@@ -1,0 +1,341 @@
+//! Algorithm 1 against the simulator's ground truth, and its failure paths.
+
+use std::io::{BufRead, BufReader, Read};
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+
+use hgcd::calibrate::{calibrate, CalibrateRequest};
+use hgcd::config::Config;
+use hgcd::control::calibration::CalibrationEvent;
+use hgcd::grid::MassGrid;
+use hgcd::transport::Pacing;
+
+/// A 5×5×5 truth field on a 40 mm lattice (±80 mm) with gravity tilted about 3.3° away from −z.
+/// The 27 inner vertices (the calibration grid) take 27 distinct masses spread evenly over
+/// 0.05–0.25 kg in scrambled order; the outer shell is 0.15 kg.
+fn truth_field() -> MassGrid {
+    let mut g = MassGrid::uniform(
+        0.1,
+        9.81,
+        Vector3::new(0.05, -0.03, 1.0),
+        Vector3::new(-0.08, -0.08, -0.08),
+        0.04,
+        [5, 5, 5],
+    );
+    for k in 0..5 {
+        for j in 0..5 {
+            for i in 0..5 {
+                let n = g.index(i, j, k);
+                let inner = [i, j, k].iter().all(|&c| (1..=3).contains(&c));
+                g.masses[n] = if inner {
+                    let q = (i - 1) + 3 * ((j - 1) + 3 * (k - 1));
+                    0.05 + 0.2 * ((q * 10) % 27) as f64 / 26.0
+                } else {
+                    0.15
+                };
+            }
+        }
+    }
+    g
+}
+
+/// A config file (paper defaults) whose simulated device has the truth field; extra TOML appended.
+fn setup(dir: &Path, extra: &str) -> (PathBuf, MassGrid) {
+    let truth = truth_field();
+    truth.save_atomic(&dir.join("truth.toml")).unwrap();
+    let cfg = dir.join("hgcd.toml");
+    std::fs::write(&cfg, format!("[sim]\nmass_grid = \"truth.toml\"\n{extra}")).unwrap();
+    (cfg, truth)
+}
+
+fn hgcd(cfg: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_hgcd"));
+    c.arg("--config").arg(cfg).arg("--log-level").arg("warn");
+    c
+}
+
+#[test]
+fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, truth) = setup(dir.path(), "");
+    let state = dir.path().join("state");
+    let out = hgcd(&cfg)
+        .args(["calibrate", "--device", "sim:point-mass", "--state-dir"])
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let grid = MassGrid::load(&state.join("sim-point-mass.toml")).unwrap();
+    assert_eq!(grid.dims, [3, 3, 3]);
+    let angle = grid
+        .gravity_direction
+        .angle(&truth.gravity_direction)
+        .to_degrees();
+    assert!(angle < 0.5, "v_G off by {angle}°");
+    let mut worst: f64 = 0.0;
+    for k in 0..3 {
+        for j in 0..3 {
+            for i in 0..3 {
+                let x = grid.vertex_position(i, j, k);
+                let expected = truth.mass_at(&x);
+                let got = grid.masses[grid.index(i, j, k)];
+                let rel = (got / expected - 1.0).abs();
+                worst = worst.max(rel);
+                assert!(rel < 0.01, "vertex {x:?}: {got} kg, truth {expected} kg");
+            }
+        }
+    }
+    // The truth spans 0.05–0.25 kg at these vertices, so the test really spans that range.
+    let (lo, hi) = grid
+        .masses
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(l, h), &m| (l.min(m), h.max(m)));
+    assert!(lo < 0.051 && hi > 0.249, "range {lo}..{hi}");
+    // The vector mode's holding forces equal the true gravity force M g v_G at each vertex.
+    let vertices = grid.extra["vertices"].as_table().unwrap();
+    let forces = vertices["force_vectors"].as_array().unwrap();
+    for (n, f) in forces.iter().enumerate() {
+        let f: Vec<f64> = f
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c.as_float().unwrap())
+            .collect();
+        let (i, j, k) = (n % 3, (n / 3) % 3, n / 9);
+        let x = grid.vertex_position(i, j, k);
+        let expected = truth.gravity_force(&x);
+        let err = (Vector3::new(f[0], f[1], f[2]) - expected).norm() / expected.norm();
+        assert!(err < 0.01, "force vector at {x:?} off by {err}");
+    }
+    // Under a minute of device time (docs/performance.md).
+    let duration = grid.extra["calibration"]["duration_s"].as_float().unwrap();
+    assert!(
+        duration < 60.0,
+        "calibration took {duration} s of device time"
+    );
+    eprintln!("worst relative mass error {worst:.2e}, v_G error {angle:.3}°, {duration:.1} s");
+}
+
+#[test]
+fn ctrl_c_mid_run_aborts_and_leaves_the_old_grid_untouched() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = setup(dir.path(), "");
+    let output = dir.path().join("dev.toml");
+    let old = "format = \"hgcd-grid/1\"\n# the previous calibration\n";
+    std::fs::write(&output, old).unwrap();
+    // Real time, so the run is still going when the signal comes; the signal is sent once the
+    // log says the second vertex has started (no sleeping on the wall clock).
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hgcd"))
+        .arg("--config")
+        .arg(&cfg)
+        .args([
+            "calibrate",
+            "--device",
+            "sim:point-mass",
+            "--real-time",
+            "--output",
+        ])
+        .arg(&output)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut log = String::new();
+    loop {
+        let mut line = String::new();
+        assert!(
+            stderr.read_line(&mut line).unwrap() > 0,
+            "log ended early: {log}"
+        );
+        log.push_str(&line);
+        if line.contains("vertex 2/27: moving") {
+            break;
+        }
+    }
+    // SAFETY: kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    stderr.read_to_string(&mut log).unwrap();
+    let status = child.wait().unwrap();
+    assert!(!status.success());
+    assert!(
+        log.contains("calibration aborted; nothing was written"),
+        "{log}"
+    );
+    assert_eq!(std::fs::read_to_string(&output).unwrap(), old);
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert_eq!(names.len(), 3, "{names:?}"); // hgcd.toml, truth.toml, dev.toml
+}
+
+#[test]
+fn a_device_that_goes_silent_mid_run_stops_the_calibration_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = setup(dir.path(), "stop_reporting_after_s = 5.0\n");
+    let config = Config::load(&cfg).unwrap();
+    let output = dir.path().join("dev.toml");
+    let request = CalibrateRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        pacing: Pacing::Virtual,
+        output: Some(output.clone()),
+        state_dir: PathBuf::from("/nonexistent"),
+    };
+    let mut vertices_done = 0;
+    let err = calibrate(
+        &config,
+        &request,
+        Arc::new(AtomicBool::new(false)),
+        &mut |e| {
+            if matches!(e, CalibrationEvent::VertexDone { .. }) {
+                vertices_done += 1;
+            }
+        },
+    )
+    .unwrap_err();
+    assert!(vertices_done > 0, "the fault came mid-run");
+    assert!(
+        err.to_string()
+            .contains("stopped by a fault: device stopped reporting; nothing was written"),
+        "{err}"
+    );
+    assert!(!output.exists());
+}
+
+#[test]
+fn vertices_outside_the_workspace_are_left_out_and_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    // N = 2 at 40 mm spans ±80 mm: the outer shell lies on the simulated stops, outside the
+    // configured safe box of ±60 mm.
+    let (cfg, truth) = setup(
+        dir.path(),
+        "[calibration]\nhalf_size = 2\n[device]\nworkspace_min_mm = [-60.0, -60.0, -60.0]\n\
+         workspace_max_mm = [60.0, 60.0, 60.0]\n",
+    );
+    let out_file = dir.path().join("grid.toml");
+    let out = hgcd(&cfg)
+        .args(["calibrate", "--device", "sim:point-mass", "--output"])
+        .arg(&out_file)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("98 vertices lie outside the workspace")
+            && stderr.contains("vertex (-2, -2, -2) at (-80.0, -80.0, -80.0) mm"),
+        "{stderr}"
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("left out (outside the workspace)"),
+        "{stdout}"
+    );
+    let grid = MassGrid::load(&out_file).unwrap();
+    assert_eq!(grid.dims, [3, 3, 3]);
+    let left_out = grid.extra["calibration"]["left_out_vertices"]
+        .as_array()
+        .unwrap();
+    assert_eq!(left_out.len(), 98);
+    for (n, m) in grid.masses.iter().enumerate() {
+        let x = grid.vertex_position(n % 3, (n / 3) % 3, n / 9);
+        assert!((m / truth.mass_at(&x) - 1.0).abs() < 0.01);
+    }
+}
+
+#[test]
+fn a_vertex_behind_a_mechanical_stop_fails_with_its_name_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    // The simulated device's top stop is at +30 mm, but the config claims ±70 mm is safe: the
+    // vertices at z = +40 mm cannot be reached.
+    let (cfg, _) = setup(
+        dir.path(),
+        "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration]\nvertex_timeout_s = 8.0\n",
+    );
+    let out_file = dir.path().join("grid.toml");
+    let out = hgcd(&cfg)
+        .args(["calibrate", "--device", "sim:point-mass", "--output"])
+        .arg(&out_file)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let last = stderr.trim().lines().last().unwrap();
+    assert!(
+        last.contains("vertex (-1, -1, 1) at (-40.0, -40.0, 40.0) mm could not be reached"),
+        "{stderr}"
+    );
+    assert!(last.contains("nothing was written"), "{last}");
+    assert!(!out_file.exists());
+}
+
+#[test]
+fn unwritable_state_dir_fails_before_calibrating() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = setup(dir.path(), "");
+    let blocker = dir.path().join("not-a-dir");
+    std::fs::write(&blocker, "").unwrap();
+    let out = hgcd(&cfg)
+        .args(["calibrate", "--device", "sim:point-mass", "--state-dir"])
+        .arg(blocker.join("state"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("cannot create the state directory") && stderr.contains("--state-dir"),
+        "{stderr}"
+    );
+    assert!(
+        !stderr.contains("vertex"),
+        "failed before calibrating: {stderr}"
+    );
+}
+
+#[test]
+fn a_full_disk_during_the_write_gives_a_clear_error_and_no_partial_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = setup(dir.path(), "");
+    let out_file = dir.path().join("grid.toml");
+    let old = "format = \"hgcd-grid/1\"\n# the previous calibration\n";
+    std::fs::write(&out_file, old).unwrap();
+    let mut cmd = hgcd(&cfg);
+    cmd.args(["calibrate", "--device", "sim:point-mass", "--output"])
+        .arg(&out_file);
+    // Files may grow to 1 KiB only: the grid (several KiB) cannot be written, as on a full disk.
+    // SAFETY: only async-signal-safe calls between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+            let limit = libc::rlimit {
+                rlim_cur: 1024,
+                rlim_max: 1024,
+            };
+            if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let out = cmd.output().unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("cannot write grid file") && stderr.contains("grid.toml"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read_to_string(&out_file).unwrap(), old);
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert_eq!(names.len(), 3, "no temporary file left behind: {names:?}");
+}
