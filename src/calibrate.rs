@@ -213,8 +213,15 @@ pub fn calibrate(
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
     let started = Instant::now();
-    let handle = servo::thread::spawn(transport, calibration, options, config.servo.clone(), stop)
-        .context("starting the servo thread")?;
+    let handle = servo::thread::spawn(
+        transport,
+        calibration,
+        options,
+        config.servo.clone(),
+        stop,
+        None,
+    )
+    .context("starting the servo thread")?;
     // The controller (holding the sender) comes back through the join handle, so watch the thread
     // rather than wait for the channel to close.
     while !handle.is_finished() {

@@ -10,19 +10,22 @@ use nalgebra::Vector3;
 use serde::Deserialize;
 use thiserror::Error;
 
+use crate::control::compensation::{CompensationMode, OutsideGrid};
 use crate::estimate::FoawVariant;
 
 /// Default configuration file of an installed daemon.
 pub const DEFAULT_CONFIG_PATH: &str = "/etc/hgcd/hgcd.toml";
 /// Default directory for calibration grids.
 pub const DEFAULT_STATE_DIR: &str = "/var/lib/hgcd";
+/// Default application socket.
+pub const DEFAULT_SOCKET: &str = "/run/hgcd/hgcd.sock";
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
-    #[error("cannot read config file {path}: {source}")]
+    #[error("cannot read config file {path}: {error}")]
     Read {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("config file {path}: {message}")]
     Parse { path: PathBuf, message: String },
@@ -161,6 +164,8 @@ pub struct Config {
     pub estimate: EstimateConfig,
     pub sim: SimConfig,
     pub calibration: CalibrationConfig,
+    pub compensation: CompensationConfig,
+    pub app: AppConfig,
     pub paths: PathsConfig,
 }
 
@@ -364,6 +369,45 @@ impl Default for CalibrationConfig {
     }
 }
 
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct CompensationConfig {
+    /// "scalar" (paper: M(X) g v_G) or "vector" (interpolated calibrated force vectors).
+    pub mode: CompensationMode,
+    /// Outside the grid: "hold-nearest" (nearest cell's face values) or "zero".
+    pub outside_grid: OutsideGrid,
+    /// Run without compensation when the grid is corrupt or made for another device (a missing
+    /// grid always runs uncompensated, so the device can be calibrated through the daemon).
+    pub allow_uncompensated: bool,
+}
+
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct AppConfig {
+    /// Application socket; default $RUNTIME_DIRECTORY/hgcd.sock, else /run/hgcd/hgcd.sock.
+    pub socket: Option<PathBuf>,
+    /// Permissions of the socket file (octal, as a string).
+    pub socket_mode: String,
+    /// A force offset not refreshed for this long ramps to zero, ms.
+    pub stale_offset_ms: f64,
+    /// Duration of that ramp from the full offset to zero, ms.
+    pub stale_ramp_ms: f64,
+    /// Most clients connected at once; more are refused.
+    pub max_clients: usize,
+}
+
+impl Default for AppConfig {
+    fn default() -> Self {
+        Self {
+            socket: None,
+            socket_mode: "0660".into(),
+            stale_offset_ms: 50.0,
+            stale_ramp_ms: 50.0,
+            max_clients: 16,
+        }
+    }
+}
+
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct PathsConfig {
@@ -422,9 +466,9 @@ impl Config {
 
     /// Load a config file.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
         let mut config = Self::from_toml_str(&text, path)?;
         // A relative mass-grid path is relative to the config file, not to the working directory.
@@ -525,6 +569,13 @@ impl Config {
         if c.max_iterations == 0 {
             return Err(invalid("calibration.max_iterations", "must be at least 1"));
         }
+        let a = &self.app;
+        self.socket_mode()?;
+        positive("app.stale_offset_ms", a.stale_offset_ms)?;
+        positive("app.stale_ramp_ms", a.stale_ramp_ms)?;
+        if a.max_clients == 0 || a.max_clients > 1024 {
+            return Err(invalid("app.max_clients", "must be 1–1024"));
+        }
         Ok(())
     }
 
@@ -536,6 +587,33 @@ impl Config {
     /// Nominal servo period, s.
     pub fn servo_period(&self) -> f64 {
         1.0 / self.servo.rate_hz
+    }
+
+    /// The socket file's permission bits.
+    pub fn socket_mode(&self) -> Result<u32, ConfigError> {
+        u32::from_str_radix(self.app.socket_mode.trim_start_matches("0o"), 8)
+            .ok()
+            .filter(|m| *m <= 0o777)
+            .ok_or_else(|| {
+                invalid(
+                    "app.socket_mode",
+                    "must be octal permission bits such as \"0660\"",
+                )
+            })
+    }
+
+    /// Application socket: config, else `$RUNTIME_DIRECTORY/hgcd.sock` (systemd), else
+    /// /run/hgcd/hgcd.sock.
+    pub fn socket_path(&self) -> PathBuf {
+        if let Some(path) = &self.app.socket {
+            return path.clone();
+        }
+        if let Ok(dirs) = std::env::var("RUNTIME_DIRECTORY") {
+            if let Some(first) = dirs.split(':').find(|s| !s.is_empty()) {
+                return PathBuf::from(first).join("hgcd.sock");
+            }
+        }
+        PathBuf::from(DEFAULT_SOCKET)
     }
 
     /// Calibration state directory: config, else `$STATE_DIRECTORY` (systemd), else /var/lib/hgcd.

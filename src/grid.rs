@@ -18,19 +18,19 @@ const MAX_VERTICES: usize = 1_000_000;
 /// Why a grid could not be loaded, built or saved.
 #[derive(Debug, Error)]
 pub enum GridError {
-    #[error("cannot read grid file {path}: {source}")]
+    #[error("cannot read grid file {path}: {error}")]
     Read {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("grid file {path} is not valid TOML: {message}")]
     Syntax { path: PathBuf, message: String },
     #[error("grid file {path}: {message}")]
     Invalid { path: PathBuf, message: String },
-    #[error("cannot write grid file {path}: {source}")]
+    #[error("cannot write grid file {path}: {error}")]
     Write {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
 }
 
@@ -252,9 +252,9 @@ impl MassGrid {
 
     /// Load and validate a grid file.
     pub fn load(path: &Path) -> Result<Self, GridError> {
-        let text = fs::read_to_string(path).map_err(|source| GridError::Read {
+        let text = fs::read_to_string(path).map_err(|error| GridError::Read {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
         Self::from_toml_str(&text, path)
     }
@@ -295,9 +295,9 @@ impl MassGrid {
     /// the directory. An existing file at `path` is first kept as `path.bak`. On any error nothing
     /// at `path` has changed and the temporary file is removed.
     pub fn save_atomic(&self, path: &Path) -> Result<(), GridError> {
-        let werr = |source| GridError::Write {
+        let werr = |error| GridError::Write {
             path: path.to_path_buf(),
-            source,
+            error,
         };
         let dir = match path.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),

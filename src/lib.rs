@@ -2,13 +2,16 @@
 //! (Formaglio et al.). The servo loop lives in [`servo`], controllers in [`control`], device
 //! transports in [`transport`], simulated plants in [`sim`].
 
+pub mod app; //        application socket: wire protocol, server, client library
 pub mod calibrate; //  `hgcd calibrate`: run Algorithm 1 on a device and persist the grid
 pub mod config; //     typed configuration, defaults, validation
 pub mod control; //    controllers: PD hold, calibration, compensation
-pub mod daemon; //     `hgcd run`: device, servo thread, event logging, signals
+pub mod daemon; //     `hgcd run`: compensation, application server, calibration on request
 pub mod estimate; //   FOAW velocity estimation
 pub mod grid; //       apparent-mass grid, trilinear interpolation, hgcd-grid/1 files
 pub mod protocol; //   HID report layout v1: encode/decode
 pub mod servo; //      the 1 kHz tick loop, safety layer, timing statistics
 pub mod sim; //        simulated plants
 pub mod transport; //  hid, sim (mock-HID firmware) and socket transports
+
+pub use app::client;

@@ -10,8 +10,9 @@ use clap::{Parser, Subcommand};
 
 use hgcd::calibrate::{calibrate, CalibrateRequest};
 use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH};
-use hgcd::daemon::{self, RunRequest};
+use hgcd::daemon::{self, RunRequest, Signals};
 
+mod ctl;
 mod progress;
 use hgcd::transport::{hid, Pacing};
 
@@ -28,6 +29,9 @@ struct Cli {
     /// Directory of calibration grids (default: config `paths.state_dir`, $STATE_DIRECTORY, /var/lib/hgcd).
     #[arg(long, global = true, value_name = "DIR")]
     state_dir: Option<PathBuf>,
+    /// Application socket of the daemon (default: config `app.socket`, $RUNTIME_DIRECTORY/hgcd.sock, /run/hgcd/hgcd.sock).
+    #[arg(long, global = true, value_name = "PATH")]
+    socket: Option<PathBuf>,
     /// Log level: error, warn, info, debug or trace (RUST_LOG overrides).
     #[arg(long, global = true, default_value = "info", value_name = "LEVEL")]
     log_level: String,
@@ -63,7 +67,12 @@ enum Command {
         /// Do not ask for confirmation before starting on a real device.
         #[arg(long)]
         yes: bool,
+        /// Ask the running daemon to calibrate its device (it switches to the new grid after).
+        #[arg(long)]
+        via_daemon: bool,
     },
+    /// Show the running daemon's state: device, grid, mode, clients, loop timing.
+    Status,
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
 }
@@ -85,11 +94,32 @@ fn init_logging(level: &str) -> Result<()> {
             anyhow::anyhow!("--log-level `{level}` is not one of error, warn, info, debug, trace")
         })?,
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .init();
+    // Under systemd stderr is the journal, which stamps time itself and shows no colours.
+    if std::env::var_os("JOURNAL_STREAM").is_some() {
+        tracing_subscriber::fmt()
+            .with_env_filter(filter)
+            .with_writer(std::io::stderr)
+            .with_ansi(false)
+            .without_time()
+            .init();
+    } else {
+        tracing_subscriber::fmt()
+            .with_env_filter(filter)
+            .with_writer(std::io::stderr)
+            .init();
+    }
     Ok(())
+}
+
+/// SIGINT/SIGTERM stop the daemon (zero force, exit 0); SIGHUP reloads the grid.
+fn install_signal_handlers() -> Result<Signals> {
+    let signals = Signals {
+        stop: install_stop_handler()?,
+        reload: Arc::new(AtomicBool::new(false)),
+    };
+    signal_hook::flag::register(signal_hook::consts::SIGHUP, signals.reload.clone())
+        .context("installing the SIGHUP handler")?;
+    Ok(signals)
 }
 
 fn install_stop_handler() -> Result<Arc<AtomicBool>> {
@@ -113,6 +143,9 @@ fn real_main(cli: Cli) -> Result<()> {
     if let Some(dir) = cli.state_dir {
         config.paths.state_dir = Some(dir);
     }
+    if let Some(socket) = cli.socket {
+        config.app.socket = Some(socket);
+    }
     match cli.command {
         Command::Run {
             device,
@@ -134,16 +167,28 @@ fn real_main(cli: Cli) -> Result<()> {
                     Pacing::RealTime
                 },
             };
-            let stop = install_stop_handler()?;
-            let report = daemon::run(&config, &request, stop)?;
+            let signals = install_signal_handlers()?;
+            let report = daemon::run(&config, &request, signals)?;
             println!("{}", report.stats);
             Ok(())
         }
+        Command::Calibrate {
+            via_daemon: true,
+            yes,
+            ..
+        } => {
+            if !yes {
+                confirm_start()?;
+            }
+            ctl::calibrate_via_daemon(&config.socket_path())
+        }
+        Command::Status => ctl::status(&config.socket_path()),
         Command::Calibrate {
             device,
             output,
             real_time,
             yes,
+            ..
         } => {
             let device = device_spec(device.as_deref(), &config)?;
             let simulated = matches!(device, DeviceSpec::Sim { .. });

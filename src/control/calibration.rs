@@ -137,6 +137,17 @@ pub enum PlanError {
 }
 
 impl GridPlan {
+    /// The vertex with the largest coordinates, m.
+    pub fn far_corner(&self) -> Vector3<f64> {
+        let last = |a: usize| {
+            self.path
+                .iter()
+                .map(|v| v.position[a])
+                .fold(f64::MIN, f64::max)
+        };
+        Vector3::new(last(0), last(1), last(2))
+    }
+
     /// Vertices (nL, mL, pL) + centre, n, m, p ∈ [−N, N], keeping those inside the workspace box
     /// (for a box, the kept ones form a rectangular sub-grid).
     pub fn new(params: &CalibrationParams) -> Result<Self, PlanError> {
@@ -382,8 +393,13 @@ fn minimum_jerk(tau: f64) -> f64 {
 enum Phase {
     Start,
     Init {
+        /// Where the handle was when calibration started.
+        from: Vector3<f64>,
+        /// Centre X_C of the initial field once the glide is over.
         rest_point: Vector3<f64>,
         since: f64,
+        /// Duration of the field centre's glide from `from` to `rest_point`, s (0: none).
+        glide: f64,
     },
     Move {
         from: Vector3<f64>,
@@ -399,6 +415,7 @@ enum Phase {
 
 /// The calibration controller. Build it, run it in the servo loop until it is done, then take
 /// [`Calibration::outcome`].
+#[derive(Debug)]
 pub struct Calibration {
     params: CalibrationParams,
     plan: GridPlan,
@@ -540,25 +557,50 @@ impl Controller for Calibration {
         match self.phase {
             Phase::Finished | Phase::Failed(_) => ControlOutput::done(Vector3::zeros()),
             Phase::Start => {
-                // On a simulated device the start point is where the handle rests; on hardware the
-                // user has brought it near the centre before the loop started.
+                // X_C is where the handle rests (on hardware the user has brought it near the
+                // centre). A handle resting outside the grid's box (say on a stop below it) is
+                // first carried to the grid centre by gliding the field's centre there.
                 self.start_time = t;
-                self.rest_point = s.position;
+                let (lo, hi) = (self.plan.origin, self.plan.far_corner());
+                let inside = (0..3).all(|a| s.position[a] >= lo[a] && s.position[a] <= hi[a]);
+                let (rest_point, glide) = if inside {
+                    (s.position, 0.0)
+                } else {
+                    let centre = self.params.centre;
+                    let cells = (centre - s.position).norm() / self.params.spacing;
+                    (centre, self.params.move_time * cells.max(1.0))
+                };
+                self.rest_point = rest_point;
                 self.phase = Phase::Init {
-                    rest_point: s.position,
+                    from: s.position,
+                    rest_point,
                     since: t,
+                    glide,
                 };
                 self.emit(CalibrationEvent::InitStarted);
                 ControlOutput::force(Vector3::zeros())
             }
-            Phase::Init { rest_point, since } => {
-                if t - since > self.params.vertex_timeout {
+            Phase::Init {
+                from,
+                rest_point,
+                since,
+                glide,
+            } => {
+                if t - since > self.params.vertex_timeout + glide {
                     return self.fail(CalibrationFailure::InitTimeout {
                         timeout: self.params.vertex_timeout,
                     });
                 }
-                let force = (rest_point - s.position) * self.params.k_init
+                let centre = if glide > 0.0 {
+                    from + (rest_point - from) * minimum_jerk((t - since) / glide)
+                } else {
+                    rest_point
+                };
+                let force = (centre - s.position) * self.params.k_init
                     - s.velocity * self.params.init_damping;
+                if t - since < glide {
+                    return ControlOutput::force(force);
+                }
                 if let Some(steady) = self.detector.push(&s.position) {
                     let sag = rest_point - steady;
                     // A steady state without sag means something still holds the handle (a hand);

@@ -74,6 +74,38 @@ pub enum ServoEvent {
     Overrun {
         missed: u16,
     },
+    /// Counters, every [`STATS_EVERY`] ticks (for status displays; not logged).
+    Stats(StatsSnapshot),
+}
+
+/// Ticks between two [`ServoEvent::Stats`].
+pub const STATS_EVERY: u64 = 500;
+
+/// The loop's counters at one moment.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StatsSnapshot {
+    pub ticks: u64,
+    pub late: u64,
+    pub missed: u64,
+    pub overruns: u64,
+    pub garbled: u64,
+    pub watchdog_faults: u64,
+    /// Worst tick compute time so far, µs.
+    pub worst_compute_us: f64,
+}
+
+impl TimingStats {
+    pub fn snapshot(&self) -> StatsSnapshot {
+        StatsSnapshot {
+            ticks: self.ticks,
+            late: self.late,
+            missed: self.missed,
+            overruns: self.overruns,
+            garbled: self.garbled,
+            watchdog_faults: self.watchdog_faults,
+            worst_compute_us: self.compute.max_us(),
+        }
+    }
 }
 
 /// Why the loop ended.
@@ -359,6 +391,9 @@ pub fn run(
         core.stats
             .compute
             .record_ns(received.elapsed().as_nanos() as u64);
+        if core.stats.ticks % STATS_EVERY == 0 {
+            emit(events, ServoEvent::Stats(core.stats.snapshot()));
+        }
         match outcome {
             TickOutcome::Continue => {}
             TickOutcome::Done => break Ok(ExitReason::ControllerDone),

@@ -4,13 +4,38 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::thread::{self, JoinHandle};
 
-use crossbeam_channel::Receiver;
+use crossbeam_channel::{Receiver, Sender};
 use tracing::{error, info, warn};
 
 use super::{rt, run, ServoError, ServoEvent, ServoOptions, ServoReport};
 use crate::config::ServoConfig;
 use crate::control::Controller;
 use crate::transport::Transport;
+
+/// Log one servo event; `garbled` counts garbled reports so a babbling device cannot flood the
+/// log (the first few, then every 1000th).
+pub fn log_event(event: &ServoEvent, garbled: &mut u64) {
+    match event {
+        ServoEvent::WatchdogFault { silent_for } => error!(
+            "device silent for {:.1} ms: watchdog fault, force zeroed",
+            silent_for * 1e3
+        ),
+        ServoEvent::ReportsResumed { after } => {
+            warn!("device reporting again after {:.1} ms", after * 1e3)
+        }
+        ServoEvent::DeviceFault => error!("device reports a fault: force zeroed"),
+        ServoEvent::DeviceFaultCleared => warn!("device fault cleared"),
+        ServoEvent::GarbledReport(e) => {
+            *garbled += 1;
+            if *garbled <= 5 || *garbled % 1000 == 0 {
+                warn!("garbled input report #{garbled} ignored: {e}")
+            }
+        }
+        ServoEvent::NonFiniteForce => error!("controller produced a non-finite force; sent zero"),
+        ServoEvent::Overrun { missed } => warn!("servo loop overrun: skipped {missed} report(s)"),
+        ServoEvent::Stats(_) => {}
+    }
+}
 
 /// Log servo events on a thread of their own, so the loop never waits for a log line. The thread
 /// ends when every sender is gone.
@@ -20,46 +45,30 @@ pub fn spawn_event_logger(events: Receiver<ServoEvent>) -> JoinHandle<()> {
         .spawn(move || {
             let mut garbled = 0u64;
             for event in events.iter() {
-                match event {
-                    ServoEvent::WatchdogFault { silent_for } => error!(
-                        "device silent for {:.1} ms: watchdog fault, force zeroed",
-                        silent_for * 1e3
-                    ),
-                    ServoEvent::ReportsResumed { after } => {
-                        warn!("device reporting again after {:.1} ms", after * 1e3)
-                    }
-                    ServoEvent::DeviceFault => error!("device reports a fault: force zeroed"),
-                    ServoEvent::DeviceFaultCleared => warn!("device fault cleared"),
-                    ServoEvent::GarbledReport(e) => {
-                        garbled += 1;
-                        // The first few, then every 1000th: a babbling device cannot flood the log.
-                        if garbled <= 5 || garbled % 1000 == 0 {
-                            warn!("garbled input report #{garbled} ignored: {e}")
-                        }
-                    }
-                    ServoEvent::NonFiniteForce => {
-                        error!("controller produced a non-finite force; sent zero")
-                    }
-                    ServoEvent::Overrun { missed } => {
-                        warn!("servo loop overrun: skipped {missed} report(s)")
-                    }
-                }
+                log_event(&event, &mut garbled);
             }
         })
         .expect("spawning the event logger thread")
 }
 
-/// Run `controller` on `transport` on a new thread set up for real time (`servo_config`), with
-/// loop events logged. Joining gives the loop's result and the controller back.
+/// Run `controller` on `transport` on a new thread set up for real time (`servo_config`). Loop
+/// events go to `events`, or to a logger thread when None. Joining gives the loop's result and
+/// the controller back.
 pub fn spawn<C: Controller + 'static>(
     mut transport: Box<dyn Transport>,
     mut controller: C,
     options: ServoOptions,
     servo_config: ServoConfig,
     stop: Arc<AtomicBool>,
+    events: Option<Sender<ServoEvent>>,
 ) -> std::io::Result<JoinHandle<(Result<ServoReport, ServoError>, C)>> {
-    let (tx, rx) = crossbeam_channel::bounded(1024);
-    let logger = spawn_event_logger(rx);
+    let (tx, logger) = match events {
+        Some(tx) => (tx, None),
+        None => {
+            let (tx, rx) = crossbeam_channel::bounded(1024);
+            (tx, Some(spawn_event_logger(rx)))
+        }
+    };
     thread::Builder::new()
         .name("hgcd-servo".into())
         .spawn(move || {
@@ -82,7 +91,9 @@ pub fn spawn<C: Controller + 'static>(
                 Some(&tx),
             );
             drop(tx);
-            let _ = logger.join();
+            if let Some(logger) = logger {
+                let _ = logger.join();
+            }
             (result, controller)
         })
 }

@@ -1,0 +1,165 @@
+//! Client library for applications (`hgcd::client`): connect to the daemon, render a force offset
+//! Z_E, read the device state, ask for status or a calibration. Blocking, one connection per
+//! `Client`; see `examples/virtual_wall.rs`.
+
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::Path;
+use std::time::Duration;
+
+use nalgebra::Vector3;
+
+pub use super::protocol::{Reply, Role, StateSample, Status};
+use super::protocol::{Request, APP_PROTOCOL_VERSION, MAX_LINE_LEN};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    #[error("cannot connect to the hgcd socket {path}: {error} (is `hgcd run` running?)")]
+    Connect { path: String, error: std::io::Error },
+    #[error("socket I/O: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("the daemon closed the connection")]
+    Closed,
+    #[error("the daemon sent something this client does not understand: {0}")]
+    Protocol(String),
+    #[error("the daemon refused: {0}")]
+    Refused(String),
+}
+
+/// One connection to the daemon.
+pub struct Client {
+    writer: UnixStream,
+    reader: BufReader<UnixStream>,
+    seq: u64,
+    /// Role granted by the daemon.
+    pub role: Role,
+    pub client_id: u64,
+    pub device: String,
+    pub device_id: String,
+    /// Servo rate, Hz.
+    pub rate_hz: f64,
+}
+
+impl Client {
+    /// Connect to the socket at `path` and say hello asking for `role`. The granted role may be
+    /// `Observe` when another client already owns the force.
+    pub fn connect(path: &Path, role: Role, name: &str) -> Result<Self, ClientError> {
+        let stream = UnixStream::connect(path).map_err(|error| ClientError::Connect {
+            path: path.display().to_string(),
+            error,
+        })?;
+        let writer = stream.try_clone()?;
+        let mut client = Self {
+            writer,
+            reader: BufReader::new(stream),
+            seq: 0,
+            role: Role::Observe,
+            client_id: 0,
+            device: String::new(),
+            device_id: String::new(),
+            rate_hz: 0.0,
+        };
+        client.send(&Request::Hello {
+            version: APP_PROTOCOL_VERSION,
+            role,
+            name: name.to_string(),
+        })?;
+        match client.next_reply()? {
+            Reply::Welcome {
+                role,
+                client_id,
+                device,
+                device_id,
+                rate_hz,
+                ..
+            } => {
+                client.role = role;
+                client.client_id = client_id;
+                client.device = device;
+                client.device_id = device_id;
+                client.rate_hz = rate_hz;
+                Ok(client)
+            }
+            other => Err(ClientError::Protocol(format!(
+                "expected welcome, got {other:?}"
+            ))),
+        }
+    }
+
+    fn send(&mut self, request: &Request) -> Result<(), ClientError> {
+        let mut line = serde_json::to_string(request).expect("requests always serialise");
+        line.push('\n');
+        self.writer.write_all(line.as_bytes())?;
+        Ok(())
+    }
+
+    /// Render `force` (N) on top of gravity compensation until the next call. Send it at least
+    /// every 50 ms (the daemon's default `stale_offset_ms`), or it ramps to zero.
+    pub fn set_force(&mut self, force: Vector3<f64>) -> Result<(), ClientError> {
+        self.seq += 1;
+        let seq = self.seq;
+        self.send(&Request::SetForce {
+            seq,
+            force: force.into(),
+        })
+    }
+
+    /// Sequence number of the last `set_force` sent.
+    pub fn last_seq(&self) -> u64 {
+        self.seq
+    }
+
+    /// Stream the device state at `rate_hz` (0 stops it).
+    pub fn subscribe(&mut self, rate_hz: f64) -> Result<(), ClientError> {
+        self.send(&Request::Subscribe { rate_hz })
+    }
+
+    /// Ask the daemon to calibrate; progress arrives as `Reply::Calibration`.
+    pub fn request_calibration(&mut self) -> Result<(), ClientError> {
+        self.send(&Request::Calibrate {})
+    }
+
+    /// Limit how long the next reads may block (None: forever).
+    pub fn set_read_timeout(&mut self, timeout: Option<Duration>) -> Result<(), ClientError> {
+        self.reader.get_ref().set_read_timeout(timeout)?;
+        Ok(())
+    }
+
+    /// The next reply of any kind. A fatal error from the daemon is returned as `Refused`.
+    pub fn next_reply(&mut self) -> Result<Reply, ClientError> {
+        let mut line = String::new();
+        let n =
+            std::io::Read::take(&mut self.reader, 64 * MAX_LINE_LEN as u64).read_line(&mut line)?;
+        if n == 0 {
+            return Err(ClientError::Closed);
+        }
+        let reply: Reply = serde_json::from_str(line.trim_end())
+            .map_err(|e| ClientError::Protocol(format!("{e}: {}", line.trim_end())))?;
+        match reply {
+            Reply::Error {
+                message,
+                fatal: true,
+            } => Err(ClientError::Refused(message)),
+            other => Ok(other),
+        }
+    }
+
+    /// The next state sample (other replies in between are skipped).
+    pub fn next_state(&mut self) -> Result<StateSample, ClientError> {
+        loop {
+            if let Reply::State(s) = self.next_reply()? {
+                return Ok(s);
+            }
+        }
+    }
+
+    /// Ask for and wait for the daemon's status.
+    pub fn status(&mut self) -> Result<Status, ClientError> {
+        self.send(&Request::Status {})?;
+        loop {
+            if let Reply::Status(s) = self.next_reply()? {
+                return Ok(*s);
+            }
+        }
+    }
+}

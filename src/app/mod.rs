@@ -1,0 +1,5 @@
+//! The application interface: wire protocol, socket server and client library.
+
+pub mod client;
+pub mod protocol;
+pub mod server;

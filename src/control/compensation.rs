@@ -1,0 +1,277 @@
+//! On-line gravity compensation (paper §4, Eq. 15): F = Z_E + F_G(X), where Z_E is the force
+//! offset an application renders and F_G the calibrated gravity force:
+//! - scalar mode (the paper): F_G = M(X) g v_G with M trilinearly interpolated;
+//! - vector mode: the per-vertex holding forces measured during calibration, interpolated with
+//!   the same weights (keeps the horizontal components a real linkage has).
+//!
+//! The offset follows the application: a stale offset (no update for `stale_after`) ramps to zero
+//! over `ramp_time`; removing it (client gone) is immediate.
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use super::{ControlOutput, Controller, DeviceState};
+use crate::grid::MassGrid;
+
+/// Which gravity model compensation uses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CompensationMode {
+    /// F_G = M(X) g v_G (paper Eq. 15).
+    #[default]
+    Scalar,
+    /// F_G interpolated from the calibrated per-vertex force vectors.
+    Vector,
+}
+
+/// What compensation does outside the calibrated grid.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OutsideGrid {
+    /// Clamp the position onto the grid: the nearest cell's face values hold.
+    #[default]
+    HoldNearest,
+    /// No gravity force outside the grid.
+    Zero,
+}
+
+/// The calibrated gravity force field F_G(X).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GravityModel {
+    pub grid: MassGrid,
+    pub mode: CompensationMode,
+    pub outside: OutsideGrid,
+    /// Per-vertex holding forces (vector mode), grid order, N.
+    forces: Vec<Vector3<f64>>,
+}
+
+/// Why a grid cannot serve as a gravity model.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ModelError {
+    #[error(
+        "vector mode needs per-vertex force vectors ([vertices] force_vectors) and this grid has \
+         none or a malformed set: recalibrate with this version of hgcd, or use \
+         compensation.mode = \"scalar\""
+    )]
+    NoForceVectors,
+}
+
+impl GravityModel {
+    pub fn new(
+        grid: MassGrid,
+        mode: CompensationMode,
+        outside: OutsideGrid,
+    ) -> Result<Self, ModelError> {
+        let forces = match mode {
+            CompensationMode::Scalar => Vec::new(),
+            CompensationMode::Vector => force_vectors(&grid).ok_or(ModelError::NoForceVectors)?,
+        };
+        Ok(Self {
+            grid,
+            mode,
+            outside,
+            forces,
+        })
+    }
+
+    /// F_G at `x`, N.
+    pub fn force(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        if self.outside == OutsideGrid::Zero && !self.grid.contains(x) {
+            return Vector3::zeros();
+        }
+        match self.mode {
+            CompensationMode::Scalar => self.grid.gravity_force(x),
+            CompensationMode::Vector => {
+                let (idx, w) = self.grid.cell_weights(x);
+                (0..8).map(|n| self.forces[idx[n]] * w[n]).sum()
+            }
+        }
+    }
+}
+
+/// The `[vertices] force_vectors` of a calibrated grid, if present and complete.
+fn force_vectors(grid: &MassGrid) -> Option<Vec<Vector3<f64>>> {
+    let list = grid
+        .extra
+        .get("vertices")?
+        .get("force_vectors")?
+        .as_array()?;
+    if list.len() != grid.masses.len() {
+        return None;
+    }
+    list.iter()
+        .map(|v| {
+            let a = v.as_array().filter(|a| a.len() == 3)?;
+            let c = |i: usize| a[i].as_float().filter(|f| f.is_finite());
+            Some(Vector3::new(c(0)?, c(1)?, c(2)?))
+        })
+        .collect()
+}
+
+/// An application force offset Z_E with its staleness handling. Times are device time, s.
+#[derive(Clone, Copy, Debug)]
+pub struct ForceOffset {
+    target: Vector3<f64>,
+    current: Vector3<f64>,
+    updated_at: f64,
+    stale_after: f64,
+    ramp_time: f64,
+}
+
+impl ForceOffset {
+    pub fn new(stale_after: f64, ramp_time: f64) -> Self {
+        Self {
+            target: Vector3::zeros(),
+            current: Vector3::zeros(),
+            updated_at: f64::NEG_INFINITY,
+            stale_after,
+            ramp_time,
+        }
+    }
+
+    /// A fresh offset from the application at device time `now`.
+    pub fn set(&mut self, force: Vector3<f64>, now: f64) {
+        self.target = force;
+        self.current = force;
+        self.updated_at = now;
+    }
+
+    /// Remove the offset at once (the application went away).
+    pub fn clear(&mut self) {
+        self.target = Vector3::zeros();
+        self.current = Vector3::zeros();
+        self.updated_at = f64::NEG_INFINITY;
+    }
+
+    /// The offset to render at device time `now`: the latest value while fresh, then a linear ramp
+    /// to zero that takes `ramp_time` from the full value.
+    pub fn at(&mut self, now: f64, dt: f64) -> Vector3<f64> {
+        if now - self.updated_at > self.stale_after {
+            let norm = self.current.norm();
+            if norm > 0.0 {
+                let step = self.target.norm() * dt / self.ramp_time.max(dt);
+                self.current *= (norm - step).max(0.0) / norm;
+            }
+        }
+        self.current
+    }
+
+    pub fn is_stale(&self, now: f64) -> bool {
+        now - self.updated_at > self.stale_after
+    }
+}
+
+/// F = Z_E + F_G(X) (Eq. 15). Without a model it renders the offset alone.
+#[derive(Clone, Debug)]
+pub struct Compensation {
+    pub model: Option<Box<GravityModel>>,
+    pub offset: ForceOffset,
+    period: f64,
+}
+
+impl Compensation {
+    pub fn new(model: Option<Box<GravityModel>>, offset: ForceOffset, period: f64) -> Self {
+        Self {
+            model,
+            offset,
+            period,
+        }
+    }
+
+    /// The gravity force alone at `x`.
+    pub fn gravity_force(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.model.as_ref().map_or(Vector3::zeros(), |m| m.force(x))
+    }
+}
+
+impl Controller for Compensation {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        let z_e = self.offset.at(s.time, self.period);
+        ControlOutput::force(z_e + self.gravity_force(&s.position))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grid() -> MassGrid {
+        let mut g = MassGrid::uniform(
+            0.1,
+            9.81,
+            Vector3::new(0.0, 0.1, 1.0),
+            Vector3::new(-0.04, -0.04, -0.04),
+            0.04,
+            [3, 3, 3],
+        );
+        for (n, m) in g.masses.iter_mut().enumerate() {
+            *m = 0.05 + 0.01 * n as f64;
+        }
+        g
+    }
+
+    #[test]
+    fn scalar_mode_is_mass_times_g_along_v_g() {
+        let g = grid();
+        let model = GravityModel::new(
+            g.clone(),
+            CompensationMode::Scalar,
+            OutsideGrid::HoldNearest,
+        )
+        .unwrap();
+        let x = Vector3::new(0.01, -0.02, 0.03);
+        let f = model.force(&x);
+        assert!((f - g.gravity_direction * g.mass_at(&x) * 9.81).norm() < 1e-12);
+        assert!((f.normalize() - g.gravity_direction).norm() < 1e-12);
+    }
+
+    #[test]
+    fn vector_mode_interpolates_the_measured_forces() {
+        let mut g = grid();
+        let forces: Vec<toml::Value> = (0..27)
+            .map(|n| {
+                toml::Value::Array(vec![
+                    toml::Value::Float(0.01 * n as f64),
+                    toml::Value::Float(0.0),
+                    toml::Value::Float(1.0 + 0.02 * n as f64),
+                ])
+            })
+            .collect();
+        let mut t = toml::Table::new();
+        t.insert("force_vectors".into(), toml::Value::Array(forces));
+        g.extra.insert("vertices".into(), toml::Value::Table(t));
+        let model =
+            GravityModel::new(g.clone(), CompensationMode::Vector, OutsideGrid::Zero).unwrap();
+        // At a vertex: exactly its vector. The field is affine in n, hence in position.
+        let v = g.vertex_position(1, 2, 0);
+        let n = g.index(1, 2, 0) as f64;
+        assert!((model.force(&v) - Vector3::new(0.01 * n, 0.0, 1.0 + 0.02 * n)).norm() < 1e-12);
+        // Outside with the zero policy: nothing.
+        assert_eq!(model.force(&Vector3::new(0.0, 0.0, 0.2)), Vector3::zeros());
+        // Without force vectors the vector mode is refused.
+        assert_eq!(
+            GravityModel::new(grid(), CompensationMode::Vector, OutsideGrid::Zero),
+            Err(ModelError::NoForceVectors)
+        );
+    }
+
+    #[test]
+    fn stale_offsets_ramp_to_zero_and_clear_is_immediate() {
+        let mut o = ForceOffset::new(0.05, 0.05);
+        o.set(Vector3::new(1.0, 0.0, 0.0), 0.0);
+        assert_eq!(o.at(0.05, 1e-3).x, 1.0);
+        // Ramp: 1 N over 50 ms, 20 mN per ms.
+        let after_10 = (51..=60)
+            .map(|k| o.at(k as f64 * 1e-3, 1e-3))
+            .last()
+            .unwrap();
+        assert!((after_10.x - 0.8).abs() < 1e-9, "{after_10}");
+        for k in 61..200 {
+            o.at(k as f64 * 1e-3, 1e-3);
+        }
+        assert_eq!(o.at(0.2, 1e-3), Vector3::zeros());
+        o.set(Vector3::new(0.0, 2.0, 0.0), 0.3);
+        o.clear();
+        assert_eq!(o.at(0.3, 1e-3), Vector3::zeros());
+    }
+}

@@ -1,0 +1,67 @@
+//! Commands that talk to a running daemon over its socket: `hgcd status` and
+//! `hgcd calibrate --via-daemon`.
+
+use std::path::Path;
+
+use anyhow::{bail, Result};
+
+use hgcd::client::{Client, Reply, Role};
+
+/// Print the daemon's status.
+pub fn status(socket: &Path) -> Result<()> {
+    let mut client = Client::connect(socket, Role::Observe, "hgcd status")?;
+    let s = client.status()?;
+    println!("device        {} ({})", s.device, s.device_id);
+    println!(
+        "compensation  {}{}",
+        s.mode,
+        s.grid.map(|g| format!(" from {g}")).unwrap_or_default()
+    );
+    println!("calibrating   {}", if s.calibrating { "yes" } else { "no" });
+    println!(
+        "clients       {} (force owned by {})",
+        s.clients,
+        s.owner.as_deref().unwrap_or("nobody")
+    );
+    println!(
+        "servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog faults {}; worst tick {:.1} µs",
+        s.ticks, s.uptime_s, s.late, s.missed, s.overruns, s.garbled, s.watchdog_faults, s.worst_compute_us
+    );
+    Ok(())
+}
+
+/// Ask the daemon to calibrate and follow its progress until it finishes.
+pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
+    let mut client = Client::connect(socket, Role::Observe, "hgcd calibrate")?;
+    client.request_calibration()?;
+    loop {
+        if let Reply::Calibration {
+            event,
+            vertex,
+            of,
+            mass_kg,
+            message,
+        } = client.next_reply()?
+        {
+            match event.as_str() {
+                "started" => eprintln!("calibration started on {}", client.device),
+                "init_done" => eprintln!(
+                    "gravity direction found; rough mass {:.1} g",
+                    mass_kg.unwrap_or(0.0) * 1e3
+                ),
+                "vertex_done" => eprintln!(
+                    "vertex {}/{}: {:.2} g",
+                    vertex.unwrap_or(0) + 1,
+                    of.unwrap_or(0),
+                    mass_kg.unwrap_or(0.0) * 1e3
+                ),
+                "finished" => {
+                    println!("calibration finished; the daemon now uses {message}");
+                    return Ok(());
+                }
+                "failed" => bail!("calibration failed: {message}"),
+                _ => {}
+            }
+        }
+    }
+}

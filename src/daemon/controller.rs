@@ -1,0 +1,157 @@
+//! The daemon's controller on the servo thread: compensation (Eq. 15) with the application's
+//! offset, or a calibration in progress; commands in and state out through bounded channels.
+//! Nothing here allocates, locks or blocks; boxes arrive built and leave to be dropped elsewhere.
+
+use crossbeam_channel::{Receiver, Sender};
+use nalgebra::Vector3;
+
+use crate::app::protocol::StateSample;
+use crate::control::calibration::Calibration;
+use crate::control::compensation::{Compensation, GravityModel};
+use crate::control::{ControlOutput, Controller, DeviceState};
+
+/// A force offset from the client that owns the force.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OffsetCommand {
+    pub client: u64,
+    pub seq: u64,
+    /// N.
+    pub force: Vector3<f64>,
+}
+
+/// Everything else the daemon tells the servo thread.
+#[derive(Debug)]
+pub enum ServoCommand {
+    /// This client now owns the force (None: nobody); any offset from before is dropped.
+    SetOwner(Option<u64>),
+    /// This client disconnected: its force goes at once.
+    ClientGone(u64),
+    /// Run this calibration now (offsets are ignored until it ends).
+    StartCalibration(Box<Calibration>),
+    /// Use this gravity model from the next tick (None: no compensation).
+    SwapModel(Option<Box<GravityModel>>),
+}
+
+/// What the servo thread hands back to be dealt with (and dropped) outside the loop.
+#[derive(Debug)]
+pub enum ServoReturn {
+    CalibrationDone(Box<Calibration>),
+    /// A calibration was requested while one was running.
+    CalibrationRefused(Box<Calibration>),
+    OldModel(Option<Box<GravityModel>>),
+}
+
+/// The channels the controller talks through.
+pub struct ControllerLinks {
+    pub commands: Receiver<ServoCommand>,
+    pub offsets: Receiver<OffsetCommand>,
+    pub returns: Sender<ServoReturn>,
+    pub states: Sender<StateSample>,
+}
+
+pub struct DaemonController {
+    compensation: Compensation,
+    calibration: Option<Box<Calibration>>,
+    owner: Option<u64>,
+    offset_seq: u64,
+    links: ControllerLinks,
+}
+
+impl DaemonController {
+    pub fn new(compensation: Compensation, links: ControllerLinks) -> Self {
+        Self {
+            compensation,
+            calibration: None,
+            owner: None,
+            offset_seq: 0,
+            links,
+        }
+    }
+
+    fn give_back(&self, item: ServoReturn) {
+        // The return channel is sized so this does not fail; if it ever did, the item would be
+        // dropped here, off the hot path only in the sense that it is rare.
+        let _ = self.links.returns.try_send(item);
+    }
+
+    fn drain_commands(&mut self) {
+        while let Ok(command) = self.links.commands.try_recv() {
+            match command {
+                ServoCommand::SetOwner(owner) => {
+                    if owner != self.owner {
+                        self.compensation.offset.clear();
+                        self.offset_seq = 0;
+                    }
+                    self.owner = owner;
+                }
+                ServoCommand::ClientGone(client) => {
+                    if self.owner == Some(client) {
+                        self.owner = None;
+                        self.compensation.offset.clear();
+                        self.offset_seq = 0;
+                    }
+                }
+                ServoCommand::StartCalibration(calibration) => {
+                    if self.calibration.is_some() {
+                        self.give_back(ServoReturn::CalibrationRefused(calibration));
+                    } else {
+                        self.compensation.offset.clear();
+                        self.calibration = Some(calibration);
+                    }
+                }
+                ServoCommand::SwapModel(model) => {
+                    let old = std::mem::replace(&mut self.compensation.model, model);
+                    self.give_back(ServoReturn::OldModel(old));
+                }
+            }
+        }
+    }
+
+    /// Apply the newest offset from the owner; offsets from anyone else (or stale ones from a
+    /// client that just lost ownership) are ignored.
+    fn drain_offsets(&mut self, now: f64) {
+        let mut newest: Option<OffsetCommand> = None;
+        while let Ok(offset) = self.links.offsets.try_recv() {
+            if Some(offset.client) == self.owner && offset.seq > self.offset_seq {
+                newest = Some(offset);
+            }
+        }
+        if let Some(offset) = newest {
+            if self.calibration.is_none() {
+                self.compensation.offset.set(offset.force, now);
+                self.offset_seq = offset.seq;
+            }
+        }
+    }
+}
+
+impl Controller for DaemonController {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        self.drain_commands();
+        self.drain_offsets(s.time);
+        let force = match self.calibration.as_mut() {
+            Some(calibration) => {
+                let out = calibration.tick(s);
+                if out.done {
+                    let finished = self.calibration.take().expect("calibration present");
+                    self.give_back(ServoReturn::CalibrationDone(finished));
+                    // Hold the handle with the current model until the new one arrives.
+                    self.compensation.gravity_force(&s.position)
+                } else {
+                    out.force
+                }
+            }
+            None => self.compensation.tick(s).force,
+        };
+        let _ = self.links.states.try_send(StateSample {
+            tick: s.tick,
+            time: s.time,
+            position: s.position.into(),
+            velocity: s.velocity.into(),
+            force: force.into(),
+            flags: s.status.bits(),
+            offset_seq: self.offset_seq,
+        });
+        ControlOutput::force(force)
+    }
+}

@@ -1,0 +1,462 @@
+//! `hgcd run`: the daemon. It owns the device and the servo thread, loads the device's grid and
+//! compensates gravity at every tick, serves applications on a Unix socket, calibrates on request
+//! and hot-swaps to the new grid, reloads on SIGHUP, and writes zero force before it exits.
+//!
+//! Threads: the servo thread runs [`controller::DaemonController`]; the hub (the thread that calls
+//! [`Daemon::run`]) fans state out to clients, answers status, runs calibrations' bookkeeping and
+//! talks to systemd; the application server has a listener and two threads per client.
+
+pub mod controller;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use crossbeam_channel::{select, Receiver, Sender};
+use tracing::{error, info, warn};
+
+use crate::app::protocol::{Reply, StateSample, Status};
+use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
+use crate::calibrate::{grid_from_result, grid_path};
+use crate::config::{Config, DeviceSpec};
+use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
+use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
+use crate::grid::MassGrid;
+use crate::servo::thread::log_event;
+use crate::servo::{self, ServoEvent, ServoOptions, ServoReport, StatsSnapshot};
+use crate::transport::{self, Pacing, Transport};
+use controller::{ControllerLinks, DaemonController, ServoCommand, ServoReturn};
+
+/// What `hgcd run` was asked to do.
+#[derive(Clone, Debug)]
+pub struct RunRequest {
+    pub device: DeviceSpec,
+    /// Stop after this many seconds; None runs until a signal.
+    pub duration: Option<f64>,
+    /// Pacing of simulated devices.
+    pub pacing: Pacing,
+}
+
+/// Signals the daemon reacts to (set by handlers in the binary).
+#[derive(Clone, Debug, Default)]
+pub struct Signals {
+    /// SIGINT/SIGTERM: write zero force and exit.
+    pub stop: Arc<AtomicBool>,
+    /// SIGHUP: reload the grid from disk.
+    pub reload: Arc<AtomicBool>,
+}
+
+/// The grid file of `device` and the model built from it, if any.
+pub fn load_model(
+    config: &Config,
+    device: &DeviceSpec,
+    path: &Path,
+) -> Result<Option<Box<GravityModel>>> {
+    if !path.exists() {
+        warn!(
+            "no calibration grid at {}: running WITHOUT gravity compensation; calibrate with \
+             `hgcd calibrate --via-daemon`",
+            path.display()
+        );
+        return Ok(None);
+    }
+    let built = MassGrid::load(path)
+        .map_err(anyhow::Error::from)
+        .and_then(|grid| {
+            let id = grid
+                .extra
+                .get("device")
+                .and_then(|d| d.get("id"))
+                .and_then(|v| v.as_str())
+                .map(str::to_string);
+            match id {
+                Some(id) if id != device.device_id() => bail!(
+                    "grid {} was made for device `{id}`, not `{}`",
+                    path.display(),
+                    device.device_id()
+                ),
+                None => warn!(
+                    "grid {} names no device ([device] id); using it for {}",
+                    path.display(),
+                    device.device_id()
+                ),
+                _ => {}
+            }
+            let c = &config.compensation;
+            Ok(GravityModel::new(grid, c.mode, c.outside_grid)?)
+        });
+    match built {
+        Ok(model) => {
+            info!(
+                "gravity compensation from {} ({:?} mode)",
+                path.display(),
+                model.mode
+            );
+            Ok(Some(Box::new(model)))
+        }
+        Err(e) if config.compensation.allow_uncompensated => {
+            warn!("{e:#}; running WITHOUT gravity compensation (compensation.allow_uncompensated)");
+            Ok(None)
+        }
+        Err(e) => Err(e.context(
+            "refusing to run with this grid (recalibrate, remove the file, or set \
+             compensation.allow_uncompensated = true)",
+        )),
+    }
+}
+
+fn mode_name(model: &Option<Box<GravityModel>>) -> String {
+    match model {
+        Some(m) => format!("{:?}", m.mode).to_lowercase(),
+        None => "none".into(),
+    }
+}
+
+/// A running daemon's hub state.
+struct Hub {
+    config: Config,
+    device: DeviceSpec,
+    grid_path: PathBuf,
+    registry: SharedRegistry,
+    commands: Sender<ServoCommand>,
+    status: Status,
+    started: Instant,
+    /// Client waiting for the calibration in progress, and the events channel of that run.
+    calibration: Option<(u64, Receiver<CalibrationEvent>)>,
+    garbled: u64,
+}
+
+impl Hub {
+    fn reply(&self, client: u64, reply: Reply) {
+        if let Some(c) = lock(&self.registry).clients.get(&client) {
+            let _ = c.outbound.try_send(reply);
+        }
+    }
+
+    fn calibration_reply(&self, event: &str, message: String) -> Reply {
+        Reply::Calibration {
+            event: event.into(),
+            vertex: None,
+            of: None,
+            mass_kg: None,
+            message,
+        }
+    }
+
+    fn fan_out(&self, sample: &StateSample) {
+        let reg = lock(&self.registry);
+        for c in reg.clients.values() {
+            if c.state_divider > 0 && sample.tick % c.state_divider == 0 {
+                let _ = c.outbound.try_send(Reply::State(*sample));
+            }
+        }
+    }
+
+    fn swap_model(&mut self, model: Option<Box<GravityModel>>) {
+        self.status.mode = mode_name(&model);
+        self.status.grid = model.as_ref().map(|_| self.grid_path.display().to_string());
+        info!("compensation mode now: {}", self.status.mode);
+        let _ = self.commands.send(ServoCommand::SwapModel(model));
+    }
+
+    fn handle_request(&mut self, request: HubRequest) {
+        match request {
+            HubRequest::Status { client } => {
+                let mut status = self.status.clone();
+                {
+                    let reg = lock(&self.registry);
+                    status.clients = reg.clients.len();
+                    status.owner = reg.owner_name();
+                }
+                status.uptime_s = self.started.elapsed().as_secs_f64();
+                self.reply(client, Reply::Status(Box::new(status)));
+            }
+            HubRequest::Calibrate { client } => {
+                if self.calibration.is_some() {
+                    self.reply(
+                        client,
+                        self.calibration_reply("failed", "a calibration is already running".into()),
+                    );
+                    return;
+                }
+                let (tx, rx) = crossbeam_channel::bounded(4096);
+                match Calibration::new(CalibrationParams::from_config(&self.config), Some(tx)) {
+                    Ok(calibration) => {
+                        info!("calibration requested by application client {client}");
+                        self.calibration = Some((client, rx));
+                        self.status.calibrating = true;
+                        let _ = self
+                            .commands
+                            .send(ServoCommand::StartCalibration(Box::new(calibration)));
+                        self.reply(client, self.calibration_reply("started", String::new()));
+                    }
+                    Err(e) => self.reply(client, self.calibration_reply("failed", e.to_string())),
+                }
+            }
+        }
+    }
+
+    fn forward_calibration_events(&self) {
+        let Some((client, rx)) = &self.calibration else {
+            return;
+        };
+        for event in rx.try_iter() {
+            let reply = match event {
+                CalibrationEvent::InitDone { initial_mass, .. } => Reply::Calibration {
+                    event: "init_done".into(),
+                    vertex: None,
+                    of: None,
+                    mass_kg: Some(initial_mass),
+                    message: String::new(),
+                },
+                CalibrationEvent::VertexDone {
+                    vertex, of, mass, ..
+                } => Reply::Calibration {
+                    event: "vertex_done".into(),
+                    vertex: Some(vertex),
+                    of: Some(of),
+                    mass_kg: Some(mass),
+                    message: String::new(),
+                },
+                _ => continue,
+            };
+            self.reply(*client, reply);
+        }
+    }
+
+    fn handle_return(&mut self, item: ServoReturn) {
+        match item {
+            ServoReturn::OldModel(_) => {} // dropped here, off the servo thread
+            ServoReturn::CalibrationRefused(_) => warn!("a calibration was already running"),
+            ServoReturn::CalibrationDone(calibration) => {
+                self.forward_calibration_events();
+                let client = self.calibration.take().map(|(c, _)| c);
+                self.status.calibrating = false;
+                let outcome = match calibration.outcome() {
+                    Some(Ok(result)) => {
+                        let grid = grid_from_result(&result, &self.config, &self.device);
+                        grid.save_atomic(&self.grid_path)
+                            .map_err(anyhow::Error::from)
+                            .and_then(|_| {
+                                let c = &self.config.compensation;
+                                Ok(GravityModel::new(grid, c.mode, c.outside_grid)?)
+                            })
+                    }
+                    Some(Err(failure)) => Err(anyhow::anyhow!("{failure}")),
+                    None => Err(anyhow::anyhow!("calibration ended without a result")),
+                };
+                match outcome {
+                    Ok(model) => {
+                        info!(
+                            "calibration finished; grid saved to {}",
+                            self.grid_path.display()
+                        );
+                        self.swap_model(Some(Box::new(model)));
+                        if let Some(c) = client {
+                            self.reply(
+                                c,
+                                self.calibration_reply(
+                                    "finished",
+                                    self.grid_path.display().to_string(),
+                                ),
+                            );
+                        }
+                    }
+                    Err(e) => {
+                        error!("calibration failed: {e:#}; the previous grid stays in use");
+                        if let Some(c) = client {
+                            self.reply(c, self.calibration_reply("failed", format!("{e:#}")));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn reload(&mut self) {
+        info!("SIGHUP: reloading {}", self.grid_path.display());
+        match load_model(&self.config, &self.device, &self.grid_path) {
+            Ok(model) => self.swap_model(model),
+            Err(e) => error!("reload failed, keeping the current grid: {e:#}"),
+        }
+    }
+
+    fn absorb_stats(&mut self, s: &StatsSnapshot) {
+        self.status.ticks = s.ticks;
+        self.status.late = s.late;
+        self.status.missed = s.missed;
+        self.status.overruns = s.overruns;
+        self.status.garbled = s.garbled;
+        self.status.watchdog_faults = s.watchdog_faults;
+        self.status.worst_compute_us = s.worst_compute_us;
+    }
+}
+
+/// The daemon, ready to run on a transport.
+pub struct Daemon {
+    pub config: Config,
+    pub device: DeviceSpec,
+    pub duration: Option<f64>,
+    pub socket: PathBuf,
+}
+
+impl Daemon {
+    pub fn new(config: Config, request: &RunRequest) -> Self {
+        let socket = config.socket_path();
+        Self {
+            config,
+            device: request.device.clone(),
+            duration: request.duration,
+            socket,
+        }
+    }
+
+    /// Run until a stop signal, the duration, or the end of the servo loop. `ready` is called
+    /// once the socket listens and the servo thread runs (systemd readiness).
+    pub fn run(
+        self,
+        transport: Box<dyn Transport>,
+        signals: Signals,
+        ready: &mut dyn FnMut(&Path),
+    ) -> Result<ServoReport> {
+        let config = &self.config;
+        let grid_path = grid_path(&config.state_dir(), &self.device);
+        let model = load_model(config, &self.device, &grid_path)?;
+        let mode = mode_name(&model);
+        let offset = ForceOffset::new(
+            config.app.stale_offset_ms * 1e-3,
+            config.app.stale_ramp_ms * 1e-3,
+        );
+        let compensation = Compensation::new(model, offset, config.servo_period());
+
+        let (commands_tx, commands_rx) = crossbeam_channel::bounded(64);
+        let (offsets_tx, offsets_rx) = crossbeam_channel::bounded(16);
+        let (returns_tx, returns_rx) = crossbeam_channel::bounded(16);
+        let (states_tx, states_rx) = crossbeam_channel::bounded(1024);
+        let (events_tx, events_rx) = crossbeam_channel::bounded(1024);
+        let (hub_tx, hub_rx) = crossbeam_channel::bounded(256);
+        let controller = DaemonController::new(
+            compensation,
+            ControllerLinks {
+                commands: commands_rx,
+                offsets: offsets_rx.clone(),
+                returns: returns_tx,
+                states: states_tx,
+            },
+        );
+
+        let registry = SharedRegistry::default();
+        let listener = server::bind(&self.socket, config.socket_mode()?).with_context(|| {
+            format!(
+                "cannot listen on {} (set app.socket or check /run/hgcd permissions)",
+                self.socket.display()
+            )
+        })?;
+        let ctx = Arc::new(ServerContext {
+            registry: registry.clone(),
+            commands: commands_tx.clone(),
+            offsets: offsets_tx,
+            offsets_evict: offsets_rx,
+            hub: hub_tx,
+            device: self.device.to_string(),
+            device_id: self.device.device_id(),
+            rate_hz: config.servo.rate_hz,
+            max_force: config.safety.max_force_n,
+            max_clients: config.app.max_clients,
+        });
+        let server_stop = Arc::new(AtomicBool::new(false));
+        let listener_thread =
+            server::spawn_listener(listener, self.socket.clone(), ctx, server_stop.clone())?;
+
+        let mut options = ServoOptions::from_config(config);
+        options.duration = self.duration;
+        let servo = servo::thread::spawn(
+            transport,
+            controller,
+            options,
+            config.servo.clone(),
+            signals.stop.clone(),
+            Some(events_tx),
+        )
+        .context("starting the servo thread")?;
+        info!(
+            "hgcd running on {} ({}), compensation: {mode}, socket {}",
+            self.device,
+            self.device.device_id(),
+            self.socket.display()
+        );
+        ready(&self.socket);
+
+        let mut hub = Hub {
+            status: Status {
+                device: self.device.to_string(),
+                device_id: self.device.device_id(),
+                grid: (mode != "none").then(|| grid_path.display().to_string()),
+                mode,
+                ..Status::default()
+            },
+            config: self.config.clone(),
+            device: self.device.clone(),
+            grid_path,
+            registry,
+            commands: commands_tx,
+            started: Instant::now(),
+            calibration: None,
+            garbled: 0,
+        };
+        let mut watchdog_usec = 0u64;
+        let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
+        let mut last_pet = Instant::now();
+        let tick = crossbeam_channel::tick(Duration::from_millis(50));
+        while !servo.is_finished() {
+            select! {
+                recv(states_rx) -> s => if let Ok(s) = s { hub.fan_out(&s) },
+                recv(events_rx) -> e => if let Ok(e) = e {
+                    if let ServoEvent::Stats(s) = &e { hub.absorb_stats(s) }
+                    log_event(&e, &mut hub.garbled);
+                },
+                recv(returns_rx) -> r => if let Ok(r) = r { hub.handle_return(r) },
+                recv(hub_rx) -> r => if let Ok(r) = r { hub.handle_request(r) },
+                recv(tick) -> _ => {
+                    hub.forward_calibration_events();
+                    if signals.reload.swap(false, Ordering::SeqCst) {
+                        hub.reload();
+                    }
+                    if watchdog && last_pet.elapsed() >= Duration::from_micros(watchdog_usec / 2) {
+                        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                        last_pet = Instant::now();
+                    }
+                },
+            }
+        }
+        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+        server_stop.store(true, Ordering::SeqCst);
+        let _ = listener_thread.join();
+        let (result, _) = servo
+            .join()
+            .map_err(|_| anyhow::anyhow!("the servo thread panicked"))?;
+        for e in events_rx.try_iter() {
+            log_event(&e, &mut hub.garbled);
+        }
+        let report = result.context("servo loop")?;
+        info!("servo loop ended: {:?}", report.exit);
+        Ok(report)
+    }
+}
+
+/// `hgcd run`: open the device and run the daemon.
+pub fn run(config: &Config, request: &RunRequest, signals: Signals) -> Result<ServoReport> {
+    let transport = transport::open(&request.device, config, request.pacing)
+        .with_context(|| format!("opening {}", request.device))?;
+    Daemon::new(config.clone(), request).run(transport, signals, &mut |_| {
+        let _ = sd_notify::notify(
+            false,
+            &[
+                sd_notify::NotifyState::Ready,
+                sd_notify::NotifyState::Status("servo loop running"),
+            ],
+        );
+    })
+}
