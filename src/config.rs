@@ -282,6 +282,8 @@ pub struct SimConfig {
     pub noise_mm: f64,
     /// Viscous friction, N·s/m.
     pub damping_n_s_per_m: f64,
+    /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
+    pub probe_mass_kg: f64,
     /// Integration rate, Hz (at least 10 kHz).
     pub substep_hz: f64,
     /// The device zeroes force when no output report arrives for this long, ms.
@@ -305,6 +307,7 @@ impl Default for SimConfig {
             encoder_resolution_mm: 0.005,
             noise_mm: 0.002,
             damping_n_s_per_m: 0.0,
+            probe_mass_kg: 0.0,
             substep_hz: 10_000.0,
             device_watchdog_ms: 50.0,
             stop_reporting_after_s: None,
@@ -533,6 +536,7 @@ impl Config {
         non_negative("sim.encoder_resolution_mm", sim.encoder_resolution_mm)?;
         non_negative("sim.noise_mm", sim.noise_mm)?;
         non_negative("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
+        non_negative("sim.probe_mass_kg", sim.probe_mass_kg)?;
         if !(sim.substep_hz.is_finite() && sim.substep_hz >= 10_000.0) {
             return Err(invalid("sim.substep_hz", "must be at least 10000 Hz"));
         }

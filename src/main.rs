@@ -14,7 +14,8 @@ use hgcd::daemon::{self, RunRequest, Signals};
 
 mod ctl;
 mod progress;
-use hgcd::transport::{hid, Pacing};
+use hgcd::servo::ServoError;
+use hgcd::transport::{hid, Pacing, TransportError};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -260,13 +261,33 @@ fn confirm_start() -> Result<()> {
     Ok(())
 }
 
+/// Exit status when the device cannot be opened or went away (the systemd unit does not restart
+/// on it: udev starts the instance again when the device is plugged back in).
+const EXIT_DEVICE_GONE: u8 = 3;
+
+fn device_gone(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        matches!(
+            c.downcast_ref::<TransportError>(),
+            Some(TransportError::Open { .. } | TransportError::Disconnected(_))
+        ) || matches!(
+            c.downcast_ref::<ServoError>(),
+            Some(ServoError::Transport(TransportError::Disconnected(_)))
+        )
+    })
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match real_main(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("hgcd: {e:#}");
-            ExitCode::FAILURE
+            if device_gone(&e) {
+                ExitCode::from(EXIT_DEVICE_GONE)
+            } else {
+                ExitCode::FAILURE
+            }
         }
     }
 }

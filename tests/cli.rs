@@ -95,7 +95,8 @@ fn missing_hid_device_is_reported_clearly() {
         .args(["--duration", "0.1"])
         .output()
         .unwrap();
-    assert!(!out.status.success());
+    // Exit status 3: the systemd unit does not restart on it (RestartPreventExitStatus=3).
+    assert_eq!(out.status.code(), Some(3));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("hid:dead:beef"), "{stderr}");
     assert!(

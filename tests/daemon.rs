@@ -91,18 +91,38 @@ impl Running {
     }
 }
 
-/// Start a daemon on a simulated device. `grid`: written to the state dir as the device's grid.
+/// Start a daemon on a simulated device whose mass field is [`truth_field`]. `grid`: written to
+/// the state dir as the device's grid.
 fn start(
+    config: Config,
+    pacing: Pacing,
+    grid: Option<&MassGrid>,
+    duration: Option<f64>,
+) -> Running {
+    launch(config, pacing, grid, &truth_field(), duration)
+}
+
+fn start_with_truth(
+    config: Config,
+    pacing: Pacing,
+    grid: Option<&MassGrid>,
+    truth: &MassGrid,
+) -> Running {
+    launch(config, pacing, grid, truth, None)
+}
+
+fn launch(
     mut config: Config,
     pacing: Pacing,
     grid: Option<&MassGrid>,
+    truth_grid: &MassGrid,
     duration: Option<f64>,
 ) -> Running {
     let dir = tempfile::tempdir().unwrap();
     let state = dir.path().join("state");
     std::fs::create_dir_all(&state).unwrap();
     let truth = dir.path().join("truth.toml");
-    truth_field().save_atomic(&truth).unwrap();
+    truth_grid.save_atomic(&truth).unwrap();
     config.sim.mass_grid = Some(truth);
     config.paths.state_dir = Some(state.clone());
     let socket = dir.path().join("hgcd.sock");
@@ -454,4 +474,72 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     wait_for_mode(&mut c, "none");
     drop(c);
     running.stop().0.unwrap();
+}
+
+/// Mean penetration of a virtual horizontal surface at the start height, rendered by a client,
+/// over the last 0.5 s of `duration` s (the paper's experiment, §5).
+fn wall_penalty(running: &Running, k: f64, damping: f64, duration: f64) -> f64 {
+    let mut client = running.client(Role::Control, "wall");
+    client.subscribe(1000.0).unwrap();
+    let first = client.next_state().unwrap();
+    let height = first.position[2];
+    let (mut sum, mut count) = (0.0, 0);
+    loop {
+        let s = client.next_state().unwrap();
+        if s.time - first.time > duration {
+            break;
+        }
+        let depth = height - s.position[2];
+        let fz = if depth > 0.0 {
+            k * depth - damping * s.velocity[2]
+        } else {
+            0.0
+        };
+        client.set_force(Vector3::new(0.0, 0.0, fz)).unwrap();
+        if s.time - first.time > duration - 0.5 {
+            sum += depth;
+            count += 1;
+        }
+    }
+    sum / count as f64
+}
+
+#[test]
+fn paper_experiment_penalty_is_probe_weight_over_stiffness_with_compensation() {
+    // Gravity along −z here: the surface is horizontal, as in the paper.
+    let mut truth = truth_field();
+    truth.gravity_direction = Vector3::z();
+    let grid = with_device_id(truth.clone(), "sim-point-mass");
+    let (m_p, k, g) = (0.03, 1000.0, 9.81);
+    for p in [[13.0, -27.0, 31.0], [-30.0, 30.0, -30.0]] {
+        let mut config = Config::default();
+        config.sim.probe_mass_kg = m_p;
+        config.sim.start_position_mm = p;
+        let running = start_with_truth(config, Pacing::RealTime, Some(&grid), &truth);
+        let penalty = wall_penalty(&running, k, 5.0, 2.0);
+        running.stop().0.unwrap();
+        let expected = m_p * g / k; // 0.294 mm
+        assert!(
+            (penalty / expected - 1.0).abs() < 0.05,
+            "at {p:?} mm: penalty {:.3} mm, expected {:.3} mm",
+            penalty * 1e3,
+            expected * 1e3
+        );
+    }
+    // Without compensation the end effector's own apparent mass sinks in too.
+    let p = [13.0, -27.0, 31.0];
+    let mut config = Config::default();
+    config.sim.probe_mass_kg = m_p;
+    config.sim.start_position_mm = p;
+    let running = start_with_truth(config, Pacing::RealTime, None, &truth);
+    let penalty = wall_penalty(&running, k, 5.0, 2.0);
+    running.stop().0.unwrap();
+    let x = Vector3::from(p) * 1e-3;
+    let expected = (truth.mass_at(&x) + m_p) * g / k;
+    assert!(
+        (penalty / expected - 1.0).abs() < 0.05,
+        "uncompensated penalty {:.3} mm, expected {:.3} mm",
+        penalty * 1e3,
+        expected * 1e3
+    );
 }

@@ -31,6 +31,8 @@ pub struct PointMass {
     pub field: MassGrid,
     /// Viscous friction b, N·s/m.
     pub damping: f64,
+    /// A probe mass fixed to the end effector, kg (adds to M(X) in inertia and weight).
+    pub payload: f64,
     lo: Vector3<f64>,
     hi: Vector3<f64>,
     x: Vector3<f64>,
@@ -48,6 +50,7 @@ impl PointMass {
         Self {
             field,
             damping,
+            payload: 0.0,
             lo,
             hi,
             x: start.sup(&lo).inf(&hi),
@@ -70,23 +73,25 @@ impl PointMass {
                 [2, 2, 2],
             ),
         };
-        Ok(Self::new(
+        let mut plant = Self::new(
             field,
             sim.damping_n_s_per_m,
             (lo, hi),
             mm(sim.start_position_mm),
-        ))
+        );
+        plant.payload = sim.probe_mass_kg;
+        Ok(plant)
     }
 
-    /// Apparent mass at the current position, kg (ground truth for tests).
+    /// Apparent mass at the current position, payload included, kg (ground truth for tests).
     pub fn mass(&self) -> f64 {
-        self.field.mass_at(&self.x)
+        self.field.mass_at(&self.x) + self.payload
     }
 }
 
 impl Plant for PointMass {
     fn step(&mut self, force: &Vector3<f64>, dt: f64) {
-        let m = self.field.mass_at(&self.x);
+        let m = self.field.mass_at(&self.x) + self.payload;
         let gravity = -self.field.gravity_direction * self.field.g;
         let a = (force - self.v * self.damping) / m + gravity;
         // Semi-implicit Euler: exact for constant acceleration up to the O(dt) start offset.

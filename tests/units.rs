@@ -1,0 +1,95 @@
+//! The systemd unit and udev rules: checked with `systemd-analyze` when the machine has it.
+
+use std::path::Path;
+use std::process::Command;
+
+fn systemd_analyze() -> Option<()> {
+    Command::new("systemd-analyze")
+        .arg("--version")
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map(|_| ())
+}
+
+/// The unit as installed, with ExecStart pointing at the binary under test (verify checks that
+/// the command exists).
+fn unit_copy(dir: &Path) -> std::path::PathBuf {
+    let text = std::fs::read_to_string("systemd/hgcd@.service").unwrap();
+    let path = dir.join("hgcd@test.service");
+    std::fs::write(
+        &path,
+        text.replace("/usr/bin/hgcd", env!("CARGO_BIN_EXE_hgcd")),
+    )
+    .unwrap();
+    path
+}
+
+#[test]
+fn unit_passes_systemd_analyze_verify() {
+    if systemd_analyze().is_none() {
+        eprintln!("systemd-analyze not installed: skipped");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let unit = unit_copy(dir.path());
+    let out = Command::new("systemd-analyze")
+        .arg("verify")
+        .arg(&unit)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        !stderr.contains("hgcd@test.service"),
+        "warnings about the unit: {stderr}"
+    );
+}
+
+#[test]
+fn unit_exposure_is_at_most_2_5() {
+    if systemd_analyze().is_none() {
+        eprintln!("systemd-analyze not installed: skipped");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let unit = unit_copy(dir.path());
+    let out = Command::new("systemd-analyze")
+        .args(["security", "--offline=true", "--no-pager"])
+        .arg(&unit)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout
+        .lines()
+        .find(|l| l.contains("Overall exposure level"))
+        .unwrap_or_else(|| panic!("no exposure line: {stdout}"));
+    let score: f64 = line
+        .split(':')
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("unparsable: {line}"));
+    assert!(score <= 2.5, "{line}");
+}
+
+#[test]
+fn udev_rule_grants_group_access_and_starts_the_unit() {
+    let rules = std::fs::read_to_string("udev/70-hgcd.rules").unwrap();
+    let rule = rules
+        .lines()
+        .find(|l| l.starts_with("SUBSYSTEM==\"hidraw\""))
+        .expect("a hidraw rule");
+    for needle in [
+        "GROUP=\"hgcd\"",
+        "MODE=\"0660\"",
+        "TAG+=\"uaccess\"",
+        "TAG+=\"systemd\"",
+        "ENV{SYSTEMD_WANTS}+=\"hgcd@hid:1209:4847.service\"",
+    ] {
+        assert!(rule.contains(needle), "missing {needle}");
+    }
+    // The instance name is a device spec hgcd accepts.
+    let spec: hgcd::config::DeviceSpec = "hid:1209:4847".parse().unwrap();
+    assert_eq!(spec.device_id(), "hid-1209-4847");
+}
