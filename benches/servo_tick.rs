@@ -2,7 +2,9 @@
 //!
 //! `cargo bench --bench servo_tick`. Input reports come from the mock-HID device (a PD-held
 //! simulated point mass, so positions and velocities are realistic); `core` times only what the
-//! servo thread does per report, `with_mock_device` adds the simulated firmware and plant.
+//! servo thread does per report with a PD hold, `daemon_controller` the same with the daemon's
+//! compensation controller (channel drains, Eq. 15, state publishing), `with_mock_device` adds
+//! the simulated firmware and plant.
 
 use std::hint::black_box;
 use std::time::Duration;
@@ -11,6 +13,10 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::Vector3;
 
 use hgcd::config::Config;
+use hgcd::control::compensation::{
+    Compensation, CompensationMode, ForceOffset, GravityModel, OutsideGrid,
+};
+use hgcd::daemon::controller::{ControllerLinks, DaemonController, OffsetCommand};
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::grid::MassGrid;
 use hgcd::protocol::INPUT_REPORT_LEN;
@@ -75,6 +81,41 @@ fn bench_tick(c: &mut Criterion) {
             device.receive_output(core.output()).unwrap();
             device.advance();
             black_box(outcome)
+        })
+    });
+    // The daemon's controller: compensation (Eq. 15) with channel drains and state publishing.
+    let (_commands_tx, commands) = crossbeam_channel::bounded(64);
+    let (offsets_tx, offsets) = crossbeam_channel::bounded(16);
+    let (returns, _returns_rx) = crossbeam_channel::bounded(16);
+    let (states, states_rx) = crossbeam_channel::bounded(1024);
+    let model = GravityModel::new(hold().field, CompensationMode::Scalar, OutsideGrid::HoldNearest)
+        .unwrap();
+    let mut daemon = DaemonController::new(
+        Compensation::new(Some(Box::new(model)), ForceOffset::new(0.05, 0.05), 1e-3),
+        ControllerLinks {
+            commands,
+            offsets,
+            returns,
+            states,
+        },
+    );
+    let mut core = ServoCore::new(&options).unwrap();
+    let mut k = 0usize;
+    group.bench_function("daemon_controller", |b| {
+        b.iter(|| {
+            let report = &reports[k % reports.len()];
+            k += 1;
+            if k % 10 == 0 {
+                let _ = offsets_tx.try_send(OffsetCommand {
+                    client: 1,
+                    seq: k as u64,
+                    force: Vector3::new(0.1, 0.0, 0.0),
+                });
+            }
+            let outcome = core.tick(black_box(report), k as f64 * 1e-3, &mut daemon, None);
+            // Keep the state channel from filling, as the daemon's hub does.
+            let _ = states_rx.try_recv();
+            let _ = black_box((outcome, core.output()));
         })
     });
     group.finish();
