@@ -36,7 +36,9 @@ impl Transport for Stamping {
     }
     fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
         let at = Instant::now();
-        let fx = OutputReport::decode(report).map(|r| r.force.x).unwrap_or(0.0);
+        let fx = OutputReport::decode(report)
+            .map(|r| r.force.x)
+            .unwrap_or(0.0);
         if fx != self.last_fx {
             self.last_fx = fx;
             let _ = self.stamps.try_send((at, fx));
@@ -84,7 +86,8 @@ fn main() {
         })
     });
     ready_rx.recv().unwrap();
-    let mut client = Client::connect(&dir.path().join("hgcd.sock"), Role::Control, "bench").unwrap();
+    let mut client =
+        Client::connect(&dir.path().join("hgcd.sock"), Role::Control, "bench").unwrap();
     let mut rng = rand::rngs::StdRng::seed_from_u64(7);
     let mut latencies = Vec::with_capacity(2000);
     for n in 1..=2000u32 {
@@ -93,7 +96,9 @@ fn main() {
         let sent = Instant::now();
         client.set_force(Vector3::new(fx, 0.0, 0.0)).unwrap();
         loop {
-            let (at, got) = stamps.recv_timeout(Duration::from_secs(1)).expect("offset arrives");
+            let (at, got) = stamps
+                .recv_timeout(Duration::from_secs(1))
+                .expect("offset arrives");
             if (got - fx).abs() < 1e-6 {
                 latencies.push(at.duration_since(sent).as_secs_f64() * 1e6);
                 break;

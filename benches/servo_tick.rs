@@ -16,8 +16,8 @@ use hgcd::config::Config;
 use hgcd::control::compensation::{
     Compensation, CompensationMode, ForceOffset, GravityModel, OutsideGrid,
 };
-use hgcd::daemon::controller::{ControllerLinks, DaemonController, OffsetCommand};
 use hgcd::control::pd::{LinearisedGains, PdHold};
+use hgcd::daemon::controller::{ControllerLinks, DaemonController, OffsetCommand};
 use hgcd::grid::MassGrid;
 use hgcd::protocol::INPUT_REPORT_LEN;
 use hgcd::servo::{ServoCore, ServoOptions};
@@ -88,8 +88,12 @@ fn bench_tick(c: &mut Criterion) {
     let (offsets_tx, offsets) = crossbeam_channel::bounded(16);
     let (returns, _returns_rx) = crossbeam_channel::bounded(16);
     let (states, states_rx) = crossbeam_channel::bounded(1024);
-    let model = GravityModel::new(hold().field, CompensationMode::Scalar, OutsideGrid::HoldNearest)
-        .unwrap();
+    let model = GravityModel::new(
+        hold().field,
+        CompensationMode::Scalar,
+        OutsideGrid::HoldNearest,
+    )
+    .unwrap();
     let mut daemon = DaemonController::new(
         Compensation::new(Some(Box::new(model)), ForceOffset::new(0.05, 0.05), 1e-3),
         ControllerLinks {

@@ -54,7 +54,7 @@ pub struct CalibrationRun {
 
 /// Check before calibrating that the output directory exists (creating it) and takes a file,
 /// so a long calibration does not end in an unwritable directory.
-fn check_writable(path: &Path) -> Result<()> {
+pub fn check_writable(path: &Path) -> Result<()> {
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
@@ -129,7 +129,19 @@ pub fn grid_from_result(
     cal.insert("rise_time_ms".into(), float(c.rise_time_ms));
     cal.insert("damping_ratio".into(), float(c.damping_ratio));
     cal.insert("initial_mass_kg".into(), float(result.initial_mass));
-    cal.insert("rest_point_m".into(), vec3(&result.rest_point));
+    cal.insert("rest_point_mm".into(), vec3(&(result.rest_point * 1e3)));
+    cal.insert("move_time_ms".into(), float(c.move_time_ms));
+    cal.insert("vertex_timeout_s".into(), float(c.vertex_timeout_s));
+    cal.insert("max_iterations".into(), i64::from(c.max_iterations).into());
+    let mm3 = |v: [f64; 3]| array(v.iter().map(|c| float(*c)).collect());
+    cal.insert(
+        "workspace_min_mm".into(),
+        mm3(config.device.workspace_min_mm),
+    );
+    cal.insert(
+        "workspace_max_mm".into(),
+        mm3(config.device.workspace_max_mm),
+    );
     cal.insert("duration_s".into(), float(result.duration));
     cal.insert(
         "left_out_vertices".into(),
@@ -235,7 +247,7 @@ pub fn calibrate(
     for event in rx.try_iter() {
         progress(&event);
     }
-    let report = result.context("servo loop")?;
+    let report = result.context("calibration stopped; nothing was written")?;
     let result = match (&report.exit, calibration.outcome()) {
         (_, Some(Ok(result))) => result,
         (_, Some(Err(failure))) => bail!("calibration failed: {failure}; nothing was written"),

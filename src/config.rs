@@ -570,8 +570,11 @@ impl Config {
         positive("calibration.damping_ratio", c.damping_ratio)?;
         positive("calibration.move_time_ms", c.move_time_ms)?;
         positive("calibration.vertex_timeout_s", c.vertex_timeout_s)?;
-        if c.max_iterations == 0 {
-            return Err(invalid("calibration.max_iterations", "must be at least 1"));
+        if c.max_iterations < 2 {
+            return Err(invalid(
+                "calibration.max_iterations",
+                "must be at least 2 (a vertex ends at its second steady state near the vertex)",
+            ));
         }
         let a = &self.app;
         self.socket_mode()?;

@@ -104,9 +104,11 @@ fn init_logging(level: &str) -> Result<()> {
             .without_time()
             .init();
     } else {
+        use std::io::IsTerminal;
         tracing_subscriber::fmt()
             .with_env_filter(filter)
             .with_writer(std::io::stderr)
+            .with_ansi(std::io::stderr().is_terminal())
             .init();
     }
     Ok(())

@@ -339,3 +339,27 @@ fn a_full_disk_during_the_write_gives_a_clear_error_and_no_partial_file() {
         .collect();
     assert_eq!(names.len(), 3, "no temporary file left behind: {names:?}");
 }
+
+#[test]
+fn a_handle_too_light_to_sag_gets_a_message_that_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("hgcd.toml");
+    // 10 g sags 0.2 mm on 0.5 N/mm: below the 0.3 mm (3 ε_init) that tells a free handle from a
+    // held one.
+    std::fs::write(
+        &cfg,
+        "[sim]\nmass_kg = 0.01\n[calibration]\nvertex_timeout_s = 2.0\n",
+    )
+    .unwrap();
+    let out = hgcd(&cfg)
+        .args(["calibrate", "--device", "sim:point-mass", "--output"])
+        .arg(dir.path().join("grid.toml"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("sagged only 0.19") && stderr.contains("weighs less than 15 g"),
+        "{stderr}"
+    );
+}

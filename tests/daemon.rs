@@ -543,3 +543,25 @@ fn paper_experiment_penalty_is_probe_weight_over_stiffness_with_compensation() {
         expected * 1e3
     );
 }
+
+#[test]
+fn a_calibration_whose_requester_disconnects_is_aborted_and_writes_nothing() {
+    let running = start(Config::default(), Pacing::RealTime, None, None);
+    let grid_file = running.dir.path().join("state/sim-point-mass.toml");
+    let mut requester = running.client(Role::Observe, "calibrator");
+    requester.request_calibration().unwrap();
+    loop {
+        if let Reply::Calibration { event, .. } = requester.next_reply().unwrap() {
+            assert_eq!(event, "started");
+            break;
+        }
+    }
+    // Ctrl-C on `hgcd calibrate --via-daemon` closes the connection.
+    drop(requester);
+    let mut observer = running.client(Role::Observe, "observer");
+    while observer.status().unwrap().calibrating {}
+    assert_eq!(observer.status().unwrap().mode, "none");
+    assert!(!grid_file.exists());
+    drop(observer);
+    running.stop().0.unwrap();
+}

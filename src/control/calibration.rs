@@ -269,8 +269,15 @@ pub enum CalibrationFailure {
     )]
     InitTimeout { timeout: f64 },
     #[error(
+        "initialisation: the handle came to rest but sagged only {sag_mm:.3} mm under the field; \
+         either something holds it, or it weighs less than {min_mass_g:.0} g (then lower \
+         calibration.k_init_n_per_mm)"
+    )]
+    NoSag { sag_mm: f64, min_mass_g: f64 },
+    #[error(
         "{vertex} did not converge within {timeout:.0} s ({iterations} mass updates); the handle \
-         may be blocked by a stop, or the vertex lies outside the reachable workspace"
+         may be blocked by a stop, the vertex may lie outside the reachable workspace, or \
+         calibration.eps_m_mm may be below the position noise"
     )]
     VertexTimeout {
         vertex: Vertex,
@@ -380,6 +387,10 @@ impl SteadyState {
     }
 }
 
+/// The initial steady state must sag more than this many ε_init below X_C (else something still
+/// holds the handle): 0.3 mm, the sag of 15 g, with the paper's defaults.
+const MIN_SAG: f64 = 3.0;
+
 /// How long a hold may go without a steady state (after the settle time) before the gains are
 /// halved, s.
 const GAIN_BACKOFF_AFTER: f64 = 1.0;
@@ -437,6 +448,8 @@ pub struct Calibration {
     /// Back-off factor on the gains (1, ½, ¼, ⅛) when a hold finds no steady state.
     gain_scale: f64,
     iteration: u32,
+    /// Sag at the last initial steady state, m.
+    init_sag: Option<f64>,
     /// Whether the previous steady state at this vertex was within ε_M of it.
     previous_near: bool,
     /// Distance from the vertex at the previous steady state, m.
@@ -469,6 +482,7 @@ impl Calibration {
             gain_mass: 0.0,
             gain_scale: 1.0,
             iteration: 0,
+            init_sag: None,
             previous_near: false,
             previous_error: f64::INFINITY,
             results: vec![None; count],
@@ -587,8 +601,15 @@ impl Controller for Calibration {
                 glide,
             } => {
                 if t - since > self.params.vertex_timeout + glide {
-                    return self.fail(CalibrationFailure::InitTimeout {
-                        timeout: self.params.vertex_timeout,
+                    let min_sag = MIN_SAG * self.params.eps_init;
+                    return self.fail(match self.init_sag {
+                        Some(sag) => CalibrationFailure::NoSag {
+                            sag_mm: sag * 1e3,
+                            min_mass_g: self.params.k_init * min_sag / self.params.g * 1e3,
+                        },
+                        None => CalibrationFailure::InitTimeout {
+                            timeout: self.params.vertex_timeout,
+                        },
                     });
                 }
                 let centre = if glide > 0.0 {
@@ -605,7 +626,8 @@ impl Controller for Calibration {
                     let sag = rest_point - steady;
                     // A steady state without sag means something still holds the handle (a hand);
                     // keep waiting for it to be released.
-                    if sag.norm() > 10.0 * self.params.eps_init {
+                    self.init_sag = Some(sag.norm());
+                    if sag.norm() > MIN_SAG * self.params.eps_init {
                         self.gravity_direction = sag / sag.norm(); // Eq. 7
                         self.initial_mass = self.params.k_init * sag.norm() / self.params.g; // Eq. 8
                         self.initial_steady_state = steady;

@@ -28,6 +28,8 @@ pub enum ServoCommand {
     ClientGone(u64),
     /// Run this calibration now (offsets are ignored until it ends).
     StartCalibration(Box<Calibration>),
+    /// Abandon the calibration in progress (its requester went away); it comes back unfinished.
+    AbortCalibration,
     /// Use this gravity model from the next tick (None: no compensation).
     SwapModel(Option<Box<GravityModel>>),
 }
@@ -97,6 +99,11 @@ impl DaemonController {
                     } else {
                         self.compensation.offset.clear();
                         self.calibration = Some(calibration);
+                    }
+                }
+                ServoCommand::AbortCalibration => {
+                    if let Some(calibration) = self.calibration.take() {
+                        self.give_back(ServoReturn::CalibrationDone(calibration));
                     }
                 }
                 ServoCommand::SwapModel(model) => {

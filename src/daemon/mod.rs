@@ -125,6 +125,7 @@ struct Hub {
     started: Instant,
     /// Client waiting for the calibration in progress, and the events channel of that run.
     calibration: Option<(u64, Receiver<CalibrationEvent>)>,
+    abort_sent: bool,
     garbled: u64,
 }
 
@@ -181,6 +182,11 @@ impl Hub {
                     );
                     return;
                 }
+                // Fail now rather than after minutes of calibration.
+                if let Err(e) = crate::calibrate::check_writable(&self.grid_path) {
+                    self.reply(client, self.calibration_reply("failed", format!("{e:#}")));
+                    return;
+                }
                 let (tx, rx) = crossbeam_channel::bounded(4096);
                 match Calibration::new(CalibrationParams::from_config(&self.config), Some(tx)) {
                     Ok(calibration) => {
@@ -194,6 +200,18 @@ impl Hub {
                     }
                     Err(e) => self.reply(client, self.calibration_reply("failed", e.to_string())),
                 }
+            }
+        }
+    }
+
+    /// A calibration whose requester went away (Ctrl-C on `hgcd calibrate --via-daemon`) is
+    /// abandoned, as a direct `hgcd calibrate` would be.
+    fn abort_orphaned_calibration(&mut self) {
+        if let Some((client, _)) = &self.calibration {
+            if !lock(&self.registry).clients.contains_key(client) && !self.abort_sent {
+                info!("calibration requester {client} disconnected: aborting the calibration");
+                let _ = self.commands.send(ServoCommand::AbortCalibration);
+                self.abort_sent = true;
             }
         }
     }
@@ -234,6 +252,7 @@ impl Hub {
                 self.forward_calibration_events();
                 let client = self.calibration.take().map(|(c, _)| c);
                 self.status.calibrating = false;
+                self.abort_sent = false;
                 let outcome = match calibration.outcome() {
                     Some(Ok(result)) => {
                         let grid = grid_from_result(&result, &self.config, &self.device);
@@ -245,7 +264,9 @@ impl Hub {
                             })
                     }
                     Some(Err(failure)) => Err(anyhow::anyhow!("{failure}")),
-                    None => Err(anyhow::anyhow!("calibration ended without a result")),
+                    None => Err(anyhow::anyhow!(
+                        "calibration aborted (its requester disconnected); nothing was written"
+                    )),
                 };
                 match outcome {
                     Ok(model) => {
@@ -323,6 +344,12 @@ impl Daemon {
     ) -> Result<ServoReport> {
         let config = &self.config;
         let grid_path = grid_path(&config.state_dir(), &self.device);
+        if let Err(e) = std::fs::create_dir_all(config.state_dir()) {
+            warn!(
+                "state directory {} is not usable ({e}); calibrations will fail to save",
+                config.state_dir().display()
+            );
+        }
         let model = load_model(config, &self.device, &grid_path)?;
         let mode = mode_name(&model);
         let offset = ForceOffset::new(
@@ -404,6 +431,7 @@ impl Daemon {
             commands: commands_tx,
             started: Instant::now(),
             calibration: None,
+            abort_sent: false,
             garbled: 0,
         };
         let mut watchdog_usec = 0u64;
@@ -421,6 +449,7 @@ impl Daemon {
                 recv(hub_rx) -> r => if let Ok(r) = r { hub.handle_request(r) },
                 recv(tick) -> _ => {
                     hub.forward_calibration_events();
+                    hub.abort_orphaned_calibration();
                     if signals.reload.swap(false, Ordering::SeqCst) {
                         hub.reload();
                     }

@@ -77,11 +77,21 @@ pub fn spawn<C: Controller + 'static>(
                 warn!("{w}");
             }
             info!(
-                "servo thread on {}: SCHED_FIFO priority {:?}, CPU {:?}, memory locked {}",
+                "servo thread on {}: {}, {}, memory {}",
                 transport.describe(),
-                setup.fifo_priority,
-                setup.pinned_cpu,
-                setup.memory_locked
+                setup
+                    .fifo_priority
+                    .map_or("normal scheduling".into(), |p| format!(
+                        "SCHED_FIFO priority {p}"
+                    )),
+                setup
+                    .pinned_cpu
+                    .map_or("not pinned".into(), |c| format!("pinned to CPU {c}")),
+                if setup.memory_locked {
+                    "locked"
+                } else {
+                    "not locked"
+                }
             );
             let result = run(
                 transport.as_mut(),

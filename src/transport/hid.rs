@@ -57,6 +57,8 @@ pub fn list_devices() -> Result<Vec<HidDeviceEntry>, TransportError> {
 
 /// Host side of a HID device: reads on the servo thread, writes on a writer thread.
 pub struct HidTransport {
+    /// Exclusive advisory lock on the hidraw node: one hgcd process per device.
+    _lock: std::fs::File,
     reader: HidDevice,
     spec: String,
     start: Instant,
@@ -105,6 +107,7 @@ impl HidTransport {
                 open_err(format!("{what} {}: {text}{hint}", path.to_string_lossy()))
             })
         };
+        let lock = lock_device(&path).map_err(open_err)?;
         let reader = open("opening")?;
         let writer_dev = open("opening a second handle on")?;
         let (outbox, inbox) = crossbeam_channel::bounded::<[u8; OUTPUT_REPORT_LEN]>(1);
@@ -123,6 +126,7 @@ impl HidTransport {
             })
             .map_err(|e| open_err(format!("cannot start writer thread: {e}")))?;
         Ok(Self {
+            _lock: lock,
             reader,
             spec,
             start: Instant::now(),
@@ -132,6 +136,23 @@ impl HidTransport {
             writer: Some(writer),
         })
     }
+}
+
+/// Take an exclusive advisory lock (flock) on the device node, so that a second hgcd process (a
+/// direct `hgcd calibrate` while the daemon runs) cannot drive the same device.
+fn lock_device(path: &CString) -> Result<std::fs::File, String> {
+    use std::os::unix::io::AsRawFd;
+    let node = std::path::PathBuf::from(path.to_string_lossy().into_owned());
+    let file = std::fs::File::open(&node)
+        .map_err(|e| format!("opening {} to lock it: {e}", node.display()))?;
+    // SAFETY: flock on a descriptor we own.
+    if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+        return Err(format!(
+            "{} is in use by another hgcd process (the daemon? use `hgcd calibrate --via-daemon`)",
+            node.display()
+        ));
+    }
+    Ok(file)
 }
 
 impl Transport for HidTransport {
