@@ -397,6 +397,8 @@ pub struct AppConfig {
     pub stale_ramp_ms: f64,
     /// Most clients connected at once; more are refused.
     pub max_clients: usize,
+    /// A client that has not said hello within this time is closed, ms.
+    pub hello_timeout_ms: f64,
 }
 
 impl Default for AppConfig {
@@ -407,6 +409,7 @@ impl Default for AppConfig {
             stale_offset_ms: 50.0,
             stale_ramp_ms: 50.0,
             max_clients: 16,
+            hello_timeout_ms: 5000.0,
         }
     }
 }
@@ -580,6 +583,7 @@ impl Config {
         self.socket_mode()?;
         positive("app.stale_offset_ms", a.stale_offset_ms)?;
         positive("app.stale_ramp_ms", a.stale_ramp_ms)?;
+        positive("app.hello_timeout_ms", a.hello_timeout_ms)?;
         if a.max_clients == 0 || a.max_clients > 1024 {
             return Err(invalid("app.max_clients", "must be 1–1024"));
         }

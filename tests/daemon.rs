@@ -317,7 +317,9 @@ fn a_stale_offset_ramps_to_zero_and_a_disconnect_removes_it_at_once() {
 #[test]
 fn hostile_clients_do_not_disturb_the_loop_or_the_owner() {
     let grid = with_device_id(truth_field(), "sim-point-mass");
-    let running = start(Config::default(), Pacing::RealTime, Some(&grid), Some(2.0));
+    let mut config = Config::default();
+    config.app.hello_timeout_ms = 300.0;
+    let running = start(config, Pacing::RealTime, Some(&grid), Some(2.0));
     let mut owner = running.client(Role::Control, "owner");
     owner.subscribe(100.0).unwrap();
     let offset = Vector3::new(0.0, 0.2, 0.0);
@@ -357,13 +359,14 @@ fn hostile_clients_do_not_disturb_the_loop_or_the_owner() {
     }
     let _ = s.write_all(&flood);
     drop(s);
-    // Out-of-order sequence numbers from another client.
-    let mut s = connect();
-    s.write_all(b"{\"type\":\"hello\",\"version\":1,\"role\":\"observe\"}\n{\"type\":\"set_force\",\"seq\":5,\"force\":[0,0,0]}\n{\"type\":\"set_force\",\"seq\":4,\"force\":[0,0,0]}\n").unwrap();
-    assert!(read_all(s).contains("out-of-order"));
-    // Dozens of connections opened and dropped.
+    // Dozens of connections opened and dropped, and some left idle without a hello: they are
+    // closed after app.hello_timeout_ms (300 ms here) and do not hold places for long.
     for _ in 0..50 {
         drop(connect());
+    }
+    let idle: Vec<UnixStream> = (0..8).map(|_| connect()).collect();
+    for s in idle {
+        assert!(read_all(s).contains("no hello within the time limit"));
     }
 
     // The owner's offset still rules.
@@ -392,7 +395,6 @@ fn only_one_client_owns_the_force() {
     assert_eq!(a.role, Role::Control);
     let mut b = running.client(Role::Control, "b");
     assert_eq!(b.role, Role::Observe);
-    b.set_force(Vector3::new(1.0, 0.0, 0.0)).unwrap();
     match b.next_reply().unwrap() {
         Reply::Error { message, fatal } => {
             assert!(!fatal);
@@ -400,11 +402,49 @@ fn only_one_client_owns_the_force() {
         }
         other => panic!("{other:?}"),
     }
+    b.set_force(Vector3::new(1.0, 0.0, 0.0)).unwrap();
+    match b.next_reply().unwrap() {
+        Reply::Error { message, fatal } => {
+            assert!(!fatal);
+            assert!(message.contains("does not own the force"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    // An observer cannot start a calibration under the owner's hands.
+    b.request_calibration().unwrap();
+    match b.next_reply().unwrap() {
+        Reply::Error { message, fatal } => {
+            assert!(!fatal);
+            assert!(
+                message.contains("only it may start a calibration"),
+                "{message}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
     let status = b.status().unwrap();
+    assert!(!status.calibrating);
     assert_eq!(status.owner.as_deref(), Some("a"));
     assert_eq!(status.clients, 2);
     drop(a);
     drop(b);
+    // The owner may not send sequence numbers out of order: that closes it.
+    let mut observer = running.client(Role::Observe, "observer");
+    while observer.status().unwrap().owner.is_some() {}
+    let mut s = UnixStream::connect(&running.socket).unwrap();
+    s.write_all(b"{\"type\":\"hello\",\"version\":1,\"role\":\"control\"}\n")
+        .unwrap();
+    let mut owner = std::io::BufReader::new(s.try_clone().unwrap());
+    let mut welcome = String::new();
+    std::io::BufRead::read_line(&mut owner, &mut welcome).unwrap();
+    assert!(welcome.contains("\"role\":\"control\""), "{welcome}");
+    s.write_all(b"{\"type\":\"set_force\",\"seq\":5,\"force\":[0,0,0]}\n{\"type\":\"set_force\",\"seq\":4,\"force\":[0,0,0]}\n").unwrap();
+    let mut rest = String::new();
+    let _ = owner.read_to_string(&mut rest);
+    assert!(
+        rest.contains("out-of-order set_force: seq 4 after 5"),
+        "{rest}"
+    );
     running.stop().0.unwrap();
 }
 

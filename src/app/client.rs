@@ -144,7 +144,8 @@ impl Client {
         }
     }
 
-    /// The next state sample (other replies in between are skipped).
+    /// The next state sample. Other replies in between (non-fatal errors such as "does not own
+    /// the force", calibration progress) are skipped: use [`Client::next_reply`] to see them.
     pub fn next_state(&mut self) -> Result<StateSample, ClientError> {
         loop {
             if let Reply::State(s) = self.next_reply()? {
@@ -153,7 +154,7 @@ impl Client {
         }
     }
 
-    /// Ask for and wait for the daemon's status.
+    /// Ask for and wait for the daemon's status (state samples in between are skipped).
     pub fn status(&mut self) -> Result<Status, ClientError> {
         self.send(&Request::Status {})?;
         loop {

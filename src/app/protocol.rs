@@ -30,7 +30,8 @@ pub enum Request {
         #[serde(default)]
         name: String,
     },
-    /// Set the force offset Z_E, N. `seq` must increase strictly from one message to the next.
+    /// Set the force offset Z_E, N. `seq` starts at 1 and must increase strictly from one message
+    /// to the next.
     SetForce { seq: u64, force: [f64; 3] },
     /// Stream the device state at `rate_hz` (at most the servo rate; 0 stops the stream).
     Subscribe { rate_hz: f64 },
@@ -86,7 +87,8 @@ pub struct StateSample {
     pub position: [f64; 3],
     /// FOAW estimate, m/s.
     pub velocity: [f64; 3],
-    /// Force sent to the device this tick (after the safety layer), N.
+    /// Force the controller requested this tick, N (the safety layer may still clamp its
+    /// magnitude and rate of change before it reaches the device).
     pub force: [f64; 3],
     /// Device status flags (HID protocol v1 bits).
     pub flags: u16,
@@ -134,6 +136,9 @@ pub fn parse_request(line: &str, max_force: f64, max_rate: f64) -> Result<Reques
     let request: Request =
         serde_json::from_str(line).map_err(|e| RequestError::Malformed(e.to_string()))?;
     match &request {
+        Request::SetForce { seq: 0, .. } => {
+            Err(RequestError::Malformed("set_force seq starts at 1".into()))
+        }
         Request::SetForce { force, .. }
             if !force.iter().all(|f| f.is_finite() && f.abs() <= max_force) =>
         {
@@ -203,6 +208,7 @@ mod tests {
             r#"{"type":"status","extra":1}"#,
             r#"{"type":"set_force","seq":-1,"force":[0,0,0]}"#,
             r#"{"type":"set_force","seq":1,"force":[0,0]}"#,
+            r#"{"type":"set_force","seq":0,"force":[0,0,0]}"#,
         ] {
             assert!(
                 matches!(

@@ -83,12 +83,24 @@ pub struct ServerContext {
     pub rate_hz: f64,
     pub max_force: f64,
     pub max_clients: usize,
+    /// A client that has not said hello within this time is closed.
+    pub hello_timeout: Duration,
 }
 
 /// Bind the socket at `path` with permissions `mode`. A stale socket file (nobody listening) is
 /// replaced; a live one means another daemon serves this path, which is an error.
 pub fn bind(path: &Path, mode: u32) -> std::io::Result<UnixListener> {
     if path.exists() {
+        use std::os::unix::fs::FileTypeExt;
+        if !std::fs::symlink_metadata(path)?.file_type().is_socket() {
+            return Err(std::io::Error::new(
+                ErrorKind::AlreadyExists,
+                format!(
+                    "{} exists and is not a socket; not replacing it",
+                    path.display()
+                ),
+            ));
+        }
         match UnixStream::connect(path) {
             Ok(_) => {
                 return Err(std::io::Error::new(
@@ -236,7 +248,10 @@ fn read_line(reader: &mut impl BufRead) -> Result<Option<String>, String> {
     let n = reader
         .take(MAX_LINE_LEN as u64 + 1)
         .read_until(b'\n', &mut buf)
-        .map_err(|e| format!("read error: {e}"))?;
+        .map_err(|e| match e.kind() {
+            ErrorKind::WouldBlock | ErrorKind::TimedOut => "no hello within the time limit".into(),
+            _ => format!("read error: {e}"),
+        })?;
     if n == 0 {
         return Ok(None);
     }
@@ -253,9 +268,16 @@ fn read_line(reader: &mut impl BufRead) -> Result<Option<String>, String> {
         .map_err(|_| "line is not UTF-8".into())
 }
 
+/// How long a reply other than a state sample may wait for room in a client's queue.
+pub const REPLY_WAIT: Duration = Duration::from_millis(100);
+
 fn reply(ctx: &ServerContext, id: u64, r: Reply) {
-    if let Some(c) = lock(&ctx.registry).clients.get(&id) {
-        let _ = c.outbound.try_send(r);
+    let outbound = lock(&ctx.registry)
+        .clients
+        .get(&id)
+        .map(|c| c.outbound.clone());
+    if let Some(tx) = outbound {
+        let _ = tx.send_timeout(r, REPLY_WAIT);
     }
 }
 
@@ -273,6 +295,8 @@ fn fatal(ctx: &ServerContext, id: u64, message: String) -> String {
 
 /// Serve one client until it leaves or breaks the protocol; returns the reason it ended.
 fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
+    // A client must say hello in time, or idle connections could hold every place.
+    let _ = stream.set_read_timeout(Some(ctx.hello_timeout));
     let mut reader = BufReader::new(stream);
     let mut greeted = false;
     let mut last_seq: Option<u64> = None;
@@ -303,6 +327,7 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                     );
                 }
                 greeted = true;
+                let _ = reader.get_ref().set_read_timeout(None);
                 let granted = {
                     let mut reg = lock(&ctx.registry);
                     let granted = if role == Role::Control && reg.owner.is_none() {
@@ -347,17 +372,6 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
             }
             _ if !greeted => return fatal(ctx, id, "the first message must be hello".into()),
             Request::SetForce { seq, force } => {
-                if last_seq.is_some_and(|last| seq <= last) {
-                    return fatal(
-                        ctx,
-                        id,
-                        format!(
-                            "out-of-order set_force: seq {seq} after {}",
-                            last_seq.unwrap_or(0)
-                        ),
-                    );
-                }
-                last_seq = Some(seq);
                 if lock(&ctx.registry).owner != Some(id) {
                     reply(
                         ctx,
@@ -369,6 +383,17 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                     );
                     continue;
                 }
+                if last_seq.is_some_and(|last| seq <= last) {
+                    return fatal(
+                        ctx,
+                        id,
+                        format!(
+                            "out-of-order set_force: seq {seq} after {}",
+                            last_seq.unwrap_or(0)
+                        ),
+                    );
+                }
+                last_seq = Some(seq);
                 send_offset(
                     ctx,
                     OffsetCommand {
@@ -389,6 +414,20 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                 }
             }
             Request::Calibrate {} => {
+                let owner = lock(&ctx.registry).owner;
+                if owner.is_some_and(|o| o != id) {
+                    reply(
+                        ctx,
+                        id,
+                        Reply::Error {
+                            message: "another client owns the force: only it may start a \
+                                      calibration"
+                                .into(),
+                            fatal: false,
+                        },
+                    );
+                    continue;
+                }
                 let _ = ctx.hub.send(HubRequest::Calibrate { client: id });
             }
             Request::Status {} => {

@@ -98,6 +98,7 @@ impl DaemonController {
                         self.give_back(ServoReturn::CalibrationRefused(calibration));
                     } else {
                         self.compensation.offset.clear();
+                        self.offset_seq = 0;
                         self.calibration = Some(calibration);
                     }
                 }
@@ -119,7 +120,8 @@ impl DaemonController {
     fn drain_offsets(&mut self, now: f64) {
         let mut newest: Option<OffsetCommand> = None;
         while let Ok(offset) = self.links.offsets.try_recv() {
-            if Some(offset.client) == self.owner && offset.seq > self.offset_seq {
+            // The channel is FIFO per client, so the last one from the owner is the newest.
+            if Some(offset.client) == self.owner {
                 newest = Some(offset);
             }
         }

@@ -131,8 +131,12 @@ struct Hub {
 
 impl Hub {
     fn reply(&self, client: u64, reply: Reply) {
-        if let Some(c) = lock(&self.registry).clients.get(&client) {
-            let _ = c.outbound.try_send(reply);
+        let outbound = lock(&self.registry)
+            .clients
+            .get(&client)
+            .map(|c| c.outbound.clone());
+        if let Some(tx) = outbound {
+            let _ = tx.send_timeout(reply, server::REPLY_WAIT);
         }
     }
 
@@ -392,6 +396,7 @@ impl Daemon {
             rate_hz: config.servo.rate_hz,
             max_force: config.safety.max_force_n,
             max_clients: config.app.max_clients,
+            hello_timeout: Duration::from_secs_f64(config.app.hello_timeout_ms * 1e-3),
         });
         let server_stop = Arc::new(AtomicBool::new(false));
         let listener_thread =
