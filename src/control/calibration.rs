@@ -16,9 +16,11 @@
 //!
 //! Steady state ("n consecutive samples within a sphere of radius ε") means: n consecutive
 //! samples, taken after the settle time since the last change, all within ε of the first of them,
-//! and without drift (the means of their two halves differ by less than ε/20); X̄ is their mean.
-//! A vertex ends at the second consecutive steady state within ε_M of the vertex itself: its last
-//! update is then measured at the vertex, after a transient too small to bias it.
+//! whose mean X̄ agrees within ε/10 with the mean of the n samples before them (no creep, no
+//! drift; small oscillations average out).
+//! A vertex ends at the second consecutive steady state within ε_M of the vertex along v_G (the
+//! only direction a mass update moves it): its last update is then measured at the vertex, after
+//! a transient too small to bias it.
 //! Vertices are visited along a serpentine path, so the previous vertex is always a neighbour.
 
 use crossbeam_channel::Sender;
@@ -332,16 +334,17 @@ pub enum CalibrationEvent {
     Failed(CalibrationFailure),
 }
 
-/// n consecutive samples within ε of the first of them, whose two halves' means differ by less
-/// than ε/20 (the handle is not still creeping toward its equilibrium); yields their mean.
+/// n consecutive samples within ε of the first of them, whose mean agrees within ε/10 with the
+/// mean of the n samples before them (the handle is neither creeping toward its equilibrium nor
+/// drifting; an oscillation much smaller than ε averages out); yields their mean.
 #[derive(Clone, Debug)]
 struct SteadyState {
     n: usize,
     eps: f64,
     first: Vector3<f64>,
-    first_half: Vector3<f64>,
-    second_half: Vector3<f64>,
+    sum: Vector3<f64>,
     count: usize,
+    previous_mean: Option<Vector3<f64>>,
 }
 
 impl SteadyState {
@@ -350,40 +353,36 @@ impl SteadyState {
             n,
             eps,
             first: Vector3::zeros(),
-            first_half: Vector3::zeros(),
-            second_half: Vector3::zeros(),
+            sum: Vector3::zeros(),
             count: 0,
+            previous_mean: None,
         }
     }
     fn reset(&mut self) {
         self.count = 0;
+        self.previous_mean = None;
     }
     fn push(&mut self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
-        if self.count == 0 || (x - self.first).norm() > self.eps {
+        if self.count == 0 {
             self.first = *x;
-            self.first_half = Vector3::zeros();
-            self.second_half = Vector3::zeros();
+            self.sum = Vector3::zeros();
+        } else if (x - self.first).norm() > self.eps {
+            self.first = *x;
+            self.sum = Vector3::zeros();
             self.count = 0;
+            self.previous_mean = None;
         }
+        self.sum += x;
         self.count += 1;
-        let half = self.n / 2;
-        if self.count <= half {
-            self.first_half += x;
-        } else {
-            self.second_half += x;
-        }
         if self.count < self.n {
             return None;
         }
-        let mean = (self.first_half + self.second_half) / self.n as f64;
-        if half > 0 {
-            let drift = self.second_half / (self.n - half) as f64 - self.first_half / half as f64;
-            if drift.norm() >= self.eps / 20.0 {
-                self.count = 0;
-                return None;
-            }
+        let mean = self.sum / self.n as f64;
+        self.count = 0;
+        match self.previous_mean.replace(mean) {
+            Some(previous) if (mean - previous).norm() < self.eps / 10.0 => Some(mean),
+            _ => None,
         }
-        Some(mean)
     }
 }
 
@@ -693,10 +692,14 @@ impl Controller for Calibration {
                 // the default gains); half a cell away means the handle is blocked: do not push
                 // harder.
                 // Likewise when an update did not bring the handle closer: something holds it.
+                // Mass updates act along v_G only, so that is the component they must shrink; the
+                // offset across v_G (a linkage's horizontal gravity components, or a small error
+                // in v_G) stays, and is kept in the holding force for the vector mode.
+                let along = error.dot(&self.gravity_direction).abs();
                 let stuck = self.iteration >= 1
-                    && error.norm() > self.params.eps_m
-                    && error.norm() > 0.8 * self.previous_error;
-                self.previous_error = error.norm();
+                    && along > self.params.eps_m
+                    && along > 0.8 * self.previous_error;
+                self.previous_error = along;
                 if error.norm() > 0.5 * self.params.spacing || stuck {
                     return self.fail(CalibrationFailure::Unreachable {
                         vertex,
@@ -723,7 +726,7 @@ impl Controller for Calibration {
                         mass: updated,
                     });
                 }
-                let near = error.norm() < self.params.eps_m;
+                let near = along < self.params.eps_m;
                 let converged = near && self.previous_near;
                 self.previous_near = near;
                 // Gains follow the newest estimate (Eq. 13 lags them by one iteration; see docs).
@@ -816,20 +819,29 @@ mod tests {
     }
 
     #[test]
-    fn steady_state_needs_n_samples_in_the_sphere() {
-        let mut d = SteadyState::new(4, 1e-4);
-        assert!(d.push(&Vector3::zeros()).is_none());
-        assert!(d.push(&Vector3::new(5e-5, 0.0, 0.0)).is_none());
-        assert!(d.push(&Vector3::new(2e-4, 0.0, 0.0)).is_none()); // leaves: restart here
-        for x in [2.01e-4, 2.0e-4] {
-            assert!(d.push(&Vector3::new(x, 0.0, 0.0)).is_none());
+    fn steady_state_needs_two_agreeing_windows_in_the_sphere() {
+        let p = |x: f64| Vector3::new(x, 0.0, 0.0);
+        let mut d = SteadyState::new(2, 1e-4);
+        assert!(d.push(&p(0.0)).is_none());
+        assert!(d.push(&p(2e-4)).is_none()); // leaves the sphere: restart here
+        assert!(d.push(&p(2e-4)).is_none()); // first window complete: mean 2e-4
+        assert!(d.push(&p(2.01e-4)).is_none());
+        let mean = d.push(&p(2.01e-4)).unwrap(); // second window 2.01e-4 agrees within 1e-5
+        assert!((mean.x - 2.01e-4).abs() < 1e-12);
+        // A creeping handle (20 µm between window means, ε/10 = 10 µm) is not steady.
+        let mut d = SteadyState::new(2, 1e-4);
+        for x in [0.0, 1e-5, 2e-5, 3e-5, 4e-5, 5e-5] {
+            assert!(d.push(&p(x)).is_none());
         }
-        let mean = d.push(&Vector3::new(2.01e-4, 0.0, 0.0)).unwrap();
-        assert!((mean.x - 2.005e-4).abs() < 1e-12);
-        // A creeping handle (6 µm between half-means, ε/20 = 5 µm) is not steady.
+        // An oscillation of ±20 µm over whole windows is.
         let mut d = SteadyState::new(4, 1e-4);
-        for x in [0.0, 3e-6, 9e-6, 12e-6] {
-            assert!(d.push(&Vector3::new(x, 0.0, 0.0)).is_none());
-        }
+        let wave = [2e-5, -2e-5, 2e-5, -2e-5];
+        assert!(wave.iter().map(|&x| d.push(&p(x))).all(|r| r.is_none()));
+        assert!(wave
+            .iter()
+            .map(|&x| d.push(&p(x)))
+            .last()
+            .unwrap()
+            .is_some());
     }
 }
