@@ -95,7 +95,7 @@ fn bench_tick(c: &mut Criterion) {
     )
     .unwrap();
     let mut daemon = DaemonController::new(
-        Compensation::new(Some(Box::new(model)), ForceOffset::new(0.05, 0.05), 1e-3),
+        Compensation::new(Some(Box::new(model)), ForceOffset::new(0.05, 0.05)),
         ControllerLinks {
             commands,
             offsets,

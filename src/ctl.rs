@@ -25,7 +25,14 @@ pub fn status(socket: &Path) -> Result<()> {
     );
     println!(
         "servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog faults {}; worst tick {:.1} µs",
-        s.ticks, s.uptime_s, s.late, s.missed, s.overruns, s.garbled, s.watchdog_faults, s.worst_compute_us
+        s.servo.ticks,
+        s.uptime_s,
+        s.servo.late,
+        s.servo.missed,
+        s.servo.overruns,
+        s.servo.garbled,
+        s.servo.watchdog_faults,
+        s.servo.worst_compute_us
     );
     Ok(())
 }

@@ -15,46 +15,20 @@ use hgcd::control::calibration::CalibrationEvent;
 use hgcd::grid::MassGrid;
 use hgcd::transport::Pacing;
 
-/// A 5×5×5 truth field on a 40 mm lattice (±80 mm) with gravity tilted about 3.3° away from −z.
-/// The 27 inner vertices (the calibration grid) take 27 distinct masses spread evenly over
-/// 0.05–0.25 kg in scrambled order; the outer shell is 0.15 kg.
-fn truth_field() -> MassGrid {
-    let mut g = MassGrid::uniform(
-        0.1,
-        9.81,
-        Vector3::new(0.05, -0.03, 1.0),
-        Vector3::new(-0.08, -0.08, -0.08),
-        0.04,
-        [5, 5, 5],
-    );
-    for k in 0..5 {
-        for j in 0..5 {
-            for i in 0..5 {
-                let n = g.index(i, j, k);
-                let inner = [i, j, k].iter().all(|&c| (1..=3).contains(&c));
-                g.masses[n] = if inner {
-                    let q = (i - 1) + 3 * ((j - 1) + 3 * (k - 1));
-                    0.05 + 0.2 * ((q * 10) % 27) as f64 / 26.0
-                } else {
-                    0.15
-                };
-            }
-        }
-    }
-    g
-}
+mod common;
+use common::{file_names, hgcd, truth_field_125};
 
 /// A config file (paper defaults) whose simulated device has the truth field; extra TOML appended.
 fn setup(dir: &Path, extra: &str) -> (PathBuf, MassGrid) {
-    let truth = truth_field();
+    let truth = truth_field_125();
     truth.save_atomic(&dir.join("truth.toml")).unwrap();
     let cfg = dir.join("hgcd.toml");
     std::fs::write(&cfg, format!("[sim]\nmass_grid = \"truth.toml\"\n{extra}")).unwrap();
     (cfg, truth)
 }
 
-fn hgcd(cfg: &Path) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_hgcd"));
+fn hgcd_with(cfg: &Path) -> Command {
+    let mut c = hgcd();
     c.arg("--config").arg(cfg).arg("--log-level").arg("warn");
     c
 }
@@ -64,7 +38,7 @@ fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
     let dir = tempfile::tempdir().unwrap();
     let (cfg, truth) = setup(dir.path(), "");
     let state = dir.path().join("state");
-    let out = hgcd(&cfg)
+    let out = hgcd_with(&cfg)
         .args(["calibrate", "--device", "sim:point-mass", "--state-dir"])
         .arg(&state)
         .output()
@@ -134,7 +108,7 @@ fn ctrl_c_mid_run_aborts_and_leaves_the_old_grid_untouched() {
     std::fs::write(&output, old).unwrap();
     // Real time, so the run is still going when the signal comes; the signal is sent once the
     // log says the second vertex has started (no sleeping on the wall clock).
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hgcd"))
+    let mut child = hgcd()
         .arg("--config")
         .arg(&cfg)
         .args([
@@ -171,10 +145,7 @@ fn ctrl_c_mid_run_aborts_and_leaves_the_old_grid_untouched() {
         "{log}"
     );
     assert_eq!(std::fs::read_to_string(&output).unwrap(), old);
-    let names: Vec<_> = std::fs::read_dir(dir.path())
-        .unwrap()
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .collect();
+    let names = file_names(dir.path());
     assert_eq!(names.len(), 3, "{names:?}"); // hgcd.toml, truth.toml, dev.toml
 }
 
@@ -222,7 +193,7 @@ fn vertices_outside_the_workspace_are_left_out_and_reported() {
          workspace_max_mm = [60.0, 60.0, 60.0]\n",
     );
     let out_file = dir.path().join("grid.toml");
-    let out = hgcd(&cfg)
+    let out = hgcd_with(&cfg)
         .args(["calibrate", "--device", "sim:point-mass", "--output"])
         .arg(&out_file)
         .output()
@@ -261,7 +232,7 @@ fn a_vertex_behind_a_mechanical_stop_fails_with_its_name_and_writes_nothing() {
         "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration]\nvertex_timeout_s = 8.0\n",
     );
     let out_file = dir.path().join("grid.toml");
-    let out = hgcd(&cfg)
+    let out = hgcd_with(&cfg)
         .args(["calibrate", "--device", "sim:point-mass", "--output"])
         .arg(&out_file)
         .output()
@@ -283,7 +254,7 @@ fn unwritable_state_dir_fails_before_calibrating() {
     let (cfg, _) = setup(dir.path(), "");
     let blocker = dir.path().join("not-a-dir");
     std::fs::write(&blocker, "").unwrap();
-    let out = hgcd(&cfg)
+    let out = hgcd_with(&cfg)
         .args(["calibrate", "--device", "sim:point-mass", "--state-dir"])
         .arg(blocker.join("state"))
         .output()
@@ -307,7 +278,7 @@ fn a_full_disk_during_the_write_gives_a_clear_error_and_no_partial_file() {
     let out_file = dir.path().join("grid.toml");
     let old = "format = \"hgcd-grid/1\"\n# the previous calibration\n";
     std::fs::write(&out_file, old).unwrap();
-    let mut cmd = hgcd(&cfg);
+    let mut cmd = hgcd_with(&cfg);
     cmd.args(["calibrate", "--device", "sim:point-mass", "--output"])
         .arg(&out_file);
     // Files may grow to 1 KiB only: the grid (several KiB) cannot be written, as on a full disk.
@@ -333,10 +304,7 @@ fn a_full_disk_during_the_write_gives_a_clear_error_and_no_partial_file() {
         "{stderr}"
     );
     assert_eq!(std::fs::read_to_string(&out_file).unwrap(), old);
-    let names: Vec<_> = std::fs::read_dir(dir.path())
-        .unwrap()
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .collect();
+    let names = file_names(dir.path());
     assert_eq!(names.len(), 3, "no temporary file left behind: {names:?}");
 }
 
@@ -351,7 +319,7 @@ fn a_handle_too_light_to_sag_gets_a_message_that_says_so() {
         "[sim]\nmass_kg = 0.01\n[calibration]\nvertex_timeout_s = 2.0\n",
     )
     .unwrap();
-    let out = hgcd(&cfg)
+    let out = hgcd_with(&cfg)
         .args(["calibrate", "--device", "sim:point-mass", "--output"])
         .arg(dir.path().join("grid.toml"))
         .output()

@@ -1,14 +1,7 @@
 //! The `hgcd` binary as a user runs it.
 
-use std::process::Command;
-
-fn hgcd() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_hgcd"));
-    // Never pick up an installed /etc/hgcd/hgcd.toml during tests.
-    let dir = std::env::temp_dir();
-    c.current_dir(dir);
-    c
-}
+mod common;
+use common::hgcd;
 
 fn empty_config() -> tempfile::NamedTempFile {
     tempfile::NamedTempFile::new().unwrap()

@@ -19,21 +19,8 @@ use hgcd::servo::ServoReport;
 use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::{Pacing, Transport, TransportError, MAX_REPORT_LEN};
 
-/// A 3×3×3 truth field (±40 mm) with masses over 0.05–0.25 kg and gravity tilted ~3.3°.
-fn truth_field() -> MassGrid {
-    let mut g = MassGrid::uniform(
-        0.1,
-        9.81,
-        Vector3::new(0.05, -0.03, 1.0),
-        Vector3::new(-0.04, -0.04, -0.04),
-        0.04,
-        [3, 3, 3],
-    );
-    for (n, m) in g.masses.iter_mut().enumerate() {
-        *m = 0.05 + 0.2 * ((n * 10) % 27) as f64 / 26.0;
-    }
-    g
-}
+mod common;
+use common::{truth_field_27, with_device_id};
 
 /// Records every output report the servo loop writes.
 struct Recording {
@@ -99,7 +86,7 @@ fn start(
     grid: Option<&MassGrid>,
     duration: Option<f64>,
 ) -> Running {
-    launch(config, pacing, grid, &truth_field(), duration)
+    launch(config, pacing, grid, &truth_field_27(), duration)
 }
 
 fn start_with_truth(
@@ -169,13 +156,6 @@ fn launch(
     }
 }
 
-fn with_device_id(mut g: MassGrid, id: &str) -> MassGrid {
-    let mut dev = toml::Table::new();
-    dev.insert("id".into(), id.into());
-    g.extra.insert("device".into(), toml::Value::Table(dev));
-    g
-}
-
 /// States from `client` until device time reaches `t`.
 fn state_at(client: &mut Client, t: f64) -> StateSample {
     loop {
@@ -192,7 +172,7 @@ fn dist(a: [f64; 3], b: Vector3<f64>) -> f64 {
 
 #[test]
 fn compensation_holds_the_handle_anywhere_in_the_grid_and_it_falls_without() {
-    let grid = with_device_id(truth_field(), "sim-point-mass");
+    let grid = with_device_id(truth_field_27(), "sim-point-mass");
     // Release points: vertices, cell centres, points off every symmetry.
     let points_mm = [
         [0.0, 0.0, 0.0],
@@ -237,7 +217,7 @@ fn compensation_holds_the_handle_anywhere_in_the_grid_and_it_falls_without() {
 
 #[test]
 fn a_force_offset_appears_in_the_next_output_report() {
-    let grid = with_device_id(truth_field(), "sim-point-mass");
+    let grid = with_device_id(truth_field_27(), "sim-point-mass");
     let running = start(Config::default(), Pacing::RealTime, Some(&grid), None);
     let mut client = running.client(Role::Control, "offsets");
     client.subscribe(1000.0).unwrap();
@@ -316,7 +296,7 @@ fn a_stale_offset_ramps_to_zero_and_a_disconnect_removes_it_at_once() {
 
 #[test]
 fn hostile_clients_do_not_disturb_the_loop_or_the_owner() {
-    let grid = with_device_id(truth_field(), "sim-point-mass");
+    let grid = with_device_id(truth_field_27(), "sim-point-mass");
     let mut config = Config::default();
     config.app.hello_timeout_ms = 300.0;
     let running = start(config, Pacing::RealTime, Some(&grid), Some(2.0));
@@ -452,7 +432,7 @@ fn only_one_client_owns_the_force() {
 
 #[test]
 fn a_grid_for_another_device_is_refused_unless_allowed() {
-    let foreign = with_device_id(truth_field(), "hid-1234-5678-SN9");
+    let foreign = with_device_id(truth_field_27(), "hid-1234-5678-SN9");
     let running = start(Config::default(), Pacing::Virtual, Some(&foreign), None);
     let err = running.handle.join().unwrap().unwrap_err();
     let text = format!("{err:#}");
@@ -506,7 +486,7 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     assert_eq!(grid.extra["device"]["id"].as_str(), Some("sim-point-mass"));
     for (n, m) in grid.masses.iter().enumerate() {
         let x = grid.vertex_position(n % 3, (n / 3) % 3, n / 9);
-        let truth = truth_field().mass_at(&x);
+        let truth = truth_field_27().mass_at(&x);
         assert!((m / truth - 1.0).abs() < 0.01, "{m} vs {truth}");
     }
 
@@ -549,7 +529,7 @@ fn wall_penalty(running: &Running, k: f64, damping: f64, duration: f64) -> f64 {
 #[test]
 fn paper_experiment_penalty_is_probe_weight_over_stiffness_with_compensation() {
     // Gravity along −z here: the surface is horizontal, as in the paper.
-    let mut truth = truth_field();
+    let mut truth = truth_field_27();
     truth.gravity_direction = Vector3::z();
     let grid = with_device_id(truth.clone(), "sim-point-mass");
     let (m_p, k, g) = (0.03, 1000.0, 9.81);

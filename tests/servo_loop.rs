@@ -17,6 +17,9 @@ use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::socket::{self, SocketTransport};
 use hgcd::transport::{Pacing, Transport, TransportError, MAX_REPORT_LEN};
 
+mod common;
+use common::truth_field_27;
+
 fn sim_transport(config: &Config) -> SimTransport {
     SimTransport::new(
         SimDevice::from_config("point-mass", config).unwrap(),
@@ -41,22 +44,6 @@ fn options(config: &Config, duration: f64) -> ServoOptions {
     let mut o = ServoOptions::from_config(config);
     o.duration = Some(duration);
     o
-}
-
-/// A non-uniform mass field with gravity tilted away from −z, as a test truth.
-fn truth_field() -> MassGrid {
-    let mut g = MassGrid::uniform(
-        0.1,
-        9.81,
-        Vector3::new(0.05, -0.03, 1.0),
-        Vector3::new(-0.08, -0.08, -0.08),
-        0.08,
-        [3, 3, 3],
-    );
-    for (n, m) in g.masses.iter_mut().enumerate() {
-        *m = 0.05 + 0.2 * ((n * 37) % 27) as f64 / 26.0;
-    }
-    g
 }
 
 #[test]
@@ -110,7 +97,7 @@ fn zero_force_falls_with_g_until_the_workspace_limit() {
 
 #[test]
 fn pd_hold_with_exact_gravity_stays_within_50_micrometres_for_10_s() {
-    let field = truth_field();
+    let field = truth_field_27();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("truth.toml");
     field.save_atomic(&path).unwrap();

@@ -4,6 +4,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::servo::StatsSnapshot;
+
 /// Version a client must name in its `hello`.
 pub const APP_PROTOCOL_VERSION: u32 = 1;
 /// Longest request line accepted, bytes (newline excluded). Longer lines close the client.
@@ -110,14 +112,10 @@ pub struct Status {
     /// Name of the client that owns the force, if any.
     pub owner: Option<String>,
     pub uptime_s: f64,
-    pub ticks: u64,
-    pub late: u64,
-    pub missed: u64,
-    pub overruns: u64,
-    pub garbled: u64,
-    pub watchdog_faults: u64,
-    /// Worst tick compute time since start, µs.
-    pub worst_compute_us: f64,
+    /// The servo loop's counters (ticks, late, missed, overruns, garbled, watchdog_faults,
+    /// worst_compute_us), flattened into the status object.
+    #[serde(flatten)]
+    pub servo: StatsSnapshot,
 }
 
 /// Why a request line was refused.

@@ -25,7 +25,7 @@ use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationPara
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
 use crate::grid::MassGrid;
 use crate::servo::thread::log_event;
-use crate::servo::{self, ServoEvent, ServoOptions, ServoReport, StatsSnapshot};
+use crate::servo::{self, ServoEvent, ServoOptions, ServoReport};
 use crate::transport::{self, Pacing, Transport};
 use controller::{ControllerLinks, DaemonController, ServoCommand, ServoReturn};
 
@@ -307,16 +307,6 @@ impl Hub {
             Err(e) => error!("reload failed, keeping the current grid: {e:#}"),
         }
     }
-
-    fn absorb_stats(&mut self, s: &StatsSnapshot) {
-        self.status.ticks = s.ticks;
-        self.status.late = s.late;
-        self.status.missed = s.missed;
-        self.status.overruns = s.overruns;
-        self.status.garbled = s.garbled;
-        self.status.watchdog_faults = s.watchdog_faults;
-        self.status.worst_compute_us = s.worst_compute_us;
-    }
 }
 
 /// The daemon, ready to run on a transport.
@@ -360,7 +350,7 @@ impl Daemon {
             config.app.stale_offset_ms * 1e-3,
             config.app.stale_ramp_ms * 1e-3,
         );
-        let compensation = Compensation::new(model, offset, config.servo_period());
+        let compensation = Compensation::new(model, offset);
 
         let (commands_tx, commands_rx) = crossbeam_channel::bounded(64);
         let (offsets_tx, offsets_rx) = crossbeam_channel::bounded(16);
@@ -447,7 +437,7 @@ impl Daemon {
             select! {
                 recv(states_rx) -> s => if let Ok(s) = s { hub.fan_out(&s) },
                 recv(events_rx) -> e => if let Ok(e) = e {
-                    if let ServoEvent::Stats(s) = &e { hub.absorb_stats(s) }
+                    if let ServoEvent::Stats(s) = &e { hub.status.servo = *s }
                     log_event(&e, &mut hub.garbled);
                 },
                 recv(returns_rx) -> r => if let Ok(r) = r { hub.handle_return(r) },

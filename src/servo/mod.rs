@@ -82,7 +82,7 @@ pub enum ServoEvent {
 pub const STATS_EVERY: u64 = 500;
 
 /// The loop's counters at one moment.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct StatsSnapshot {
     pub ticks: u64,
     pub late: u64,

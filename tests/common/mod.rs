@@ -1,0 +1,90 @@
+//! Helpers shared by the integration tests: known truth fields for the simulator, the binary
+//! under test, file listings.
+#![allow(dead_code)]
+
+use std::path::Path;
+use std::process::Command;
+
+use nalgebra::Vector3;
+
+use hgcd::grid::MassGrid;
+
+/// Gravity tilted about 3.3° away from −z (v_G = normalised (0.05, −0.03, 1)).
+pub fn tilted_v_g() -> Vector3<f64> {
+    Vector3::new(0.05, -0.03, 1.0).normalize()
+}
+
+/// Mass of vertex (i, j, k) of the 3×3×3 calibration grid: 27 distinct values spread evenly over
+/// 0.05–0.25 kg in scrambled order, so neighbours differ by up to a factor of five.
+pub fn scrambled_mass(i: usize, j: usize, k: usize) -> f64 {
+    let q = i + 3 * (j + 3 * k);
+    0.05 + 0.2 * ((q * 10) % 27) as f64 / 26.0
+}
+
+/// The 3×3×3 truth field on the paper's grid (L = 40 mm, ±40 mm), gravity tilted.
+pub fn truth_field_27() -> MassGrid {
+    let mut g = MassGrid::uniform(
+        0.1,
+        9.81,
+        tilted_v_g(),
+        Vector3::new(-0.04, -0.04, -0.04),
+        0.04,
+        [3, 3, 3],
+    );
+    for k in 0..3 {
+        for j in 0..3 {
+            for i in 0..3 {
+                let n = g.index(i, j, k);
+                g.masses[n] = scrambled_mass(i, j, k);
+            }
+        }
+    }
+    g
+}
+
+/// The same field on a 5×5×5 lattice (±80 mm): the inner 27 vertices as in [`truth_field_27`],
+/// the outer shell 0.15 kg, so moves beyond the calibration grid stay physical.
+pub fn truth_field_125() -> MassGrid {
+    let mut g = MassGrid::uniform(
+        0.15,
+        9.81,
+        tilted_v_g(),
+        Vector3::new(-0.08, -0.08, -0.08),
+        0.04,
+        [5, 5, 5],
+    );
+    for k in 1..4 {
+        for j in 1..4 {
+            for i in 1..4 {
+                let n = g.index(i, j, k);
+                g.masses[n] = scrambled_mass(i - 1, j - 1, k - 1);
+            }
+        }
+    }
+    g
+}
+
+/// `grid` tagged as made for device `id` (`[device] id`).
+pub fn with_device_id(mut grid: MassGrid, id: &str) -> MassGrid {
+    let mut dev = toml::Table::new();
+    dev.insert("id".into(), id.into());
+    grid.extra.insert("device".into(), toml::Value::Table(dev));
+    grid
+}
+
+/// The `hgcd` binary, run from the temporary directory so no installed config is picked up.
+pub fn hgcd() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_hgcd"));
+    c.current_dir(std::env::temp_dir());
+    c
+}
+
+/// Names of the entries of `dir`, sorted.
+pub fn file_names(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    names
+}
