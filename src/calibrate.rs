@@ -224,16 +224,14 @@ pub fn calibrate(
         .with_context(|| format!("opening {}", request.device))?;
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
+    let mut servo_config = config.servo.clone();
+    if request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. }) {
+        // A virtual-time loop runs flat out: never let it take a core at real-time priority.
+        servo_config.realtime_priority = 0;
+    }
     let started = Instant::now();
-    let handle = servo::thread::spawn(
-        transport,
-        calibration,
-        options,
-        config.servo.clone(),
-        stop,
-        None,
-    )
-    .context("starting the servo thread")?;
+    let handle = servo::thread::spawn(transport, calibration, options, servo_config, stop, None)
+        .context("starting the servo thread")?;
     // The controller (holding the sender) comes back through the join handle, so watch the thread
     // rather than wait for the channel to close.
     while !handle.is_finished() {

@@ -16,7 +16,7 @@ use hgcd::grid::MassGrid;
 use hgcd::transport::Pacing;
 
 mod common;
-use common::{file_names, hgcd, truth_field_125};
+use common::{file_names, hgcd, serial, truth_field_125};
 
 /// A config file (paper defaults) whose simulated device has the truth field; extra TOML appended.
 fn setup(dir: &Path, extra: &str) -> (PathBuf, MassGrid) {
@@ -101,6 +101,7 @@ fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
 
 #[test]
 fn ctrl_c_mid_run_aborts_and_leaves_the_old_grid_untouched() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let (cfg, _) = setup(dir.path(), "");
     let output = dir.path().join("dev.toml");

@@ -1,24 +1,23 @@
 //! The `hgcd` binary as a user runs it.
 
 mod common;
-use common::hgcd;
+use common::{hgcd, serial};
 
 fn empty_config() -> tempfile::NamedTempFile {
     tempfile::NamedTempFile::new().unwrap()
 }
 
 #[test]
-fn run_on_a_simulated_device_prints_timing_statistics() {
+fn run_on_a_simulated_device_in_real_time_prints_timing_statistics() {
+    let _serial = serial();
     let cfg = empty_config();
+    let dir = tempfile::tempdir().unwrap();
     let out = hgcd()
-        .args([
-            "--config",
-            cfg.path().to_str().unwrap(),
-            "run",
-            "--device",
-            "sim:point-mass",
-        ])
-        .args(["--duration", "0.3", "--virtual-time"])
+        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
+        .arg(dir.path().join("s.sock"))
+        .arg("--state-dir")
+        .arg(dir.path())
+        .args(["run", "--device", "sim:point-mass", "--duration", "1"])
         .output()
         .unwrap();
     assert!(
@@ -27,9 +26,92 @@ fn run_on_a_simulated_device_prints_timing_statistics() {
         String::from_utf8_lossy(&out.stderr)
     );
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(stdout.contains("servo loop: 30"), "{stdout}");
+    let ticks: u64 = stdout
+        .split_whitespace()
+        .nth(2)
+        .and_then(|t| t.parse().ok())
+        .unwrap_or_else(|| panic!("{stdout}"));
+    // One second at 1 kHz, paced by the simulated device's reports.
+    assert!((950..=1010).contains(&ticks), "{stdout}");
     assert!(stdout.contains("period µs"), "{stdout}");
     assert!(stdout.contains("watchdog faults 0"), "{stdout}");
+}
+
+#[test]
+fn virtual_time_runs_as_fast_as_the_cpu_allows() {
+    let cfg = empty_config();
+    let dir = tempfile::tempdir().unwrap();
+    let started = std::time::Instant::now();
+    let out = hgcd()
+        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
+        .arg(dir.path().join("s.sock"))
+        .arg("--state-dir")
+        .arg(dir.path())
+        .args([
+            "run",
+            "--device",
+            "sim:point-mass",
+            "--duration",
+            "20",
+            "--virtual-time",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("servo loop: 2000"), "{stdout}");
+    // 20 s of device time; only a sanity bound on the wall clock, not a performance claim.
+    assert!(started.elapsed().as_secs_f64() < 20.0);
+}
+
+#[test]
+fn sigterm_stops_the_daemon_with_status_0_and_status_works_while_it_runs() {
+    use std::io::{BufRead, BufReader, Read};
+    let _serial = serial();
+    let cfg = empty_config();
+    let dir = tempfile::tempdir().unwrap();
+    let socket = dir.path().join("s.sock");
+    let mut child = hgcd()
+        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
+        .arg(&socket)
+        .arg("--state-dir")
+        .arg(dir.path())
+        .args(["run", "--device", "sim:point-mass"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut log = String::new();
+    while !log.contains("hgcd running on") {
+        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
+    }
+    let status = hgcd()
+        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
+        .arg(&socket)
+        .arg("status")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&status.stdout);
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    assert!(text.contains("sim:point-mass (sim-point-mass)"), "{text}");
+    assert!(text.contains("compensation  none"), "{text}");
+    // SAFETY: kill(2) on our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
+    stderr.read_to_string(&mut log).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(0), "{log}");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("servo loop:"));
+    assert!(log.contains("servo loop ended: Stopped"), "{log}");
+    assert!(!socket.exists(), "socket removed on exit");
 }
 
 #[test]

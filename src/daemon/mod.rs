@@ -318,7 +318,11 @@ pub struct Daemon {
 }
 
 impl Daemon {
-    pub fn new(config: Config, request: &RunRequest) -> Self {
+    pub fn new(mut config: Config, request: &RunRequest) -> Self {
+        if request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. }) {
+            // A virtual-time loop runs flat out: never let it take a core at real-time priority.
+            config.servo.realtime_priority = 0;
+        }
         let socket = config.socket_path();
         Self {
             config,

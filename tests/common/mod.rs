@@ -4,6 +4,7 @@
 
 use std::path::Path;
 use std::process::Command;
+use std::sync::{Mutex, MutexGuard};
 
 use nalgebra::Vector3;
 
@@ -87,4 +88,12 @@ pub fn file_names(dir: &Path) -> Vec<String> {
         .collect();
     names.sort();
     names
+}
+
+static SERIAL: Mutex<()> = Mutex::new(());
+
+/// Tests that run a device in real time hold this, so they do not compete for the two cores
+/// with each other or with virtual-time runs (which use a core flat out).
+pub fn serial() -> MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
