@@ -9,6 +9,7 @@ pub mod control; //    controllers: PD hold, calibration, compensation
 pub mod daemon; //     `hgcd run`: compensation, application server, calibration on request
 pub mod estimate; //   FOAW velocity estimation
 pub mod grid; //       apparent-mass grid, trilinear interpolation, hgcd-grid/1 files
+pub mod newest; //     bounded lock-free channel where the newest value wins
 pub mod protocol; //   HID report layout v1: encode/decode
 pub mod servo; //      the 1 kHz tick loop, safety layer, timing statistics
 pub mod sim; //        simulated plants

@@ -13,7 +13,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::{self, JoinHandle};
 use std::time::Duration;
 
-use crossbeam_channel::{Receiver, Sender, TrySendError};
+use crossbeam_channel::{Receiver, Sender};
 use nalgebra::Vector3;
 use tracing::{info, warn};
 
@@ -21,6 +21,7 @@ use super::protocol::{
     encode_reply, parse_request, Reply, Request, Role, APP_PROTOCOL_VERSION, MAX_LINE_LEN,
 };
 use crate::daemon::controller::{OffsetCommand, ServoCommand};
+use crate::newest::NewestSender;
 
 /// One connected client, as the registry knows it.
 pub struct ClientEntry {
@@ -74,9 +75,8 @@ pub enum HubRequest {
 pub struct ServerContext {
     pub registry: SharedRegistry,
     pub commands: Sender<ServoCommand>,
-    pub offsets: Sender<OffsetCommand>,
-    /// The server's handle on the offset channel, to evict the oldest offset when it is full.
-    pub offsets_evict: Receiver<OffsetCommand>,
+    /// Force offsets to the servo thread; the newest wins when the queue is full.
+    pub offsets: NewestSender<OffsetCommand>,
     pub hub: Sender<HubRequest>,
     pub device: String,
     pub device_id: String,
@@ -394,14 +394,11 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                     );
                 }
                 last_seq = Some(seq);
-                send_offset(
-                    ctx,
-                    OffsetCommand {
-                        client: id,
-                        seq,
-                        force: Vector3::from(force),
-                    },
-                );
+                let _ = ctx.offsets.send(OffsetCommand {
+                    client: id,
+                    seq,
+                    force: Vector3::from(force),
+                });
             }
             Request::Subscribe { rate_hz } => {
                 let divider = if rate_hz <= 0.0 {
@@ -433,22 +430,6 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
             Request::Status {} => {
                 let _ = ctx.hub.send(HubRequest::Status { client: id });
             }
-        }
-    }
-}
-
-/// Hand an offset to the servo thread; when the channel is full the oldest offset is dropped,
-/// so the newest always gets through.
-fn send_offset(ctx: &ServerContext, offset: OffsetCommand) {
-    let mut offset = offset;
-    for _ in 0..4 {
-        match ctx.offsets.try_send(offset) {
-            Ok(()) => return,
-            Err(TrySendError::Full(back)) => {
-                offset = back;
-                let _ = ctx.offsets_evict.try_recv();
-            }
-            Err(TrySendError::Disconnected(_)) => return,
         }
     }
 }

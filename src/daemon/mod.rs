@@ -357,7 +357,7 @@ impl Daemon {
         let compensation = Compensation::new(model, offset);
 
         let (commands_tx, commands_rx) = crossbeam_channel::bounded(64);
-        let (offsets_tx, offsets_rx) = crossbeam_channel::bounded(16);
+        let (offsets_tx, offsets_rx) = crate::newest::newest_wins(16);
         let (returns_tx, returns_rx) = crossbeam_channel::bounded(16);
         let (states_tx, states_rx) = crossbeam_channel::bounded(1024);
         let (events_tx, events_rx) = crossbeam_channel::bounded(1024);
@@ -366,7 +366,7 @@ impl Daemon {
             compensation,
             ControllerLinks {
                 commands: commands_rx,
-                offsets: offsets_rx.clone(),
+                offsets: offsets_rx,
                 returns: returns_tx,
                 states: states_tx,
             },
@@ -383,7 +383,6 @@ impl Daemon {
             registry: registry.clone(),
             commands: commands_tx.clone(),
             offsets: offsets_tx,
-            offsets_evict: offsets_rx,
             hub: hub_tx,
             device: self.device.to_string(),
             device_id: self.device.device_id(),

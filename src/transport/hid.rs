@@ -10,10 +10,10 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crossbeam_channel::{Receiver, Sender, TrySendError};
 use hidapi::{HidApi, HidDevice};
 
 use super::{Transport, TransportError, MAX_REPORT_LEN};
+use crate::newest::{newest_wins, NewestSender};
 use crate::protocol::OUTPUT_REPORT_LEN;
 
 /// A HID device the system shows, as `hgcd devices` lists it.
@@ -62,9 +62,8 @@ pub struct HidTransport {
     reader: HidDevice,
     spec: String,
     start: Instant,
-    outbox: Sender<[u8; OUTPUT_REPORT_LEN]>,
-    /// The servo side's handle on the one-slot outbox, to evict a report the writer has not taken.
-    stale: Receiver<[u8; OUTPUT_REPORT_LEN]>,
+    /// One-slot outbox to the writer thread; the newest report replaces one not yet taken.
+    outbox: Option<NewestSender<[u8; OUTPUT_REPORT_LEN]>>,
     writer_failed: Arc<AtomicBool>,
     writer: Option<JoinHandle<()>>,
 }
@@ -110,8 +109,7 @@ impl HidTransport {
         let lock = lock_device(&path).map_err(open_err)?;
         let reader = open("opening")?;
         let writer_dev = open("opening a second handle on")?;
-        let (outbox, inbox) = crossbeam_channel::bounded::<[u8; OUTPUT_REPORT_LEN]>(1);
-        let stale = inbox.clone();
+        let (outbox, inbox) = newest_wins::<[u8; OUTPUT_REPORT_LEN]>(1);
         let writer_failed = Arc::new(AtomicBool::new(false));
         let failed = writer_failed.clone();
         let writer = std::thread::Builder::new()
@@ -130,8 +128,7 @@ impl HidTransport {
             reader,
             spec,
             start: Instant::now(),
-            stale,
-            outbox,
+            outbox: Some(outbox),
             writer_failed,
             writer: Some(writer),
         })
@@ -187,19 +184,11 @@ impl Transport for HidTransport {
     }
 
     fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
-        match self.outbox.try_send(*report) {
-            Ok(()) => Ok(()),
-            Err(TrySendError::Full(report)) => {
-                // The writer is still busy with an older report: replace it with this one.
-                let _ = self.stale.try_recv();
-                let _ = self.outbox.try_send(report);
-                Ok(())
-            }
-            Err(TrySendError::Disconnected(_)) => Err(TransportError::Disconnected(format!(
-                "{}: writer thread ended",
-                self.spec
-            ))),
+        // A writer still busy with an older report finds this one in its place.
+        if let Some(outbox) = &self.outbox {
+            let _ = outbox.send(*report);
         }
+        Ok(())
     }
 
     fn now(&self) -> f64 {
@@ -214,8 +203,7 @@ impl Transport for HidTransport {
 impl Drop for HidTransport {
     fn drop(&mut self) {
         // Closing the channel ends the writer after it has sent what it holds (the final zero).
-        let (dead, _) = crossbeam_channel::bounded(1);
-        self.outbox = dead;
+        self.outbox = None;
         if let Some(w) = self.writer.take() {
             let _ = w.join();
         }
