@@ -23,6 +23,10 @@ use super::protocol::{
 use crate::daemon::controller::{OffsetCommand, ServoCommand};
 use crate::newest::NewestSender;
 
+/// Stack of the listener and client threads. Small on purpose: with memory locked (mlockall with
+/// MCL_FUTURE) every thread's stack counts against the memlock limit.
+const CLIENT_STACK: usize = 256 * 1024;
+
 /// One connected client, as the registry knows it.
 pub struct ClientEntry {
     pub name: String,
@@ -131,6 +135,7 @@ pub fn spawn_listener(
     listener.set_nonblocking(true)?;
     thread::Builder::new()
         .name("hgcd-listener".into())
+        .stack_size(CLIENT_STACK)
         .spawn(move || {
             while !stop.load(Ordering::Relaxed) {
                 match listener.accept() {
@@ -191,6 +196,7 @@ fn accept(stream: UnixStream, ctx: &Arc<ServerContext>) {
     let ctx2 = ctx.clone();
     let spawned = thread::Builder::new()
         .name(format!("hgcd-client-{id}"))
+        .stack_size(CLIENT_STACK)
         .spawn(move || {
             let writer = spawn_writer(write_half, rx, id);
             let reason = serve_client(stream, id, &ctx2);
@@ -231,6 +237,7 @@ fn spawn_writer(
     let _ = stream.set_write_timeout(Some(Duration::from_millis(200)));
     thread::Builder::new()
         .name(format!("hgcd-client-{id}-w"))
+        .stack_size(CLIENT_STACK)
         .spawn(move || {
             for reply in replies.iter() {
                 let fatal = matches!(reply, Reply::Error { fatal: true, .. });
