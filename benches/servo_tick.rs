@@ -17,7 +17,7 @@ use hgcd::control::compensation::{
     Compensation, CompensationMode, ForceOffset, GravityModel, OutsideGrid,
 };
 use hgcd::control::pd::{LinearisedGains, PdHold};
-use hgcd::daemon::controller::{ControllerLinks, DaemonController, OffsetCommand};
+use hgcd::daemon::controller::{ControllerLinks, DaemonController, OffsetCommand, ServoCommand};
 use hgcd::grid::MassGrid;
 use hgcd::protocol::INPUT_REPORT_LEN;
 use hgcd::servo::{ServoCore, ServoOptions};
@@ -84,8 +84,8 @@ fn bench_tick(c: &mut Criterion) {
         })
     });
     // The daemon's controller: compensation (Eq. 15) with channel drains and state publishing.
-    let (_commands_tx, commands) = crossbeam_channel::bounded(64);
-    let (offsets_tx, offsets) = crossbeam_channel::bounded(16);
+    let (commands_tx, commands) = crossbeam_channel::bounded(64);
+    let (offsets_tx, offsets) = hgcd::newest::newest_wins(16);
     let (returns, _returns_rx) = crossbeam_channel::bounded(16);
     let (states, states_rx) = crossbeam_channel::bounded(1024);
     let model = GravityModel::new(
@@ -103,6 +103,8 @@ fn bench_tick(c: &mut Criterion) {
             states,
         },
     );
+    // Client 1 owns the force, so its offsets are applied.
+    commands_tx.send(ServoCommand::SetOwner(Some(1))).unwrap();
     let mut core = ServoCore::new(&options).unwrap();
     let mut k = 0usize;
     group.bench_function("daemon_controller", |b| {
@@ -110,7 +112,7 @@ fn bench_tick(c: &mut Criterion) {
             let report = &reports[k % reports.len()];
             k += 1;
             if k % 10 == 0 {
-                let _ = offsets_tx.try_send(OffsetCommand {
+                let _ = offsets_tx.send(OffsetCommand {
                     client: 1,
                     seq: k as u64,
                     force: Vector3::new(0.1, 0.0, 0.0),

@@ -66,14 +66,14 @@ pub fn check_writable(path: &Path) -> Result<()> {
         )
     })?;
     let probe = dir.join(format!(".hgcd-probe-{}", std::process::id()));
-    std::fs::write(&probe, b"probe").with_context(|| {
+    let written = std::fs::write(&probe, b"probe");
+    let _ = std::fs::remove_file(&probe);
+    written.with_context(|| {
         format!(
             "cannot write to {} (read-only, full or no permission; use --state-dir or --output)",
             dir.display()
         )
-    })?;
-    let _ = std::fs::remove_file(&probe);
-    Ok(())
+    })
 }
 
 /// The grid a calibration produced, with its provenance and per-vertex quality as extra keys.
@@ -194,6 +194,14 @@ pub fn calibrate(
     stop: Arc<AtomicBool>,
     progress: &mut dyn FnMut(&CalibrationEvent),
 ) -> Result<CalibrationRun> {
+    let transport = transport::open(&request.device, config, request.pacing)
+        .with_context(|| format!("opening {}", request.device))?;
+    // Name the grid after the device actually opened (a HID serial number the spec left out).
+    let mut request = request.clone();
+    if let Some(spec) = transport.resolved_spec() {
+        request.device = spec;
+    }
+    let request = &request;
     let path = request.output_path();
     check_writable(&path)?;
     let params = CalibrationParams::from_config(config);
@@ -220,8 +228,6 @@ pub fn calibrate(
         plan.dims[2],
         request.device
     );
-    let transport = transport::open(&request.device, config, request.pacing)
-        .with_context(|| format!("opening {}", request.device))?;
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
     let mut servo_config = config.servo.clone();
@@ -235,9 +241,10 @@ pub fn calibrate(
     // The controller (holding the sender) comes back through the join handle, so watch the thread
     // rather than wait for the channel to close.
     while !handle.is_finished() {
-        if let Ok(event) = rx.recv_timeout(std::time::Duration::from_millis(50)) {
+        for event in rx.try_iter() {
             progress(&event);
         }
+        std::thread::sleep(servo::thread::POLL);
     }
     let (result, calibration) = handle
         .join()

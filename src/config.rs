@@ -505,8 +505,11 @@ impl Config {
                 "must be 0 (normal) or 1–99",
             ));
         }
-        if s.cpu < -1 {
-            return Err(invalid("servo.cpu", "must be a CPU index or -1"));
+        if s.cpu < -1 || s.cpu >= libc::CPU_SETSIZE {
+            return Err(invalid(
+                "servo.cpu",
+                format!("must be a CPU index below {} or -1", libc::CPU_SETSIZE),
+            ));
         }
         positive("safety.max_force_n", self.safety.max_force_n)?;
         positive(

@@ -12,6 +12,8 @@ use thiserror::Error;
 pub const GRID_FORMAT: &str = "hgcd-grid/1";
 /// How far a gravity direction's norm may stray from 1 before it is rejected.
 const UNIT_TOLERANCE: f64 = 1e-3;
+/// Largest grid file read, bytes.
+const MAX_FILE_BYTES: u64 = 64 << 20;
 /// Largest number of vertices a grid file may hold (keeps hostile files from exhausting memory).
 const MAX_VERTICES: usize = 1_000_000;
 
@@ -250,12 +252,20 @@ impl MassGrid {
         })
     }
 
-    /// Load and validate a grid file.
+    /// Load and validate a grid file (at most 64 MiB).
     pub fn load(path: &Path) -> Result<Self, GridError> {
-        let text = fs::read_to_string(path).map_err(|error| GridError::Read {
+        let read_err = |error| GridError::Read {
             path: path.to_path_buf(),
             error,
-        })?;
+        };
+        let size = fs::metadata(path).map_err(read_err)?.len();
+        if size > MAX_FILE_BYTES {
+            return Err(GridError::Invalid {
+                path: path.to_path_buf(),
+                message: format!("file is {size} bytes; a grid file is at most {MAX_FILE_BYTES}"),
+            });
+        }
+        let text = fs::read_to_string(path).map_err(read_err)?;
         Self::from_toml_str(&text, path)
     }
 

@@ -332,3 +332,33 @@ fn a_handle_too_light_to_sag_gets_a_message_that_says_so() {
         "{stderr}"
     );
 }
+
+#[test]
+fn a_vertex_that_does_not_converge_in_time_or_in_updates_fails_with_its_name() {
+    let dir = tempfile::tempdir().unwrap();
+    // The first vertex (−40, −40, −40) mm weighs 50 g after a 219 g start: it needs several
+    // updates and over a second.
+    for (extra, expected) in [
+        (
+            "[calibration]\nvertex_timeout_s = 1.0\n",
+            "vertex (-1, -1, -1) at (-40.0, -40.0, -40.0) mm did not converge within 1 s",
+        ),
+        (
+            "[calibration]\nmax_iterations = 2\n",
+            "vertex (-1, -1, -1) at (-40.0, -40.0, -40.0) mm did not converge after 2 mass updates",
+        ),
+    ] {
+        let (cfg, _) = setup(dir.path(), extra);
+        let out_file = dir.path().join("grid.toml");
+        let out = hgcd_with(&cfg)
+            .args(["calibrate", "--device", "sim:point-mass", "--output"])
+            .arg(&out_file)
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(expected), "{stderr}");
+        assert!(stderr.contains("nothing was written"), "{stderr}");
+        assert!(!out_file.exists());
+    }
+}

@@ -12,6 +12,7 @@ use hgcd::config::Config;
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
 use hgcd::grid::MassGrid;
+use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
 use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions};
 use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::socket::{self, SocketTransport};
@@ -138,22 +139,90 @@ fn pd_hold_with_exact_gravity_stays_within_50_micrometres_for_10_s() {
     assert!((truth - set_point).norm() < 5e-5);
 }
 
-#[test]
-fn silent_device_trips_the_watchdog_and_the_last_report_is_zero_force() {
-    let mut config = Config::default();
-    config.sim.stop_reporting_after_s = Some(1.0);
-    let mut transport = sim_transport(&config);
-    // A controller that pushes: the last command before the silence is not zero.
-    let mut hold = PdHold {
+/// Records every output report with the device time it was written at; can garble every input
+/// report after `babble_after` s (a device that only sends garbage).
+struct Recorded {
+    inner: SimTransport,
+    writes: Vec<(f64, OutputReport)>,
+    babble_after: Option<f64>,
+}
+
+impl Recorded {
+    fn new(inner: SimTransport) -> Self {
+        Self {
+            inner,
+            writes: Vec::with_capacity(4096),
+            babble_after: None,
+        }
+    }
+}
+
+impl Transport for Recorded {
+    fn read_input(
+        &mut self,
+        buf: &mut [u8; MAX_REPORT_LEN],
+        timeout: Duration,
+    ) -> Result<Option<usize>, TransportError> {
+        let r = self.inner.read_input(buf, timeout)?;
+        if self.babble_after.is_some_and(|t| self.inner.now() > t) {
+            buf[1] = 0x7f; // unknown protocol version
+        }
+        Ok(r)
+    }
+    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+        self.writes
+            .push((self.inner.now(), OutputReport::decode(report).unwrap()));
+        self.inner.write_output(report)
+    }
+    fn now(&self) -> f64 {
+        self.inner.now()
+    }
+    fn describe(&self) -> String {
+        "recorded".into()
+    }
+}
+
+fn pushing_hold() -> PdHold {
+    PdHold {
         set_point: Vector3::new(0.0, 0.0, 0.01),
         gains: LinearisedGains::from_rise_time(0.1, 1.0),
         field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
-    };
+    }
+}
+
+/// The writes after the last pushing one: the fault's zero (motors enabled), then the shutdown.
+fn assert_zeroed_at_the_fault(writes: &[(f64, OutputReport)], fault_at: f64, deadline: f64) {
+    let last_push = writes
+        .iter()
+        .rposition(|(_, r)| r.force != Vector3::zeros())
+        .expect("the controller pushed");
+    let (t_push, _) = writes[last_push];
+    assert!((t_push - fault_at).abs() < 2e-3, "pushed until {t_push} s");
+    let (t_zero, zero) = writes[last_push + 1];
+    assert!(zero.enable, "the fault's zero keeps motors enabled");
+    assert_eq!(zero.force, Vector3::zeros());
+    assert!(
+        t_zero - t_push <= deadline + 1e-3 + 1e-9,
+        "zeroed {} s after the last push, deadline {deadline} s",
+        t_zero - t_push
+    );
+    let (_, last) = writes.last().unwrap();
+    assert!(
+        !last.enable && last.force == Vector3::zeros(),
+        "shutdown report"
+    );
+}
+
+#[test]
+fn silent_device_trips_the_watchdog_and_force_is_zeroed_at_the_fault() {
+    let mut config = Config::default();
+    config.sim.stop_reporting_after_s = Some(1.0);
+    let mut transport = Recorded::new(sim_transport(&config));
     let (tx, rx) = crossbeam_channel::bounded(64);
     let stop = AtomicBool::new(false);
     let report = servo::run(
         &mut transport,
-        &mut hold,
+        &mut pushing_hold(),
         &options(&config, 1.5),
         &stop,
         Some(&tx),
@@ -173,22 +242,68 @@ fn silent_device_trips_the_watchdog_and_the_last_report_is_zero_force() {
         silent_for >= deadline && silent_for <= deadline + 1e-3 + 1e-9,
         "detected after {silent_for} s, deadline {deadline} s"
     );
-    let last = transport.device().last_output().unwrap();
-    assert_eq!(last.force, Vector3::zeros());
-    // Before the silence the loop was really pushing.
-    assert!(report.last_state.unwrap().time > 0.99);
+    assert_zeroed_at_the_fault(&transport.writes, 1.0, deadline);
 
     // With stop_on_fault the run ends at the fault instead.
     let mut transport = sim_transport(&config);
     let mut o = options(&config, 5.0);
     o.stop_on_fault = true;
-    let report = servo::run(&mut transport, &mut hold, &o, &stop, None).unwrap();
+    let report = servo::run(&mut transport, &mut pushing_hold(), &o, &stop, None).unwrap();
     assert!(matches!(report.exit, ExitReason::Fault(_)));
     assert!(transport.device().time() < 1.0 + 2.0 * deadline);
     assert_eq!(
         transport.device().last_output().unwrap().force,
         Vector3::zeros()
     );
+}
+
+#[test]
+fn a_device_that_only_babbles_trips_the_watchdog_too() {
+    let config = Config::default();
+    let mut transport = Recorded::new(sim_transport(&config));
+    transport.babble_after = Some(1.0);
+    let stop = AtomicBool::new(false);
+    let report = servo::run(
+        &mut transport,
+        &mut pushing_hold(),
+        &options(&config, 1.5),
+        &stop,
+        None,
+    )
+    .unwrap();
+    assert_eq!(report.stats.watchdog_faults, 1);
+    assert!(report.stats.garbled > 400);
+    assert_zeroed_at_the_fault(&transport.writes, 1.0, config.servo.watchdog_ms * 1e-3);
+}
+
+/// Panics at a given tick while pushing (a controller bug).
+struct PanicsAt(u64);
+
+impl Controller for PanicsAt {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        assert!(s.tick < self.0, "controller bug");
+        ControlOutput::force(Vector3::new(0.0, 0.0, 3.0))
+    }
+}
+
+#[test]
+fn a_panicking_controller_still_ends_in_zero_force() {
+    let config = Config::default();
+    let mut transport = sim_transport(&config);
+    let stop = AtomicBool::new(false);
+    let panicked = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        servo::run(
+            &mut transport,
+            &mut PanicsAt(100),
+            &options(&config, 1.0),
+            &stop,
+            None,
+        )
+    }));
+    assert!(panicked.is_err(), "the panic goes on after the zero");
+    let last = transport.device().last_output().unwrap();
+    assert_eq!(last.force, Vector3::zeros());
+    assert!(!last.enable);
 }
 
 /// Sets the stop flag (as the SIGINT handler does) after a number of ticks, while pushing.
@@ -249,10 +364,7 @@ impl Transport for Garbling {
             }
         }))
     }
-    fn write_output(
-        &mut self,
-        report: &[u8; hgcd::protocol::OUTPUT_REPORT_LEN],
-    ) -> Result<(), TransportError> {
+    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
         self.inner.write_output(report)
     }
     fn now(&self) -> f64 {

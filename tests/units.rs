@@ -74,6 +74,17 @@ fn unit_exposure_is_at_most_2_5() {
 }
 
 #[test]
+fn the_instance_name_reaches_hgcd_unescaped() {
+    // %I would unescape "-" to "/" and turn sim:point-mass into sim:point/mass.
+    let unit = std::fs::read_to_string("systemd/hgcd@.service").unwrap();
+    let exec = unit.lines().find(|l| l.starts_with("ExecStart=")).unwrap();
+    assert_eq!(exec, "ExecStart=/usr/bin/hgcd run --device %i");
+    for instance in ["sim:point-mass", "hid:1209:4847"] {
+        assert!(instance.parse::<hgcd::config::DeviceSpec>().is_ok());
+    }
+}
+
+#[test]
 fn udev_rule_grants_group_access_and_starts_the_unit() {
     let rules = std::fs::read_to_string("udev/70-hgcd.rules").unwrap();
     let rule = rules

@@ -225,7 +225,9 @@ fn forget(ctx: &ServerContext, id: u64) {
     };
     if was_owner {
         // Blocking send is fine here (not the servo thread); the servo drains every tick.
-        let _ = ctx.commands.send(ServoCommand::ClientGone(id));
+        let _ = ctx
+            .commands
+            .send_timeout(ServoCommand::ClientGone(id), Duration::from_secs(1));
     }
 }
 
@@ -352,7 +354,9 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                     granted
                 };
                 if granted == Role::Control {
-                    let _ = ctx.commands.send(ServoCommand::SetOwner(Some(id)));
+                    let _ = ctx
+                        .commands
+                        .send_timeout(ServoCommand::SetOwner(Some(id)), Duration::from_secs(1));
                 }
                 reply(
                     ctx,

@@ -26,7 +26,7 @@
 use crossbeam_channel::Sender;
 use nalgebra::Vector3;
 
-use super::pd::LinearisedGains;
+use super::pd::{LinearisedGains, PointHold};
 use super::{ControlOutput, Controller, DeviceState};
 use crate::config::{mm, Config};
 
@@ -498,6 +498,22 @@ impl Calibration {
         if let Some(tx) = &self.events {
             let _ = tx.try_send(event);
         }
+    }
+
+    /// After a successful run: the hold at the last vertex (its PD and its measured gravity
+    /// term), to keep the handle up until the new grid is in use.
+    pub fn final_hold(&self) -> Option<PointHold> {
+        if !matches!(self.phase, Phase::Finished) {
+            return None;
+        }
+        let last = self.results.last().copied().flatten()?;
+        Some(PointHold {
+            set_point: last.vertex.position,
+            mass: last.mass,
+            gravity_direction: self.gravity_direction,
+            g: self.params.g,
+            gains: self.params.gains,
+        })
     }
 
     /// The result once finished, the failure if it failed, None while running (or if aborted).

@@ -75,6 +75,28 @@ impl Controller for PdHold {
     }
 }
 
+/// A feedback-linearised PD hold at one point with a constant gravity term M g v_G: what the
+/// calibration leaves behind at its last vertex until the daemon switches to the new grid.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PointHold {
+    pub set_point: Vector3<f64>,
+    /// kg.
+    pub mass: f64,
+    /// Unit v_G.
+    pub gravity_direction: Vector3<f64>,
+    /// m/s².
+    pub g: f64,
+    pub gains: LinearisedGains,
+}
+
+impl PointHold {
+    pub fn force(&self, s: &DeviceState) -> Vector3<f64> {
+        (self.set_point - s.position) * self.gains.stiffness(self.mass)
+            - s.velocity * self.gains.damping(self.mass)
+            + self.gravity_direction * (self.mass * self.g)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -8,6 +8,7 @@ use nalgebra::Vector3;
 use crate::app::protocol::StateSample;
 use crate::control::calibration::Calibration;
 use crate::control::compensation::{Compensation, GravityModel};
+use crate::control::pd::PointHold;
 use crate::control::{ControlOutput, Controller, DeviceState};
 
 /// A force offset from the client that owns the force.
@@ -30,6 +31,8 @@ pub enum ServoCommand {
     StartCalibration(Box<Calibration>),
     /// Abandon the calibration in progress (its requester went away); it comes back unfinished.
     AbortCalibration,
+    /// Stop holding the handle where the last calibration left it (no new grid is coming).
+    ReleaseHold,
     /// Use this gravity model from the next tick (None: no compensation).
     SwapModel(Option<Box<GravityModel>>),
 }
@@ -54,6 +57,8 @@ pub struct ControllerLinks {
 pub struct DaemonController {
     compensation: Compensation,
     calibration: Option<Box<Calibration>>,
+    /// After a successful calibration, until its grid arrives: hold at the last vertex.
+    hold: Option<PointHold>,
     owner: Option<u64>,
     offset_seq: u64,
     links: ControllerLinks,
@@ -64,6 +69,7 @@ impl DaemonController {
         Self {
             compensation,
             calibration: None,
+            hold: None,
             owner: None,
             offset_seq: 0,
             links,
@@ -107,7 +113,9 @@ impl DaemonController {
                         self.give_back(ServoReturn::CalibrationDone(calibration));
                     }
                 }
+                ServoCommand::ReleaseHold => self.hold = None,
                 ServoCommand::SwapModel(model) => {
+                    self.hold = None;
                     let old = std::mem::replace(&mut self.compensation.model, model);
                     self.give_back(ServoReturn::OldModel(old));
                 }
@@ -143,14 +151,22 @@ impl Controller for DaemonController {
                 let out = calibration.tick(s);
                 if out.done {
                     let finished = self.calibration.take().expect("calibration present");
+                    // Keep the handle up at the last vertex until the new grid is swapped in
+                    // (saving it takes a disk write); after a failure, compensation resumes.
+                    self.hold = finished.final_hold();
                     self.give_back(ServoReturn::CalibrationDone(finished));
-                    // Hold the handle with the current model until the new one arrives.
-                    self.compensation.gravity_force(&s.position)
+                    match &self.hold {
+                        Some(hold) => hold.force(s),
+                        None => self.compensation.gravity_force(&s.position),
+                    }
                 } else {
                     out.force
                 }
             }
-            None => self.compensation.tick(s).force,
+            None => match &self.hold {
+                Some(hold) => hold.force(s),
+                None => self.compensation.tick(s).force,
+            },
         };
         let _ = self.links.states.try_send(StateSample {
             tick: s.tick,

@@ -14,7 +14,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use crossbeam_channel::{select, Receiver, Sender};
+use crossbeam_channel::{Receiver, Sender};
 use tracing::{error, info, warn};
 
 use crate::app::protocol::{Reply, StateSample, Status};
@@ -150,6 +150,21 @@ impl Hub {
         }
     }
 
+    /// Hand a command to the servo thread without ever blocking the hub (the servo drains its
+    /// commands every tick; a full queue means the device is silent). False if it was dropped.
+    fn command(&self, command: ServoCommand) -> bool {
+        match self.commands.try_send(command) {
+            Ok(()) => true,
+            Err(e) => {
+                error!(
+                    "servo loop not taking commands (device silent?): dropped {:?}",
+                    e.into_inner()
+                );
+                false
+            }
+        }
+    }
+
     fn fan_out(&self, sample: &StateSample) {
         let reg = lock(&self.registry);
         for c in reg.clients.values() {
@@ -163,7 +178,7 @@ impl Hub {
         self.status.mode = mode_name(&model);
         self.status.grid = model.as_ref().map(|_| self.grid_path.display().to_string());
         info!("compensation mode now: {}", self.status.mode);
-        let _ = self.commands.send(ServoCommand::SwapModel(model));
+        self.command(ServoCommand::SwapModel(model));
     }
 
     fn handle_request(&mut self, request: HubRequest) {
@@ -194,13 +209,21 @@ impl Hub {
                 let (tx, rx) = crossbeam_channel::bounded(4096);
                 match Calibration::new(CalibrationParams::from_config(&self.config), Some(tx)) {
                     Ok(calibration) => {
-                        info!("calibration requested by application client {client}");
-                        self.calibration = Some((client, rx));
-                        self.status.calibrating = true;
-                        let _ = self
-                            .commands
-                            .send(ServoCommand::StartCalibration(Box::new(calibration)));
-                        self.reply(client, self.calibration_reply("started", String::new()));
+                        let start = ServoCommand::StartCalibration(Box::new(calibration));
+                        if self.command(start) {
+                            info!("calibration requested by application client {client}");
+                            self.calibration = Some((client, rx));
+                            self.status.calibrating = true;
+                            self.reply(client, self.calibration_reply("started", String::new()));
+                        } else {
+                            self.reply(
+                                client,
+                                self.calibration_reply(
+                                    "failed",
+                                    "the servo loop is not taking commands (device silent?)".into(),
+                                ),
+                            );
+                        }
                     }
                     Err(e) => self.reply(client, self.calibration_reply("failed", e.to_string())),
                 }
@@ -214,7 +237,7 @@ impl Hub {
         if let Some((client, _)) = &self.calibration {
             if !lock(&self.registry).clients.contains_key(client) && !self.abort_sent {
                 info!("calibration requester {client} disconnected: aborting the calibration");
-                let _ = self.commands.send(ServoCommand::AbortCalibration);
+                self.command(ServoCommand::AbortCalibration);
                 self.abort_sent = true;
             }
         }
@@ -290,6 +313,7 @@ impl Hub {
                         }
                     }
                     Err(e) => {
+                        self.command(ServoCommand::ReleaseHold);
                         error!("calibration failed: {e:#}; the previous grid stays in use");
                         if let Some(c) = client {
                             self.reply(c, self.calibration_reply("failed", format!("{e:#}")));
@@ -335,11 +359,14 @@ impl Daemon {
     /// Run until a stop signal, the duration, or the end of the servo loop. `ready` is called
     /// once the socket listens and the servo thread runs (systemd readiness).
     pub fn run(
-        self,
+        mut self,
         transport: Box<dyn Transport>,
         signals: Signals,
         ready: &mut dyn FnMut(&Path),
     ) -> Result<ServoReport> {
+        if let Some(spec) = transport.resolved_spec() {
+            self.device = spec;
+        }
         let config = &self.config;
         let grid_path = grid_path(&config.state_dir(), &self.device);
         if let Err(e) = std::fs::create_dir_all(config.state_dir()) {
@@ -397,6 +424,8 @@ impl Daemon {
 
         let mut options = ServoOptions::from_config(config);
         options.duration = self.duration;
+        let heartbeat = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        options.heartbeat = Some(heartbeat.clone());
         let servo = servo::thread::spawn(
             transport,
             controller,
@@ -435,27 +464,43 @@ impl Daemon {
         let mut watchdog_usec = 0u64;
         let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
         let mut last_pet = Instant::now();
-        let tick = crossbeam_channel::tick(Duration::from_millis(50));
+        let mut last_beat = 0u64;
+        let mut last_housekeeping = Instant::now();
         while !servo.is_finished() {
-            select! {
-                recv(states_rx) -> s => if let Ok(s) = s { hub.fan_out(&s) },
-                recv(events_rx) -> e => if let Ok(e) = e {
-                    if let ServoEvent::Stats(s) = &e { hub.status.servo = *s }
-                    log_event(&e, &mut hub.garbled);
-                },
-                recv(returns_rx) -> r => if let Ok(r) = r { hub.handle_return(r) },
-                recv(hub_rx) -> r => if let Ok(r) = r { hub.handle_request(r) },
-                recv(tick) -> _ => {
-                    hub.forward_calibration_events();
-                    hub.abort_orphaned_calibration();
-                    if signals.reload.swap(false, Ordering::SeqCst) {
-                        hub.reload();
-                    }
-                    if watchdog && last_pet.elapsed() >= Duration::from_micros(watchdog_usec / 2) {
-                        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
-                        last_pet = Instant::now();
-                    }
-                },
+            // Channels fed by the servo thread are polled, never waited on (see servo::thread::POLL);
+            // the hub waits on its client requests instead, at most a millisecond.
+            for s in states_rx.try_iter() {
+                hub.fan_out(&s);
+            }
+            for e in events_rx.try_iter() {
+                if let ServoEvent::Stats(s) = &e {
+                    hub.status.servo = *s;
+                }
+                log_event(&e, &mut hub.garbled);
+            }
+            for r in returns_rx.try_iter() {
+                hub.handle_return(r);
+            }
+            if let Ok(r) = hub_rx.recv_timeout(Duration::from_millis(1)) {
+                hub.handle_request(r);
+            }
+            if last_housekeeping.elapsed() >= Duration::from_millis(50) {
+                last_housekeeping = Instant::now();
+                hub.forward_calibration_events();
+                hub.abort_orphaned_calibration();
+                if signals.reload.swap(false, Ordering::SeqCst) {
+                    hub.reload();
+                }
+                // Pet systemd's watchdog only while the servo loop is turning.
+                let beat = heartbeat.load(Ordering::Relaxed);
+                if watchdog
+                    && beat != last_beat
+                    && last_pet.elapsed() >= Duration::from_micros(watchdog_usec / 2)
+                {
+                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                    last_pet = Instant::now();
+                    last_beat = beat;
+                }
             }
         }
         let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);

@@ -9,7 +9,8 @@ pub mod safety;
 pub mod stats;
 pub mod thread;
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::Sender;
@@ -37,6 +38,9 @@ pub struct ServoOptions {
     pub stop_on_fault: bool,
     pub safety: SafetyConfig,
     pub estimate: EstimateConfig,
+    /// Incremented on every loop iteration (reports or timeouts): a supervisor sees the loop is
+    /// alive without any lock.
+    pub heartbeat: Option<Arc<AtomicU64>>,
 }
 
 impl ServoOptions {
@@ -48,6 +52,7 @@ impl ServoOptions {
             stop_on_fault: false,
             safety: config.safety.clone(),
             estimate: config.estimate.clone(),
+            heartbeat: None,
         }
     }
 }
@@ -187,6 +192,8 @@ pub struct ServoCore {
     stop_on_fault: bool,
     out_sequence: u16,
     output: [u8; OUTPUT_REPORT_LEN],
+    /// Restart the velocity filter at the next report (after a silence or missed reports).
+    resync: bool,
     pub stats: TimingStats,
     pub last_state: Option<DeviceState>,
 }
@@ -209,6 +216,7 @@ impl ServoCore {
             stop_on_fault: options.stop_on_fault,
             out_sequence: 0,
             output: [0; OUTPUT_REPORT_LEN],
+            resync: false,
             stats: TimingStats::new(options.period),
             last_state: None,
         })
@@ -248,9 +256,9 @@ impl ServoCore {
         }
     }
 
-    /// The device went silent and came back: restart the velocity filter.
+    /// The device went silent and is back: the velocity filter restarts at the next report.
     pub fn resume_after_silence(&mut self) {
-        self.foaw.reset();
+        self.resync = true;
     }
 
     /// Handle one input report that arrived at `arrived` (transport clock, s).
@@ -269,6 +277,8 @@ impl ServoCore {
                 self.stats.missed += u64::from(gap);
                 self.stats.overruns += 1;
                 emit(events, ServoEvent::Overrun { missed: gap });
+                // FOAW assumes evenly spaced samples: across a gap it would see a false jump.
+                self.resync = true;
             }
         }
         self.last_sequence = Some(report.sequence);
@@ -292,6 +302,10 @@ impl ServoCore {
             }
         }
 
+        if self.resync {
+            self.foaw.reset();
+            self.resync = false;
+        }
         let state = DeviceState {
             time: self.clock.seconds(report.timestamp_us),
             position: report.position,
@@ -317,7 +331,8 @@ impl ServoCore {
 }
 
 /// Run the loop on the calling thread until `stop` is set, the duration elapses, the controller is
-/// done, or (with `stop_on_fault`) a fault occurs. Always ends by writing a zero-force report.
+/// done, or (with `stop_on_fault`) a fault occurs. Always ends by writing a zero-force report
+/// with motors disabled, even when the controller panics (the panic then continues).
 pub fn run(
     transport: &mut dyn Transport,
     controller: &mut dyn Controller,
@@ -326,90 +341,110 @@ pub fn run(
     events: Option<&Sender<ServoEvent>>,
 ) -> Result<ServoReport, ServoError> {
     let mut core = ServoCore::new(options)?;
-    let mut buf = [0u8; MAX_REPORT_LEN];
-    let start = transport.now();
-    let mut last_report_at = start;
-    let mut silent = false;
-
-    let result = loop {
-        if stop.load(Ordering::Relaxed) {
-            break Ok(ExitReason::Stopped);
-        }
-        let now = transport.now();
-        if options.duration.is_some_and(|d| now - start >= d) {
-            break Ok(ExitReason::DurationReached);
-        }
-        let wait = if silent {
-            options.watchdog
-        } else {
-            (last_report_at + options.watchdog - now).max(0.0)
-        };
-        let n = match transport.read_input(&mut buf, Duration::from_secs_f64(wait)) {
-            Err(e) => break Err(e),
-            Ok(Some(n)) => n.min(MAX_REPORT_LEN),
-            Ok(None) => {
-                let silent_for = transport.now() - last_report_at;
-                if !silent && silent_for >= options.watchdog {
-                    silent = true;
-                    core.stats.watchdog_faults += 1;
-                    emit(events, ServoEvent::WatchdogFault { silent_for });
-                    if let Err(e) = transport.write_output(core.prepare_zero()) {
-                        break Err(e);
-                    }
-                    if options.stop_on_fault {
-                        break Ok(ExitReason::Fault("device stopped reporting"));
-                    }
-                }
-                continue;
-            }
-        };
-        let received = Instant::now();
-        let arrived = transport.now();
-        let outcome = match core.tick(&buf[..n], arrived, controller, events) {
-            Ok(outcome) => outcome,
-            Err(e) => {
-                // Garbage does not count as the device being alive: the watchdog keeps running.
-                core.stats.garbled += 1;
-                emit(events, ServoEvent::GarbledReport(e));
-                continue;
-            }
-        };
-        if silent {
-            silent = false;
-            core.resume_after_silence();
-            emit(
-                events,
-                ServoEvent::ReportsResumed {
-                    after: arrived - last_report_at,
-                },
-            );
-        }
-        last_report_at = arrived;
-        if let Err(e) = transport.write_output(core.output()) {
-            break Err(e);
-        }
-        core.stats
-            .compute
-            .record_ns(received.elapsed().as_nanos() as u64);
-        if core.stats.ticks % STATS_EVERY == 0 {
-            emit(events, ServoEvent::Stats(core.stats.snapshot()));
-        }
-        match outcome {
-            TickOutcome::Continue => {}
-            TickOutcome::Done => break Ok(ExitReason::ControllerDone),
-            TickOutcome::Fault => break Ok(ExitReason::Fault("device reported a fault")),
-        }
-    };
-
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        run_loop(
+            &mut *transport,
+            controller,
+            options,
+            stop,
+            events,
+            &mut core,
+        )
+    }));
     // Whatever happened, the last thing the device hears is zero force with motors disabled.
     let zeroed = transport.write_output(core.prepare_shutdown());
-    let exit = result?;
+    let exit = match result {
+        Ok(exit) => exit?,
+        Err(panic) => std::panic::resume_unwind(panic),
+    };
     zeroed?;
     Ok(ServoReport {
         exit,
         stats: core.stats,
         last_state: core.last_state,
     })
+}
+
+fn run_loop(
+    transport: &mut dyn Transport,
+    controller: &mut dyn Controller,
+    options: &ServoOptions,
+    stop: &AtomicBool,
+    events: Option<&Sender<ServoEvent>>,
+    core: &mut ServoCore,
+) -> Result<ExitReason, TransportError> {
+    let mut buf = [0u8; MAX_REPORT_LEN];
+    let start = transport.now();
+    // Time of the last *valid* report: garbage does not count as the device being alive.
+    let mut last_report_at = start;
+    let mut silent = false;
+    loop {
+        if let Some(beat) = &options.heartbeat {
+            beat.fetch_add(1, Ordering::Relaxed);
+        }
+        if stop.load(Ordering::Relaxed) {
+            return Ok(ExitReason::Stopped);
+        }
+        let now = transport.now();
+        if options.duration.is_some_and(|d| now - start >= d) {
+            return Ok(ExitReason::DurationReached);
+        }
+        let wait = if silent {
+            options.watchdog
+        } else {
+            (last_report_at + options.watchdog - now).max(0.0)
+        };
+        if let Some(n) = transport.read_input(&mut buf, Duration::from_secs_f64(wait))? {
+            let received = Instant::now();
+            let arrived = transport.now();
+            if silent {
+                core.resume_after_silence();
+            }
+            match core.tick(&buf[..n.min(MAX_REPORT_LEN)], arrived, controller, events) {
+                Ok(outcome) => {
+                    if silent {
+                        silent = false;
+                        emit(
+                            events,
+                            ServoEvent::ReportsResumed {
+                                after: arrived - last_report_at,
+                            },
+                        );
+                    }
+                    last_report_at = arrived;
+                    transport.write_output(core.output())?;
+                    core.stats
+                        .compute
+                        .record_ns(received.elapsed().as_nanos() as u64);
+                    if core.stats.ticks % STATS_EVERY == 0 {
+                        emit(events, ServoEvent::Stats(core.stats.snapshot()));
+                    }
+                    match outcome {
+                        TickOutcome::Continue => continue,
+                        TickOutcome::Done => return Ok(ExitReason::ControllerDone),
+                        TickOutcome::Fault => {
+                            return Ok(ExitReason::Fault("device reported a fault"))
+                        }
+                    }
+                }
+                Err(e) => {
+                    core.stats.garbled += 1;
+                    emit(events, ServoEvent::GarbledReport(e));
+                }
+            }
+        }
+        // No valid report: a device that is silent, or only babbles, for too long is a fault.
+        let silent_for = transport.now() - last_report_at;
+        if !silent && silent_for >= options.watchdog {
+            silent = true;
+            core.stats.watchdog_faults += 1;
+            emit(events, ServoEvent::WatchdogFault { silent_for });
+            transport.write_output(core.prepare_zero())?;
+            if options.stop_on_fault {
+                return Ok(ExitReason::Fault("device stopped reporting"));
+            }
+        }
+    }
 }
 
 #[cfg(test)]

@@ -24,8 +24,11 @@ pub fn prepare_current_thread(config: &ServoConfig) -> RealtimeSetup {
     // SAFETY: prctl with PR_SET_TIMERSLACK takes an integer argument and affects this thread only.
     unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0) };
     if config.lock_memory {
+        // Lock pages as they are touched (MCL_ONFAULT), not every reserved mapping: the loop's
+        // working set stays resident without charging allocator arenas to RLIMIT_MEMLOCK.
         // SAFETY: mlockall has no memory-safety preconditions.
-        if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } == 0 {
+        if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE | libc::MCL_ONFAULT) } == 0
+        {
             setup.memory_locked = true;
         } else {
             setup.warnings.push(format!(

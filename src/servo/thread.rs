@@ -3,8 +3,9 @@
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::thread::{self, JoinHandle};
+use std::time::Duration;
 
-use crossbeam_channel::{Receiver, Sender};
+use crossbeam_channel::{Receiver, Sender, TryRecvError};
 use tracing::{error, info, warn};
 
 use super::{rt, run, ServoError, ServoEvent, ServoOptions, ServoReport};
@@ -37,6 +38,11 @@ pub fn log_event(event: &ServoEvent, garbled: &mut u64) {
     }
 }
 
+/// How often threads that read channels fed by the servo thread look at them. They poll rather
+/// than block: a receiver blocked on a crossbeam channel makes every `try_send` take a lock to
+/// wake it, and the servo thread must never lock.
+pub const POLL: Duration = Duration::from_millis(5);
+
 /// Log servo events on a thread of their own, so the loop never waits for a log line. The thread
 /// ends when every sender is gone.
 pub fn spawn_event_logger(events: Receiver<ServoEvent>) -> JoinHandle<()> {
@@ -44,8 +50,12 @@ pub fn spawn_event_logger(events: Receiver<ServoEvent>) -> JoinHandle<()> {
         .name("hgcd-events".into())
         .spawn(move || {
             let mut garbled = 0u64;
-            for event in events.iter() {
-                log_event(&event, &mut garbled);
+            loop {
+                match events.try_recv() {
+                    Ok(event) => log_event(&event, &mut garbled),
+                    Err(TryRecvError::Empty) => thread::sleep(POLL),
+                    Err(TryRecvError::Disconnected) => break,
+                }
             }
         })
         .expect("spawning the event logger thread")

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 use hidapi::{HidApi, HidDevice};
 
 use super::{Transport, TransportError, MAX_REPORT_LEN};
+use crate::config::DeviceSpec;
 use crate::newest::{newest_wins, NewestSender};
 use crate::protocol::OUTPUT_REPORT_LEN;
 
@@ -59,6 +60,8 @@ pub fn list_devices() -> Result<Vec<HidDeviceEntry>, TransportError> {
 pub struct HidTransport {
     /// Exclusive advisory lock on the hidraw node: one hgcd process per device.
     _lock: std::fs::File,
+    /// VID, PID and the serial number the device reports.
+    resolved: DeviceSpec,
     reader: HidDevice,
     spec: String,
     start: Instant,
@@ -80,14 +83,20 @@ impl HidTransport {
             reason,
         };
         let api = HidApi::new().map_err(|e| open_err(format!("hidapi: {e}")))?;
-        let path: CString = api
+        let (path, found_serial): (CString, Option<String>) = api
             .device_list()
             .find(|d| {
                 d.vendor_id() == vid
                     && d.product_id() == pid
                     && serial.is_none_or(|s| d.serial_number() == Some(s))
             })
-            .map(|d| d.path().to_owned())
+            .map(|d| {
+                let serial = d
+                    .serial_number()
+                    .filter(|s| !s.is_empty())
+                    .map(str::to_string);
+                (d.path().to_owned(), serial)
+            })
             .ok_or_else(|| {
                 open_err(
                     "no such device is plugged in (run `hgcd devices` to list what hgcd can see)"
@@ -125,6 +134,11 @@ impl HidTransport {
             .map_err(|e| open_err(format!("cannot start writer thread: {e}")))?;
         Ok(Self {
             _lock: lock,
+            resolved: DeviceSpec::Hid {
+                vid,
+                pid,
+                serial: found_serial,
+            },
             reader,
             spec,
             start: Instant::now(),
@@ -140,8 +154,14 @@ impl HidTransport {
 fn lock_device(path: &CString) -> Result<std::fs::File, String> {
     use std::os::unix::io::AsRawFd;
     let node = std::path::PathBuf::from(path.to_string_lossy().into_owned());
-    let file = std::fs::File::open(&node)
-        .map_err(|e| format!("opening {} to lock it: {e}", node.display()))?;
+    let file = std::fs::File::open(&node).map_err(|e| {
+        let hint = if e.kind() == std::io::ErrorKind::PermissionDenied {
+            " — install udev/70-hgcd.rules and add yourself to group `hgcd` (see docs/install.md)"
+        } else {
+            ""
+        };
+        format!("opening {}: {e}{hint}", node.display())
+    })?;
     // SAFETY: flock on a descriptor we own.
     if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
         return Err(format!(
@@ -197,6 +217,10 @@ impl Transport for HidTransport {
 
     fn describe(&self) -> String {
         format!("HID device {}", self.spec)
+    }
+
+    fn resolved_spec(&self) -> Option<DeviceSpec> {
+        Some(self.resolved.clone())
     }
 }
 

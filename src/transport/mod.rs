@@ -46,6 +46,13 @@ pub trait Transport: Send {
 
     /// Human-readable description for logs.
     fn describe(&self) -> String;
+
+    /// The spec of the device actually opened, when it says more than the one asked for (a HID
+    /// device's serial number). Grids are named after it, so a device opened with or without its
+    /// serial finds the same grid.
+    fn resolved_spec(&self) -> Option<DeviceSpec> {
+        None
+    }
 }
 
 /// How a simulated device keeps time.
