@@ -24,7 +24,7 @@ pub fn status(socket: &Path) -> Result<()> {
         s.owner.as_deref().unwrap_or("nobody")
     );
     println!(
-        "servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog faults {}; worst tick {:.1} µs",
+        "servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog faults {}; worst tick {:.1} µs, longest period {:.0} µs",
         s.servo.ticks,
         s.uptime_s,
         s.servo.late,
@@ -32,7 +32,8 @@ pub fn status(socket: &Path) -> Result<()> {
         s.servo.overruns,
         s.servo.garbled,
         s.servo.watchdog_faults,
-        s.servo.worst_compute_us
+        s.servo.worst_compute_us,
+        s.servo.worst_period_us
     );
     Ok(())
 }

@@ -97,6 +97,8 @@ pub struct StatsSnapshot {
     pub watchdog_faults: u64,
     /// Worst tick compute time so far, µs.
     pub worst_compute_us: f64,
+    /// Longest interval between two reports so far, µs.
+    pub worst_period_us: f64,
 }
 
 impl TimingStats {
@@ -109,6 +111,7 @@ impl TimingStats {
             garbled: self.garbled,
             watchdog_faults: self.watchdog_faults,
             worst_compute_us: self.compute.max_us(),
+            worst_period_us: self.period.max_us(),
         }
     }
 }
