@@ -12,6 +12,7 @@ use nalgebra::Vector3;
 
 use hgcd::client::{Client, Reply, Role, StateSample};
 use hgcd::config::Config;
+use hgcd::control::compensation::CompensationMode;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::MassGrid;
 use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
@@ -649,12 +650,24 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
         &mut |_| {},
     )
     .unwrap();
-    for p in [[0.0, 0.0, 0.0], [13.0, -27.0, 31.0], [37.0, 5.0, -38.0]] {
+    let modes = [
+        CompensationMode::Scalar,
+        CompensationMode::Vector,
+        CompensationMode::Scalar,
+    ];
+    for (p, mode) in [[0.0, 0.0, 0.0], [13.0, -27.0, 31.0], [37.0, 5.0, -38.0]]
+        .into_iter()
+        .zip(modes)
+    {
         let mut config = Config::default();
         config.sim.start_position_mm = p;
         config.sim.damping_n_s_per_m = 1.0;
+        // Vector mode interpolates the holding forces the calibration measured.
+        config.compensation.mode = mode;
         let running = start(config, Pacing::Virtual, Some(&run.grid), None);
         let mut client = running.client(Role::Control, "e2e");
+        let expected_mode = format!("{mode:?}").to_lowercase();
+        assert_eq!(client.status().unwrap().mode, expected_mode);
         client.subscribe(1000.0).unwrap();
         let s = state_at(&mut client, 2.0);
         let drift = dist(s.position, Vector3::from(p) * 1e-3);
@@ -664,7 +677,7 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
         // (With the exact grid the daemon holds it within 0.5 mm: the test above.)
         assert!(
             drift < 10e-3,
-            "released at {p:?} mm: drifted {:.3} mm in 2 s",
+            "released at {p:?} mm ({mode:?} mode): drifted {:.3} mm in 2 s",
             drift * 1e3
         );
         drop(client);
