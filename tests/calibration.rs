@@ -27,6 +27,15 @@ fn setup(dir: &Path, extra: &str) -> (PathBuf, MassGrid) {
     (cfg, truth)
 }
 
+/// `hgcd calibrate` on the simulated device, writing to `output`.
+fn calibrate_to(cfg: &Path, output: &Path) -> std::process::Output {
+    hgcd_with(cfg)
+        .args(["calibrate", "--device", "sim:point-mass", "--output"])
+        .arg(output)
+        .output()
+        .unwrap()
+}
+
 fn hgcd_with(cfg: &Path) -> Command {
     let mut c = hgcd();
     c.arg("--config").arg(cfg).arg("--log-level").arg("warn");
@@ -194,11 +203,7 @@ fn vertices_outside_the_workspace_are_left_out_and_reported() {
          workspace_max_mm = [60.0, 60.0, 60.0]\n",
     );
     let out_file = dir.path().join("grid.toml");
-    let out = hgcd_with(&cfg)
-        .args(["calibrate", "--device", "sim:point-mass", "--output"])
-        .arg(&out_file)
-        .output()
-        .unwrap();
+    let out = calibrate_to(&cfg, &out_file);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     assert!(
@@ -233,11 +238,7 @@ fn a_vertex_behind_a_mechanical_stop_fails_with_its_name_and_writes_nothing() {
         "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration]\nvertex_timeout_s = 8.0\n",
     );
     let out_file = dir.path().join("grid.toml");
-    let out = hgcd_with(&cfg)
-        .args(["calibrate", "--device", "sim:point-mass", "--output"])
-        .arg(&out_file)
-        .output()
-        .unwrap();
+    let out = calibrate_to(&cfg, &out_file);
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     let last = stderr.trim().lines().last().unwrap();
@@ -320,11 +321,7 @@ fn a_handle_too_light_to_sag_gets_a_message_that_says_so() {
         "[sim]\nmass_kg = 0.01\n[calibration]\nvertex_timeout_s = 2.0\n",
     )
     .unwrap();
-    let out = hgcd_with(&cfg)
-        .args(["calibrate", "--device", "sim:point-mass", "--output"])
-        .arg(dir.path().join("grid.toml"))
-        .output()
-        .unwrap();
+    let out = calibrate_to(&cfg, &dir.path().join("grid.toml"));
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -350,11 +347,7 @@ fn a_vertex_that_does_not_converge_in_time_or_in_updates_fails_with_its_name() {
     ] {
         let (cfg, _) = setup(dir.path(), extra);
         let out_file = dir.path().join("grid.toml");
-        let out = hgcd_with(&cfg)
-            .args(["calibrate", "--device", "sim:point-mass", "--output"])
-            .arg(&out_file)
-            .output()
-            .unwrap();
+        let out = calibrate_to(&cfg, &out_file);
         assert!(!out.status.success());
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(stderr.contains(expected), "{stderr}");
