@@ -43,13 +43,17 @@ pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd calibrate")?;
     client.request_calibration()?;
     loop {
+        let reply = client.next_reply()?;
+        if let Reply::Error { message, .. } = &reply {
+            bail!("the daemon refused: {message}");
+        }
         if let Reply::Calibration {
             event,
             vertex,
             of,
             mass_kg,
             message,
-        } = client.next_reply()?
+        } = reply
         {
             match event.as_str() {
                 "started" => eprintln!("calibration started on {}", client.device),

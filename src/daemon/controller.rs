@@ -134,7 +134,8 @@ impl DaemonController {
             }
         }
         if let Some(offset) = newest {
-            if self.calibration.is_none() {
+            // No offsets while calibrating or holding the handle for the new grid.
+            if self.calibration.is_none() && self.hold.is_none() {
                 self.compensation.offset.set(offset.force, now);
                 self.offset_seq = offset.seq;
             }
