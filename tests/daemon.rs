@@ -517,6 +517,17 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     assert_eq!(Path::new(&path), grid_file);
     let status = wait_for_mode(&mut c, "scalar");
     assert_eq!(status.grid.as_deref(), Some(path.as_str()));
+    // The handle did not drop between the end of the calibration and the swap: it is still near
+    // the last vertex of the serpentine, (40, 40, 40) mm, held by the new grid.
+    c.subscribe(1000.0).unwrap();
+    let s = c.next_state().unwrap();
+    let last_vertex = Vector3::new(0.04, 0.04, 0.04);
+    assert!(
+        dist(s.position, last_vertex) < 2e-3,
+        "handle at {:?} after the swap",
+        s.position
+    );
+    c.subscribe(0.0).unwrap();
     // The grid the daemon made is for this device, and holds the truth (the truth field here).
     let grid = MassGrid::load(&grid_file).unwrap();
     assert_eq!(grid.extra["device"]["id"].as_str(), Some("sim-point-mass"));
