@@ -74,6 +74,17 @@ enum Command {
     },
     /// Show the running daemon's state: device, grid, mode, clients, loop timing.
     Status,
+    /// Serve the simulated device (config [sim]) on a Unix socket, for `--device socket:PATH`:
+    /// the device side of the socket transport, as an external simulator or bridge would be.
+    SimDevice {
+        /// Socket to listen on.
+        #[arg(long, value_name = "PATH")]
+        listen: PathBuf,
+        /// Wait for the host's output report after each input report (deterministic, as fast as
+        /// both sides allow) instead of reporting in real time.
+        #[arg(long)]
+        lockstep: bool,
+    },
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
 }
@@ -186,6 +197,27 @@ fn real_main(cli: Cli) -> Result<()> {
             ctl::calibrate_via_daemon(&config.socket_path())
         }
         Command::Status => ctl::status(&config.socket_path()),
+        Command::SimDevice { listen, lockstep } => {
+            let stop = install_stop_handler()?;
+            let mut device = hgcd::transport::sim::SimDevice::from_config("point-mass", &config)?;
+            // Replaces a stale socket, refuses a live one or anything that is not a socket.
+            let listener = hgcd::app::server::bind(&listen, 0o660)
+                .with_context(|| format!("listening on {}", listen.display()))?;
+            tracing::info!(
+                "simulated device listening on {} ({})",
+                listen.display(),
+                if lockstep { "lock-step" } else { "real time" }
+            );
+            let served = hgcd::transport::socket::serve(&listener, &mut device, lockstep, &stop);
+            let _ = std::fs::remove_file(&listen);
+            served.with_context(|| format!("serving {}", listen.display()))?;
+            println!(
+                "simulated device served {:.3} s of device time; {} output reports rejected",
+                device.time(),
+                device.rejected_outputs()
+            );
+            Ok(())
+        }
         Command::Calibrate {
             device,
             output,

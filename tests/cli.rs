@@ -179,3 +179,51 @@ fn missing_hid_device_is_reported_clearly() {
         "{stderr}"
     );
 }
+
+#[test]
+fn the_socket_transport_runs_against_hgcd_sim_device() {
+    use std::io::{BufRead, BufReader};
+    let _serial = serial();
+    let cfg = empty_config();
+    let dir = tempfile::tempdir().unwrap();
+    let device = dir.path().join("device.sock");
+    let mut sim = hgcd()
+        .args([
+            "--config",
+            cfg.path().to_str().unwrap(),
+            "sim-device",
+            "--listen",
+        ])
+        .arg(&device)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = BufReader::new(sim.stderr.take().unwrap());
+    let mut log = String::new();
+    while !log.contains("simulated device listening") {
+        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
+    }
+    let spec = format!("socket:{}", device.display());
+    let out = hgcd()
+        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
+        .arg(dir.path().join("app.sock"))
+        .arg("--state-dir")
+        .arg(dir.path())
+        .args(["run", "--device", &spec, "--duration", "0.5"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("watchdog faults 0"), "{stdout}");
+    // The device side ends when the host disconnects, having rejected nothing.
+    let served = sim.wait_with_output().unwrap();
+    assert!(served.status.success());
+    let text = String::from_utf8_lossy(&served.stdout);
+    assert!(text.contains("0 output reports rejected"), "{text}");
+    assert!(!device.exists());
+}

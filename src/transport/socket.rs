@@ -30,9 +30,10 @@ impl SocketTransport {
             spec: format!("socket:{}", path.display()),
             reason: format!("{e} (is the device-side program listening there?)"),
         })?;
-        // A full socket buffer must never stall the servo loop: writes give up after 200 µs.
+        // Non-blocking: a full socket buffer never stalls the servo loop, and waiting for input
+        // uses ppoll(2), whose timeout is precise (SO_RCVTIMEO rounds to scheduler ticks).
         stream
-            .set_write_timeout(Some(Duration::from_micros(200)))
+            .set_nonblocking(true)
             .map_err(|e| TransportError::Io(e.to_string()))?;
         Ok(Self {
             stream,
@@ -86,18 +87,6 @@ impl Transport for SocketTransport {
             while let Some(n) = self.take_frame(buf)? {
                 newest = Some(n);
             }
-            let now = Instant::now();
-            let wait = if newest.is_some() {
-                // Something to return: only pick up what is already queued.
-                Duration::from_micros(1)
-            } else if now >= deadline {
-                return Ok(None);
-            } else {
-                deadline - now
-            };
-            self.stream
-                .set_read_timeout(Some(wait))
-                .map_err(|e| TransportError::Io(e.to_string()))?;
             let space = self.pending.len() - self.filled;
             match self
                 .stream
@@ -110,10 +99,17 @@ impl Transport for SocketTransport {
                     )))
                 }
                 Ok(n) => self.filled += n,
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                    // Nothing queued: return what we have, or wait for more.
                     if newest.is_some() {
                         return Ok(newest);
                     }
+                    let now = Instant::now();
+                    if now >= deadline {
+                        return Ok(None);
+                    }
+                    wait_readable(&self.stream, deadline - now)
+                        .map_err(|e| TransportError::Io(e.to_string()))?;
                 }
                 Err(e) if e.kind() == ErrorKind::Interrupted => {}
                 Err(e) => return Err(TransportError::Disconnected(e.to_string())),
@@ -136,10 +132,7 @@ impl Transport for SocketTransport {
                 }
                 Ok(n) => sent += n,
                 // Nothing sent: drop this report (the next one supersedes it).
-                Err(e)
-                    if sent == 0
-                        && matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) =>
-                {
+                Err(e) if sent == 0 && e.kind() == ErrorKind::WouldBlock => {
                     self.dropped_writes += 1;
                     return Ok(());
                 }
@@ -165,6 +158,29 @@ impl Transport for SocketTransport {
     }
 }
 
+/// Wait until `stream` is readable or `timeout` passes (ppoll: nanosecond timeout, no tick
+/// rounding). EINTR counts as a wake-up; the caller re-checks.
+fn wait_readable(fd: &impl std::os::unix::io::AsRawFd, timeout: Duration) -> std::io::Result<()> {
+    let mut fds = libc::pollfd {
+        fd: fd.as_raw_fd(),
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    let ts = libc::timespec {
+        tv_sec: timeout.as_secs() as libc::time_t,
+        tv_nsec: libc::c_long::from(timeout.subsec_nanos() as i32),
+    };
+    // SAFETY: one pollfd and one timespec we own, no signal mask.
+    let r = unsafe { libc::ppoll(&mut fds, 1, &ts, std::ptr::null()) };
+    if r < 0 {
+        let e = std::io::Error::last_os_error();
+        if e.kind() != ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+    Ok(())
+}
+
 /// Device side: serve `device` to one host connected to `listener`. In lock-step mode each input
 /// report waits for the host's output report (deterministic, as fast as both sides allow); otherwise
 /// reports go out in real time, one per period. Returns when the host disconnects or `stop` is set.
@@ -174,8 +190,22 @@ pub fn serve(
     lockstep: bool,
     stop: &AtomicBool,
 ) -> std::io::Result<()> {
-    let (mut stream, _) = listener.accept()?;
-    stream.set_read_timeout(Some(Duration::from_millis(1)))?;
+    listener.set_nonblocking(true)?;
+    let mut stream = loop {
+        match listener.accept() {
+            Ok((stream, _)) => break stream,
+            Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                if stop.load(Ordering::Relaxed) {
+                    return Ok(());
+                }
+                // Wake at once when the host connects (its watchdog starts with its loop).
+                wait_readable(listener, Duration::from_millis(50))?;
+            }
+            Err(e) => return Err(e),
+        }
+    };
+    // Blocking writes; reads only what has arrived (recv with MSG_DONTWAIT after ppoll).
+    stream.set_nonblocking(false)?;
     let period = Duration::from_secs_f64(device.period());
     let mut next = Instant::now();
     let mut inbuf = Vec::with_capacity(256);
@@ -196,14 +226,25 @@ pub fn serve(
                 return Ok(());
             }
         }
+        next += period;
+        // Lock-step: until the host's output report (at most 100 ms). Real time: until the next
+        // period starts.
+        let until = if lockstep {
+            Instant::now() + Duration::from_millis(100)
+        } else {
+            next
+        };
         let mut got_output = false;
-        let deadline = Instant::now() + Duration::from_millis(100);
-        while lockstep && !got_output || !lockstep && Instant::now() < next + period {
-            match stream.read(&mut chunk) {
-                Ok(0) => return Ok(()),
+        while !(stop.load(Ordering::Relaxed) || lockstep && got_output) {
+            let now = Instant::now();
+            if now >= until {
+                break;
+            }
+            wait_readable(&stream, until - now)?;
+            match read_available(&stream, &mut chunk) {
+                Ok(0) => return Ok(()), // the host went away
                 Ok(n) => inbuf.extend_from_slice(&chunk[..n]),
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
-                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::Interrupted) => {}
                 Err(_) => return Ok(()),
             }
             while let Some(&n) = inbuf.first() {
@@ -221,11 +262,30 @@ pub fn serve(
                 inbuf.drain(..=n);
                 got_output = true;
             }
-            if stop.load(Ordering::Relaxed) || lockstep && Instant::now() > deadline {
-                break;
-            }
         }
-        next += period;
+        if !lockstep && Instant::now() > next + period {
+            // Fell behind (a stall): drop the missed periods rather than burst.
+            next = Instant::now();
+        }
     }
     Ok(())
+}
+
+/// Read whatever is queued on `stream` without waiting (EWOULDBLOCK when nothing is).
+fn read_available(stream: &UnixStream, buf: &mut [u8]) -> std::io::Result<usize> {
+    use std::os::unix::io::AsRawFd;
+    // SAFETY: recv into a buffer we own, of its length.
+    let n = unsafe {
+        libc::recv(
+            stream.as_raw_fd(),
+            buf.as_mut_ptr().cast(),
+            buf.len(),
+            libc::MSG_DONTWAIT,
+        )
+    };
+    if n < 0 {
+        Err(std::io::Error::last_os_error())
+    } else {
+        Ok(n as usize)
+    }
 }
