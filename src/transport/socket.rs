@@ -209,9 +209,11 @@ pub fn serve(
     let period = Duration::from_secs_f64(device.period());
     let mut next = Instant::now();
     let mut inbuf = Vec::with_capacity(256);
-    let mut chunk = [0u8; 256];
     let mut first = true;
-    while !stop.load(Ordering::Relaxed) {
+    let result = loop {
+        if stop.load(Ordering::Relaxed) {
+            break Ok(());
+        }
         // The first report shows the power-on state, as over HID.
         if !first {
             device.advance();
@@ -223,7 +225,7 @@ pub fn serve(
             let mut frame = vec![INPUT_REPORT_LEN as u8];
             frame.extend_from_slice(&report);
             if stream.write_all(&frame).is_err() {
-                return Ok(());
+                break Ok(()); // the host went away
             }
         }
         next += period;
@@ -235,40 +237,63 @@ pub fn serve(
             next
         };
         let mut got_output = false;
-        while !(stop.load(Ordering::Relaxed) || lockstep && got_output) {
+        let mut host_gone = false;
+        while !(stop.load(Ordering::Relaxed) || lockstep && got_output || host_gone) {
             let now = Instant::now();
             if now >= until {
                 break;
             }
             wait_readable(&stream, until - now)?;
-            match read_available(&stream, &mut chunk) {
-                Ok(0) => return Ok(()), // the host went away
-                Ok(n) => inbuf.extend_from_slice(&chunk[..n]),
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::Interrupted) => {}
-                Err(_) => return Ok(()),
-            }
-            while let Some(&n) = inbuf.first() {
-                let n = n as usize;
-                if n == 0 || n > MAX_REPORT_LEN {
-                    return Err(std::io::Error::new(
-                        ErrorKind::InvalidData,
-                        format!("bad frame length {n} from host"),
-                    ));
-                }
-                if inbuf.len() < n + 1 {
-                    break;
-                }
-                let _ = device.receive_output(&inbuf[1..=n]);
-                inbuf.drain(..=n);
-                got_output = true;
-            }
+            host_gone = receive(&stream, &mut inbuf)?;
+            got_output |= apply_frames(&mut inbuf, device)?;
+        }
+        if host_gone {
+            break Ok(());
         }
         if !lockstep && Instant::now() > next + period {
             // Fell behind (a stall): drop the missed periods rather than burst.
             next = Instant::now();
         }
+    };
+    // Whatever the host sent last (its final zero-force report) still reaches the firmware.
+    let _ = receive(&stream, &mut inbuf);
+    let _ = apply_frames(&mut inbuf, device);
+    result
+}
+
+/// Move whatever the host has sent into `inbuf`; true when the host has closed its side.
+fn receive(stream: &UnixStream, inbuf: &mut Vec<u8>) -> std::io::Result<bool> {
+    let mut chunk = [0u8; 256];
+    loop {
+        match read_available(stream, &mut chunk) {
+            Ok(0) => return Ok(true),
+            Ok(n) => inbuf.extend_from_slice(&chunk[..n]),
+            Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(false),
+            Err(e) if e.kind() == ErrorKind::Interrupted => {}
+            Err(_) => return Ok(true),
+        }
     }
-    Ok(())
+}
+
+/// Hand every complete output frame in `inbuf` to the firmware; true if there was one.
+fn apply_frames(inbuf: &mut Vec<u8>, device: &mut SimDevice) -> std::io::Result<bool> {
+    let mut any = false;
+    while let Some(&n) = inbuf.first() {
+        let n = n as usize;
+        if n == 0 || n > MAX_REPORT_LEN {
+            return Err(std::io::Error::new(
+                ErrorKind::InvalidData,
+                format!("bad frame length {n} from host"),
+            ));
+        }
+        if inbuf.len() < n + 1 {
+            break;
+        }
+        let _ = device.receive_output(&inbuf[1..=n]);
+        inbuf.drain(..=n);
+        any = true;
+    }
+    Ok(any)
 }
 
 /// Read whatever is queued on `stream` without waiting (EWOULDBLOCK when nothing is).
