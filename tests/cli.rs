@@ -3,6 +3,22 @@
 mod common;
 use common::{hgcd, serial};
 
+/// `hgcd` with a config file, an application socket and a state directory of the test's own.
+fn hgcd_in(
+    cfg: &tempfile::NamedTempFile,
+    socket: &std::path::Path,
+    state_dir: &std::path::Path,
+) -> std::process::Command {
+    let mut c = hgcd();
+    c.arg("--config")
+        .arg(cfg.path())
+        .arg("--socket")
+        .arg(socket)
+        .arg("--state-dir")
+        .arg(state_dir);
+    c
+}
+
 fn empty_config() -> tempfile::NamedTempFile {
     tempfile::NamedTempFile::new().unwrap()
 }
@@ -12,11 +28,7 @@ fn run_on_a_simulated_device_in_real_time_prints_timing_statistics() {
     let _serial = serial();
     let cfg = empty_config();
     let dir = tempfile::tempdir().unwrap();
-    let out = hgcd()
-        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
-        .arg(dir.path().join("s.sock"))
-        .arg("--state-dir")
-        .arg(dir.path())
+    let out = hgcd_in(&cfg, &dir.path().join("s.sock"), dir.path())
         .args(["run", "--device", "sim:point-mass", "--duration", "1"])
         .output()
         .unwrap();
@@ -42,11 +54,7 @@ fn virtual_time_runs_as_fast_as_the_cpu_allows() {
     let cfg = empty_config();
     let dir = tempfile::tempdir().unwrap();
     let started = std::time::Instant::now();
-    let out = hgcd()
-        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
-        .arg(dir.path().join("s.sock"))
-        .arg("--state-dir")
-        .arg(dir.path())
+    let out = hgcd_in(&cfg, &dir.path().join("s.sock"), dir.path())
         .args([
             "run",
             "--device",
@@ -75,11 +83,7 @@ fn sigterm_stops_the_daemon_with_status_0_and_status_works_while_it_runs() {
     let cfg = empty_config();
     let dir = tempfile::tempdir().unwrap();
     let socket = dir.path().join("s.sock");
-    let mut child = hgcd()
-        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
-        .arg(&socket)
-        .arg("--state-dir")
-        .arg(dir.path())
+    let mut child = hgcd_in(&cfg, &socket, dir.path())
         .args(["run", "--device", "sim:point-mass"])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
@@ -205,11 +209,7 @@ fn the_socket_transport_runs_against_hgcd_sim_device() {
         assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
     }
     let spec = format!("socket:{}", device.display());
-    let out = hgcd()
-        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
-        .arg(dir.path().join("app.sock"))
-        .arg("--state-dir")
-        .arg(dir.path())
+    let out = hgcd_in(&cfg, &dir.path().join("app.sock"), dir.path())
         .args(["run", "--device", &spec, "--duration", "0.5"])
         .output()
         .unwrap();
