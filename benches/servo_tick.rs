@@ -3,8 +3,8 @@
 //! `cargo bench --bench servo_tick`. Input reports come from the mock-HID device (a PD-held
 //! simulated point mass, so positions and velocities are realistic); `core` times only what the
 //! servo thread does per report with a PD hold, `daemon_controller` the same with the daemon's
-//! compensation controller (channel drains, Eq. 15, state publishing), `with_mock_device` adds
-//! the simulated firmware and plant.
+//! compensation controller (mailbox: commands, newest offset, Eq. 15, state publishing),
+//! `with_mock_device` adds the simulated firmware and plant.
 
 use std::hint::black_box;
 use std::time::Duration;
@@ -17,8 +17,9 @@ use hgcd::control::compensation::{
     Compensation, CompensationMode, ForceOffset, GravityModel, OutsideGrid,
 };
 use hgcd::control::pd::{LinearisedGains, PdHold};
-use hgcd::daemon::controller::{ControllerLinks, DaemonController, OffsetCommand, ServoCommand};
+use hgcd::daemon::controller::DaemonController;
 use hgcd::grid::MassGrid;
+use hgcd::mailbox::{mailbox, OffsetCommand, ServoCommand};
 use hgcd::protocol::INPUT_REPORT_LEN;
 use hgcd::servo::{ServoCore, ServoOptions};
 use hgcd::transport::sim::SimDevice;
@@ -83,11 +84,8 @@ fn bench_tick(c: &mut Criterion) {
             black_box(outcome)
         })
     });
-    // The daemon's controller: compensation (Eq. 15) with channel drains and state publishing.
-    let (commands_tx, commands) = crossbeam_channel::bounded(64);
-    let (offsets_tx, offsets) = hgcd::newest::newest_wins(16);
-    let (returns, _returns_rx) = crossbeam_channel::bounded(16);
-    let (states, states_rx) = crossbeam_channel::bounded(1024);
+    // The daemon's controller: compensation (Eq. 15) with its mailbox and state publishing.
+    let (commands_tx, offsets_tx, servo_mailbox, mut hub_mailbox) = mailbox();
     let model = GravityModel::new(
         hold().field,
         CompensationMode::Scalar,
@@ -96,15 +94,12 @@ fn bench_tick(c: &mut Criterion) {
     .unwrap();
     let mut daemon = DaemonController::new(
         Compensation::new(Some(Box::new(model)), ForceOffset::new(0.05, 0.05)),
-        ControllerLinks {
-            commands,
-            offsets,
-            returns,
-            states,
-        },
+        servo_mailbox,
     );
     // Client 1 owns the force, so its offsets are applied.
-    commands_tx.send(ServoCommand::SetOwner(Some(1))).unwrap();
+    commands_tx
+        .send(ServoCommand::SetOwner(Some(1)))
+        .expect("an empty ring takes a command");
     let mut core = ServoCore::new(&options).unwrap();
     let mut k = 0usize;
     group.bench_function("daemon_controller", |b| {
@@ -112,15 +107,15 @@ fn bench_tick(c: &mut Criterion) {
             let report = &reports[k % reports.len()];
             k += 1;
             if k % 10 == 0 {
-                let _ = offsets_tx.send(OffsetCommand {
+                offsets_tx.send(OffsetCommand {
                     client: 1,
                     seq: k as u64,
                     force: Vector3::new(0.1, 0.0, 0.0),
                 });
             }
             let outcome = core.tick(black_box(report), k as f64 * 1e-3, &mut daemon, None);
-            // Keep the state channel from filling, as the daemon's hub does.
-            let _ = states_rx.try_recv();
+            // Keep the state ring from filling, as the daemon's hub does.
+            let _ = hub_mailbox.states.pop();
             let _ = black_box((outcome, core.output()));
         })
     });

@@ -9,7 +9,8 @@ pub mod control; //    controllers: PD hold, calibration, compensation
 pub mod daemon; //     `hgcd run`: compensation, application server, calibration on request
 pub mod estimate; //   FOAW velocity estimation
 pub mod grid; //       apparent-mass grid, trilinear interpolation, hgcd-grid/1 files
-pub mod newest; //     bounded lock-free channel where the newest value wins
+pub mod mailbox; //    what the daemon hands the servo thread and gets back, lock-free
+pub mod newest; //     a slot where the newest value wins, wait-free on both sides
 pub mod protocol; //   HID report layout v1: encode/decode
 pub mod servo; //      the 1 kHz tick loop, safety layer, timing statistics
 pub mod sim; //        simulated plants

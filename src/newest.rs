@@ -1,50 +1,41 @@
-//! A bounded, lock-free channel where the newest value wins: when it is full, the sender drops
-//! the oldest queued value to make room. Used wherever only the latest command matters (output
-//! reports for the HID writer thread, force offsets for the servo thread).
+//! A slot where the newest value wins, between one writer and one reader that never wait for each
+//! other (a triple buffer: each side owns a buffer and swaps it with a shared one atomically).
+//! Used wherever only the latest value matters and the reader is the servo thread or is fed by
+//! it: force offsets for the servo thread, output reports for the HID writer thread.
 
-use crossbeam_channel::{Receiver, Sender, TrySendError};
+use triple_buffer::{triple_buffer, Input, Output};
 
-/// The sending side; cloneable, never blocks.
-#[derive(Clone, Debug)]
-pub struct NewestSender<T> {
-    tx: Sender<T>,
-    /// The sender's own handle on the queue, to evict the oldest value.
-    evict: Receiver<T>,
+/// The writing side: [`publish`](NewestWriter::publish) never blocks and never fails.
+pub struct NewestWriter<T: Send> {
+    input: Input<Option<T>>,
 }
 
-/// The receiving side has gone away.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("the receiving side is gone")]
-pub struct Disconnected;
-
-/// A channel holding at most `capacity` values (at least 1).
-pub fn newest_wins<T>(capacity: usize) -> (NewestSender<T>, Receiver<T>) {
-    let (tx, rx) = crossbeam_channel::bounded(capacity.max(1));
-    (
-        NewestSender {
-            tx,
-            evict: rx.clone(),
-        },
-        rx,
-    )
+/// The reading side: [`take`](NewestReader::take) never blocks.
+pub struct NewestReader<T: Send> {
+    output: Output<Option<T>>,
 }
 
-impl<T> NewestSender<T> {
-    /// Queue `value`, evicting the oldest queued value if the channel is full.
-    pub fn send(&self, value: T) -> Result<(), Disconnected> {
-        let mut value = value;
-        // Another sender may refill the slot between eviction and retry; a few rounds settle it.
-        for _ in 0..8 {
-            match self.tx.try_send(value) {
-                Ok(()) => return Ok(()),
-                Err(TrySendError::Full(back)) => {
-                    value = back;
-                    let _ = self.evict.try_recv();
-                }
-                Err(TrySendError::Disconnected(_)) => return Err(Disconnected),
-            }
+/// A slot that starts empty.
+pub fn newest<T: Copy + Send>() -> (NewestWriter<T>, NewestReader<T>) {
+    let (input, output) = triple_buffer(&None);
+    (NewestWriter { input }, NewestReader { output })
+}
+
+impl<T: Copy + Send> NewestWriter<T> {
+    /// Make `value` the newest; one the reader has not taken yet is replaced.
+    pub fn publish(&mut self, value: T) {
+        self.input.write(Some(value));
+    }
+}
+
+impl<T: Copy + Send> NewestReader<T> {
+    /// The value published since the last `take`, if any (each value is taken at most once).
+    pub fn take(&mut self) -> Option<T> {
+        if self.output.update() {
+            self.output.output_buffer_mut().take()
+        } else {
+            None
         }
-        Ok(())
     }
 }
 
@@ -53,21 +44,37 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_newest_value_survives_a_full_queue() {
-        let (tx, rx) = newest_wins(1);
+    fn the_reader_sees_only_the_newest_value_and_each_once() {
+        let (mut tx, mut rx) = newest();
+        assert_eq!(rx.take(), None);
         for v in 1..=5 {
-            tx.send(v).unwrap();
+            tx.publish(v);
         }
-        assert_eq!(rx.try_recv(), Ok(5));
-        assert!(rx.try_recv().is_err());
-        let (tx, rx) = newest_wins(3);
-        for v in 1..=10 {
-            tx.send(v).unwrap();
+        assert_eq!(rx.take(), Some(5));
+        assert_eq!(rx.take(), None);
+        tx.publish(6);
+        assert_eq!(rx.take(), Some(6));
+    }
+
+    #[test]
+    fn a_writer_on_another_thread_never_loses_its_last_value() {
+        let (mut tx, mut rx) = newest::<u64>();
+        let writer = std::thread::spawn(move || {
+            for v in 1..=200_000u64 {
+                tx.publish(v);
+            }
+        });
+        let mut last = 0;
+        while !writer.is_finished() {
+            if let Some(v) = rx.take() {
+                assert!(v > last, "values arrive in order, newest wins");
+                last = v;
+            }
         }
-        assert_eq!(rx.try_iter().collect::<Vec<_>>(), vec![8, 9, 10]);
-        drop(rx);
-        // The sender's own eviction handle keeps the channel open; a dropped receiver is only
-        // seen as the queue staying full, so sending still succeeds.
-        assert!(tx.send(11).is_ok());
+        writer.join().unwrap();
+        if let Some(v) = rx.take() {
+            last = v;
+        }
+        assert_eq!(last, 200_000);
     }
 }

@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::mailbox::PublishedState;
 use crate::servo::StatsSnapshot;
 
 /// Version a client must name in its `hello`.
@@ -89,13 +90,27 @@ pub struct StateSample {
     pub position: [f64; 3],
     /// FOAW estimate, m/s.
     pub velocity: [f64; 3],
-    /// Force the controller requested this tick, N (the safety layer may still clamp its
-    /// magnitude and rate of change before it reaches the device).
+    /// Force the output report carried this tick, N: after the safety layer's magnitude and rate
+    /// limits, and zero during a fault.
     pub force: [f64; 3],
     /// Device status flags (HID protocol v1 bits).
     pub flags: u16,
     /// `seq` of the last force offset the servo applied (0: none).
     pub offset_seq: u64,
+}
+
+impl From<&PublishedState> for StateSample {
+    fn from(p: &PublishedState) -> Self {
+        Self {
+            tick: p.state.tick,
+            time: p.state.time,
+            position: p.state.position.into(),
+            velocity: p.state.velocity.into(),
+            force: p.force.into(),
+            flags: p.state.status.bits(),
+            offset_seq: p.offset_seq,
+        }
+    }
 }
 
 /// What `hgcd status` shows.

@@ -20,8 +20,7 @@ use tracing::{info, warn};
 use super::protocol::{
     encode_reply, parse_request, Reply, Request, Role, APP_PROTOCOL_VERSION, MAX_LINE_LEN,
 };
-use crate::daemon::controller::{OffsetCommand, ServoCommand};
-use crate::newest::NewestSender;
+use crate::mailbox::{CommandSender, OffsetCommand, OffsetSender, ServoCommand};
 
 /// Stack of the listener and client threads. Small on purpose: with memory locked (mlockall with
 /// MCL_FUTURE) every thread's stack counts against the memlock limit.
@@ -78,9 +77,10 @@ pub enum HubRequest {
 /// Everything client threads share.
 pub struct ServerContext {
     pub registry: SharedRegistry,
-    pub commands: Sender<ServoCommand>,
-    /// Force offsets to the servo thread; the newest wins when the queue is full.
-    pub offsets: NewestSender<OffsetCommand>,
+    /// Commands to the servo thread.
+    pub commands: CommandSender,
+    /// Force offsets to the servo thread; the newest wins.
+    pub offsets: OffsetSender,
     pub hub: Sender<HubRequest>,
     pub device: String,
     pub device_id: String,
@@ -224,10 +224,15 @@ fn forget(ctx: &ServerContext, id: u64) {
         }
     };
     if was_owner {
-        // Blocking send is fine here (not the servo thread); the servo drains every tick.
-        let _ = ctx
-            .commands
-            .send_timeout(ServoCommand::ClientGone(id), Duration::from_secs(1));
+        send_command(ctx, ServoCommand::ClientGone(id));
+    }
+}
+
+/// Hand a command to the servo thread; it takes its commands every tick, so a full queue means
+/// the device is silent and the command is dropped (logged).
+fn send_command(ctx: &ServerContext, command: ServoCommand) {
+    if let Err(command) = ctx.commands.send(command) {
+        warn!("servo loop not taking commands (device silent?): dropped {command:?}");
     }
 }
 
@@ -354,9 +359,7 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                     granted
                 };
                 if granted == Role::Control {
-                    let _ = ctx
-                        .commands
-                        .send_timeout(ServoCommand::SetOwner(Some(id)), Duration::from_secs(1));
+                    send_command(ctx, ServoCommand::SetOwner(Some(id)));
                 }
                 reply(
                     ctx,
@@ -405,7 +408,7 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                     );
                 }
                 last_seq = Some(seq);
-                let _ = ctx.offsets.send(OffsetCommand {
+                ctx.offsets.send(OffsetCommand {
                     client: id,
                     seq,
                     force: Vector3::from(force),

@@ -108,11 +108,14 @@ fn force_vectors(grid: &MassGrid) -> Option<Vec<Vector3<f64>>> {
         .collect()
 }
 
-/// An application force offset Z_E with its staleness handling. Times are device time, s.
+/// An application force offset Z_E with its staleness handling. An offset's age is judged on both
+/// clocks a tick carries, device time and host time ([`DeviceState::host_time`]), and the larger
+/// wins: a device whose clock stops cannot keep an offset fresh, nor can a host that stalls.
 #[derive(Clone, Copy, Debug)]
 pub struct ForceOffset {
     target: Vector3<f64>,
-    updated_at: f64,
+    /// Device and host time of the last update, s.
+    updated_at: (f64, f64),
     stale_after: f64,
     ramp_time: f64,
 }
@@ -121,37 +124,38 @@ impl ForceOffset {
     pub fn new(stale_after: f64, ramp_time: f64) -> Self {
         Self {
             target: Vector3::zeros(),
-            updated_at: f64::NEG_INFINITY,
+            updated_at: (f64::NEG_INFINITY, f64::NEG_INFINITY),
             stale_after,
             ramp_time,
         }
     }
 
-    /// A fresh offset from the application at device time `now`.
-    pub fn set(&mut self, force: Vector3<f64>, now: f64) {
+    /// A fresh offset from the application, applied at the tick `now`.
+    pub fn set(&mut self, force: Vector3<f64>, now: &DeviceState) {
         self.target = force;
-        self.updated_at = now;
+        self.updated_at = (now.time, now.host_time);
     }
 
     /// Remove the offset at once (the application went away).
     pub fn clear(&mut self) {
         self.target = Vector3::zeros();
-        self.updated_at = f64::NEG_INFINITY;
+        self.updated_at = (f64::NEG_INFINITY, f64::NEG_INFINITY);
     }
 
-    /// The offset to render at device time `now`: the latest value while fresh, then a linear ramp
-    /// to zero over `ramp_time` (by elapsed time, so missed ticks do not slow it).
-    pub fn at(&self, now: f64) -> Vector3<f64> {
-        let stale_for = now - self.updated_at - self.stale_after;
+    /// Time since the last update at the tick `now`, s: the larger of the two clocks' readings.
+    fn age(&self, now: &DeviceState) -> f64 {
+        (now.time - self.updated_at.0).max(now.host_time - self.updated_at.1)
+    }
+
+    /// The offset to render at the tick `now`: the latest value while fresh, then a linear ramp to
+    /// zero over `ramp_time` (by elapsed time, so missed ticks do not slow it).
+    pub fn at(&self, now: &DeviceState) -> Vector3<f64> {
+        let stale_for = self.age(now) - self.stale_after;
         if stale_for <= 0.0 {
             self.target
         } else {
             self.target * (1.0 - stale_for / self.ramp_time).max(0.0)
         }
-    }
-
-    pub fn is_stale(&self, now: f64) -> bool {
-        now - self.updated_at > self.stale_after
     }
 }
 
@@ -175,7 +179,7 @@ impl Compensation {
 
 impl Controller for Compensation {
     fn tick(&mut self, s: &DeviceState) -> ControlOutput {
-        let z_e = self.offset.at(s.time);
+        let z_e = self.offset.at(s);
         ControlOutput::force(z_e + self.gravity_force(&s.position))
     }
 }
@@ -244,17 +248,41 @@ mod tests {
         );
     }
 
+    /// A tick at device time `t` and host time `host`.
+    fn at(t: f64, host: f64) -> DeviceState {
+        DeviceState {
+            time: t,
+            host_time: host,
+            position: Vector3::zeros(),
+            velocity: Vector3::zeros(),
+            status: crate::protocol::Status::default(),
+            tick: 0,
+        }
+    }
+
     #[test]
     fn stale_offsets_ramp_to_zero_and_clear_is_immediate() {
         let mut o = ForceOffset::new(0.05, 0.05);
-        o.set(Vector3::new(1.0, 0.0, 0.0), 0.0);
-        assert_eq!(o.at(0.05).x, 1.0);
+        o.set(Vector3::new(1.0, 0.0, 0.0), &at(0.0, 0.0));
+        assert_eq!(o.at(&at(0.05, 0.05)).x, 1.0);
         // Ramp: 1 N over 50 ms, 20 mN per ms, whatever ticks were seen in between.
-        assert!((o.at(0.06).x - 0.8).abs() < 1e-9);
-        assert_eq!(o.at(0.1), Vector3::zeros());
-        assert_eq!(o.at(0.2), Vector3::zeros());
-        o.set(Vector3::new(0.0, 2.0, 0.0), 0.3);
+        assert!((o.at(&at(0.06, 0.06)).x - 0.8).abs() < 1e-9);
+        assert_eq!(o.at(&at(0.1, 0.1)), Vector3::zeros());
+        assert_eq!(o.at(&at(0.2, 0.2)), Vector3::zeros());
+        o.set(Vector3::new(0.0, 2.0, 0.0), &at(0.3, 0.3));
         o.clear();
-        assert_eq!(o.at(0.3), Vector3::zeros());
+        assert_eq!(o.at(&at(0.3, 0.3)), Vector3::zeros());
+    }
+
+    #[test]
+    fn a_frozen_device_clock_does_not_keep_an_offset_fresh() {
+        let mut o = ForceOffset::new(0.05, 0.05);
+        o.set(Vector3::new(1.0, 0.0, 0.0), &at(7.0, 100.0));
+        // The device's timestamp stops at 7 s while the host's clock runs on.
+        assert_eq!(o.at(&at(7.0, 100.04)).x, 1.0);
+        assert!((o.at(&at(7.0, 100.06)).x - 0.8).abs() < 1e-9);
+        assert_eq!(o.at(&at(7.0, 100.11)), Vector3::zeros());
+        // And a host clock that stalls while the device runs on does not either.
+        assert_eq!(o.at(&at(7.11, 100.0)), Vector3::zeros());
     }
 }

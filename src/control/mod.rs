@@ -12,8 +12,11 @@ use crate::protocol::Status;
 /// What the servo loop knows about the device at one tick. SI units throughout.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DeviceState {
-    /// Device time since the first report, s.
+    /// Device time since the first report, s (from the report's timestamp).
     pub time: f64,
+    /// When the report arrived on the transport's clock, s: monotonic host time on hardware, the
+    /// device clock in virtual time. Lets a controller notice a device clock that stops.
+    pub host_time: f64,
     /// End-effector position, m.
     pub position: Vector3<f64>,
     /// FOAW velocity estimate, m/s.
@@ -42,9 +45,18 @@ impl ControlOutput {
     }
 }
 
-/// A tick function run by the servo loop. Must not allocate, lock, block or log synchronously.
+/// A tick function run by the servo loop, once per input report (about 1 kHz), on the servo
+/// thread. The first call sees the first report. A controller that returns
+/// [`ControlOutput::done`] is not called again. None of the methods may allocate, lock, block,
+/// log synchronously or read a clock: time comes in [`DeviceState`].
+///
+/// Per tick the loop calls `before_tick` (mailbox work: take commands from outside), `tick`
+/// (state to force, the critical step) and, once the safety layer has limited that force,
+/// `after_tick` with the force the output report carries (publish what was done).
 pub trait Controller: Send {
+    fn before_tick(&mut self, _state: &DeviceState) {}
     fn tick(&mut self, state: &DeviceState) -> ControlOutput;
+    fn after_tick(&mut self, _state: &DeviceState, _sent: &Vector3<f64>) {}
 }
 
 /// Renders no force at all.

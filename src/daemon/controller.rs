@@ -1,183 +1,254 @@
-//! The daemon's controller on the servo thread: compensation (Eq. 15) with the application's
-//! offset, or a calibration in progress; commands in and state out through bounded channels.
+//! The daemon's controller on the servo thread, in two layers:
+//! - [`Arbiter`], pure: state in, force out. It decides between compensation (Eq. 15) with the
+//!   owner's force offset, a calibration in progress, and the hold that bridges a finished
+//!   calibration to its grid. Commands and offsets are method calls; it is tested tick by tick
+//!   without threads.
+//! - [`DaemonController`]: the arbiter plus its mailbox. Before each tick it takes what arrived
+//!   (a bounded number of commands, the newest offset); after it, it publishes the state with the
+//!   force the output report carried.
+//!
 //! Nothing here allocates, locks or blocks; boxes arrive built and leave to be dropped elsewhere.
 
-use crossbeam_channel::{Receiver, Sender};
 use nalgebra::Vector3;
 
-use crate::app::protocol::StateSample;
 use crate::control::calibration::Calibration;
-use crate::control::compensation::{Compensation, GravityModel};
+use crate::control::compensation::Compensation;
 use crate::control::pd::PointHold;
 use crate::control::{ControlOutput, Controller, DeviceState};
+use crate::mailbox::{
+    OffsetCommand, PublishedState, ServoCommand, ServoMailbox, ServoReturn, COMMAND_CAPACITY,
+};
 
-/// A force offset from the client that owns the force.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct OffsetCommand {
-    pub client: u64,
-    pub seq: u64,
-    /// N.
-    pub force: Vector3<f64>,
-}
-
-/// Everything else the daemon tells the servo thread.
-#[derive(Debug)]
-pub enum ServoCommand {
-    /// This client now owns the force (None: nobody); any offset from before is dropped.
-    SetOwner(Option<u64>),
-    /// This client disconnected: its force goes at once.
-    ClientGone(u64),
-    /// Run this calibration now (offsets are ignored until it ends).
-    StartCalibration(Box<Calibration>),
-    /// Abandon the calibration in progress (its requester went away); it comes back unfinished.
-    AbortCalibration,
-    /// Stop holding the handle where the last calibration left it (no new grid is coming).
-    ReleaseHold,
-    /// Use this gravity model from the next tick (None: no compensation).
-    SwapModel(Option<Box<GravityModel>>),
-}
-
-/// What the servo thread hands back to be dealt with (and dropped) outside the loop.
-#[derive(Debug)]
-pub enum ServoReturn {
-    CalibrationDone(Box<Calibration>),
-    /// A calibration was requested while one was running.
-    CalibrationRefused(Box<Calibration>),
-    OldModel(Option<Box<GravityModel>>),
-}
-
-/// The channels the controller talks through.
-pub struct ControllerLinks {
-    pub commands: Receiver<ServoCommand>,
-    pub offsets: Receiver<OffsetCommand>,
-    pub returns: Sender<ServoReturn>,
-    pub states: Sender<StateSample>,
-}
-
-pub struct DaemonController {
+/// Who drives the handle, and with what: compensation plus the owner's offset, a calibration, or
+/// the hold after a calibration until its grid arrives.
+pub struct Arbiter {
     compensation: Compensation,
     calibration: Option<Box<Calibration>>,
     /// After a successful calibration, until its grid arrives: hold at the last vertex.
     hold: Option<PointHold>,
     owner: Option<u64>,
+    /// The newest offset from the owner, applied at the next tick.
+    pending: Option<OffsetCommand>,
     offset_seq: u64,
-    links: ControllerLinks,
 }
 
-impl DaemonController {
-    pub fn new(compensation: Compensation, links: ControllerLinks) -> Self {
+impl Arbiter {
+    pub fn new(compensation: Compensation) -> Self {
         Self {
             compensation,
             calibration: None,
             hold: None,
             owner: None,
+            pending: None,
             offset_seq: 0,
-            links,
         }
     }
 
-    fn give_back(&self, item: ServoReturn) {
-        // The return channel is sized so this does not fail; if it ever did, the item would be
-        // dropped here, off the hot path only in the sense that it is rare.
-        let _ = self.links.returns.try_send(item);
+    /// `seq` of the last force offset applied (0: none).
+    pub fn offset_seq(&self) -> u64 {
+        self.offset_seq
     }
 
-    fn drain_commands(&mut self) {
-        while let Ok(command) = self.links.commands.try_recv() {
-            match command {
-                ServoCommand::SetOwner(owner) => {
-                    if owner != self.owner {
-                        self.compensation.offset.clear();
-                        self.offset_seq = 0;
-                    }
-                    self.owner = owner;
+    fn drop_offset(&mut self) {
+        self.compensation.offset.clear();
+        self.pending = None;
+        self.offset_seq = 0;
+    }
+
+    /// Act on a command; returns what must go back to the hub.
+    pub fn command(&mut self, command: ServoCommand) -> Option<ServoReturn> {
+        match command {
+            ServoCommand::SetOwner(owner) => {
+                if owner != self.owner {
+                    self.drop_offset();
                 }
-                ServoCommand::ClientGone(client) => {
-                    if self.owner == Some(client) {
-                        self.owner = None;
-                        self.compensation.offset.clear();
-                        self.offset_seq = 0;
-                    }
+                self.owner = owner;
+                None
+            }
+            ServoCommand::ClientGone(client) => {
+                if self.owner == Some(client) {
+                    self.owner = None;
+                    self.drop_offset();
                 }
-                ServoCommand::StartCalibration(calibration) => {
-                    if self.calibration.is_some() {
-                        self.give_back(ServoReturn::CalibrationRefused(calibration));
-                    } else {
-                        self.compensation.offset.clear();
-                        self.offset_seq = 0;
-                        self.calibration = Some(calibration);
-                    }
+                None
+            }
+            ServoCommand::StartCalibration(calibration) => {
+                if self.calibration.is_some() {
+                    return Some(ServoReturn::CalibrationRefused(calibration));
                 }
-                ServoCommand::AbortCalibration => {
-                    if let Some(calibration) = self.calibration.take() {
-                        self.give_back(ServoReturn::CalibrationDone(calibration));
-                    }
-                }
-                ServoCommand::ReleaseHold => self.hold = None,
-                ServoCommand::SwapModel(model) => {
-                    self.hold = None;
-                    let old = std::mem::replace(&mut self.compensation.model, model);
-                    self.give_back(ServoReturn::OldModel(old));
-                }
+                self.drop_offset();
+                self.calibration = Some(calibration);
+                None
+            }
+            ServoCommand::AbortCalibration => {
+                self.calibration.take().map(ServoReturn::CalibrationDone)
+            }
+            ServoCommand::ReleaseHold => {
+                self.hold = None;
+                None
+            }
+            ServoCommand::SwapModel(model) => {
+                self.hold = None;
+                let old = std::mem::replace(&mut self.compensation.model, model);
+                Some(ServoReturn::OldModel(old))
             }
         }
     }
 
-    /// Apply the newest offset from the owner; offsets from anyone else (or stale ones from a
-    /// client that just lost ownership) are ignored.
-    fn drain_offsets(&mut self, now: f64) {
-        let mut newest: Option<OffsetCommand> = None;
-        while let Ok(offset) = self.links.offsets.try_recv() {
-            // The channel is FIFO per client, so the last one from the owner is the newest.
-            if Some(offset.client) == self.owner {
-                newest = Some(offset);
-            }
+    /// A force offset; only the owner's count, and none while calibrating or holding the handle
+    /// for the new grid. It takes effect at the next tick.
+    pub fn offset(&mut self, offset: OffsetCommand) {
+        if Some(offset.client) == self.owner && self.calibration.is_none() && self.hold.is_none() {
+            self.pending = Some(offset);
         }
-        if let Some(offset) = newest {
-            // No offsets while calibrating or holding the handle for the new grid.
-            if self.calibration.is_none() && self.hold.is_none() {
-                self.compensation.offset.set(offset.force, now);
-                self.offset_seq = offset.seq;
-            }
+    }
+
+    /// The force for this tick, and what must go back to the hub (a finished calibration).
+    pub fn tick(&mut self, s: &DeviceState) -> (Vector3<f64>, Option<ServoReturn>) {
+        if let Some(offset) = self.pending.take() {
+            self.compensation.offset.set(offset.force, s);
+            self.offset_seq = offset.seq;
+        }
+        let Some(calibration) = self.calibration.as_mut() else {
+            let force = match &self.hold {
+                Some(hold) => hold.force(s),
+                None => self.compensation.tick(s).force,
+            };
+            return (force, None);
+        };
+        let out = calibration.tick(s);
+        if !out.done {
+            return (out.force, None);
+        }
+        let finished = self.calibration.take().expect("calibration present");
+        // Keep the handle up at the last vertex until the new grid is swapped in (saving it
+        // takes a disk write); after a failure, compensation resumes.
+        self.hold = finished.final_hold();
+        let force = match &self.hold {
+            Some(hold) => hold.force(s),
+            None => self.compensation.gravity_force(&s.position),
+        };
+        (force, Some(ServoReturn::CalibrationDone(finished)))
+    }
+}
+
+/// The arbiter with its mailbox: what the daemon's servo thread runs.
+pub struct DaemonController {
+    arbiter: Arbiter,
+    mailbox: ServoMailbox,
+}
+
+impl DaemonController {
+    pub fn new(compensation: Compensation, mailbox: ServoMailbox) -> Self {
+        Self {
+            arbiter: Arbiter::new(compensation),
+            mailbox,
         }
     }
 }
 
 impl Controller for DaemonController {
-    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
-        self.drain_commands();
-        self.drain_offsets(s.time);
-        let force = match self.calibration.as_mut() {
-            Some(calibration) => {
-                let out = calibration.tick(s);
-                if out.done {
-                    let finished = self.calibration.take().expect("calibration present");
-                    // Keep the handle up at the last vertex until the new grid is swapped in
-                    // (saving it takes a disk write); after a failure, compensation resumes.
-                    self.hold = finished.final_hold();
-                    self.give_back(ServoReturn::CalibrationDone(finished));
-                    match &self.hold {
-                        Some(hold) => hold.force(s),
-                        None => self.compensation.gravity_force(&s.position),
-                    }
-                } else {
-                    out.force
-                }
+    fn before_tick(&mut self, _: &DeviceState) {
+        // Only what was waiting when the tick began, and at most a ring's worth.
+        let waiting = self.mailbox.commands_waiting().min(COMMAND_CAPACITY);
+        for _ in 0..waiting {
+            let Some(command) = self.mailbox.command() else {
+                break;
+            };
+            if let Some(item) = self.arbiter.command(command) {
+                self.mailbox.give_back(item);
             }
-            None => match &self.hold {
-                Some(hold) => hold.force(s),
-                None => self.compensation.tick(s).force,
-            },
-        };
-        let _ = self.links.states.try_send(StateSample {
-            tick: s.tick,
-            time: s.time,
-            position: s.position.into(),
-            velocity: s.velocity.into(),
-            force: force.into(),
-            flags: s.status.bits(),
-            offset_seq: self.offset_seq,
-        });
+        }
+        if let Some(offset) = self.mailbox.offset() {
+            self.arbiter.offset(offset);
+        }
+    }
+
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        let (force, item) = self.arbiter.tick(s);
+        if let Some(item) = item {
+            self.mailbox.give_back(item);
+        }
         ControlOutput::force(force)
+    }
+
+    fn after_tick(&mut self, s: &DeviceState, sent: &Vector3<f64>) {
+        self.mailbox.publish(PublishedState {
+            state: *s,
+            force: *sent,
+            offset_seq: self.arbiter.offset_seq(),
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::compensation::{CompensationMode, ForceOffset, GravityModel, OutsideGrid};
+    use crate::grid::MassGrid;
+    use crate::protocol::Status;
+
+    fn state(tick: u64) -> DeviceState {
+        let t = tick as f64 * 1e-3;
+        DeviceState {
+            time: t,
+            host_time: t,
+            position: Vector3::new(0.0, 0.0, 0.01),
+            velocity: Vector3::zeros(),
+            status: Status::default(),
+            tick,
+        }
+    }
+
+    fn arbiter(mass: f64) -> Arbiter {
+        let grid = MassGrid::uniform(
+            mass,
+            9.81,
+            Vector3::z(),
+            Vector3::new(-0.04, -0.04, -0.04),
+            0.08,
+            [2, 2, 2],
+        );
+        let model = GravityModel::new(grid, CompensationMode::Scalar, OutsideGrid::HoldNearest)
+            .expect("scalar model");
+        Arbiter::new(Compensation::new(
+            Some(Box::new(model)),
+            ForceOffset::new(0.05, 0.05),
+        ))
+    }
+
+    fn offset(client: u64, seq: u64, x: f64) -> OffsetCommand {
+        OffsetCommand {
+            client,
+            seq,
+            force: Vector3::new(x, 0.0, 0.0),
+        }
+    }
+
+    #[test]
+    fn compensation_plus_only_the_owners_offset() {
+        let mut a = arbiter(0.1);
+        let weight = Vector3::new(0.0, 0.0, 0.1 * 9.81);
+        assert_eq!(a.tick(&state(0)).0, weight);
+        a.offset(offset(7, 1, 1.0));
+        assert_eq!(a.tick(&state(1)).0, weight, "nobody owns the force yet");
+        assert!(a.command(ServoCommand::SetOwner(Some(7))).is_none());
+        a.offset(offset(8, 1, 2.0));
+        a.offset(offset(7, 2, 1.0));
+        let (f, _) = a.tick(&state(2));
+        assert_eq!(f, weight + Vector3::new(1.0, 0.0, 0.0));
+        assert_eq!(a.offset_seq(), 2);
+        // The owner leaves: its force goes on the next tick.
+        a.command(ServoCommand::ClientGone(7));
+        assert_eq!(a.tick(&state(3)).0, weight);
+        assert_eq!(a.offset_seq(), 0);
+    }
+
+    #[test]
+    fn a_swapped_model_comes_back_to_be_dropped_elsewhere() {
+        let mut a = arbiter(0.1);
+        let old = a.command(ServoCommand::SwapModel(None));
+        assert!(matches!(old, Some(ServoReturn::OldModel(Some(_)))));
+        assert_eq!(a.tick(&state(0)).0, Vector3::zeros());
     }
 }

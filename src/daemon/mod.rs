@@ -14,7 +14,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use crossbeam_channel::{Receiver, Sender};
+use crossbeam_channel::Receiver;
 use tracing::{error, info, warn};
 
 use crate::app::protocol::{Reply, StateSample, Status};
@@ -24,10 +24,13 @@ use crate::config::{Config, DeviceSpec};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
 use crate::grid::MassGrid;
-use crate::servo::thread::log_event;
+use crate::mailbox::{
+    mailbox, CommandSender, HubMailbox, PublishedState, ServoCommand, ServoReturn,
+};
+use crate::servo::thread::EventLog;
 use crate::servo::{self, ServoEvent, ServoOptions, ServoReport};
 use crate::transport::{self, Pacing, Transport};
-use controller::{ControllerLinks, DaemonController, ServoCommand, ServoReturn};
+use controller::DaemonController;
 
 /// What `hgcd run` was asked to do.
 #[derive(Clone, Debug)]
@@ -120,13 +123,13 @@ struct Hub {
     device: DeviceSpec,
     grid_path: PathBuf,
     registry: SharedRegistry,
-    commands: Sender<ServoCommand>,
+    commands: CommandSender,
     status: Status,
     started: Instant,
     /// Client waiting for the calibration in progress, and the events channel of that run.
     calibration: Option<(u64, Receiver<CalibrationEvent>)>,
     abort_sent: bool,
-    garbled: u64,
+    log: EventLog,
 }
 
 impl Hub {
@@ -153,23 +156,21 @@ impl Hub {
     /// Hand a command to the servo thread without ever blocking the hub (the servo drains its
     /// commands every tick; a full queue means the device is silent). False if it was dropped.
     fn command(&self, command: ServoCommand) -> bool {
-        match self.commands.try_send(command) {
+        match self.commands.send(command) {
             Ok(()) => true,
-            Err(e) => {
-                error!(
-                    "servo loop not taking commands (device silent?): dropped {:?}",
-                    e.into_inner()
-                );
+            Err(command) => {
+                error!("servo loop not taking commands (device silent?): dropped {command:?}");
                 false
             }
         }
     }
 
-    fn fan_out(&self, sample: &StateSample) {
+    fn fan_out(&self, published: &PublishedState) {
         let reg = lock(&self.registry);
+        let sample = StateSample::from(published);
         for c in reg.clients.values() {
             if c.state_divider > 0 && sample.tick % c.state_divider == 0 {
-                let _ = c.outbound.try_send(Reply::State(*sample));
+                let _ = c.outbound.try_send(Reply::State(sample));
             }
         }
     }
@@ -324,6 +325,23 @@ impl Hub {
         }
     }
 
+    /// Everything the servo thread sent since the last call: states to fan out, events to log,
+    /// returns to deal with. Polled, never waited on (see [`servo::thread::POLL`]).
+    fn take_from_servo(&mut self, mailbox: &mut HubMailbox, events: &Receiver<ServoEvent>) {
+        while let Ok(published) = mailbox.states.pop() {
+            self.fan_out(&published);
+        }
+        for e in events.try_iter() {
+            if let ServoEvent::Stats(s) = &e {
+                self.status.servo = *s;
+            }
+            self.log.log(&e);
+        }
+        while let Ok(item) = mailbox.returns.pop() {
+            self.handle_return(item);
+        }
+    }
+
     fn reload(&mut self) {
         info!("SIGHUP: reloading {}", self.grid_path.display());
         match load_model(&self.config, &self.device, &self.grid_path) {
@@ -383,21 +401,10 @@ impl Daemon {
         );
         let compensation = Compensation::new(model, offset);
 
-        let (commands_tx, commands_rx) = crossbeam_channel::bounded(64);
-        let (offsets_tx, offsets_rx) = crate::newest::newest_wins(16);
-        let (returns_tx, returns_rx) = crossbeam_channel::bounded(16);
-        let (states_tx, states_rx) = crossbeam_channel::bounded(1024);
+        let (commands_tx, offsets_tx, servo_mailbox, mut hub_mailbox) = mailbox();
         let (events_tx, events_rx) = crossbeam_channel::bounded(1024);
         let (hub_tx, hub_rx) = crossbeam_channel::bounded(256);
-        let controller = DaemonController::new(
-            compensation,
-            ControllerLinks {
-                commands: commands_rx,
-                offsets: offsets_rx,
-                returns: returns_tx,
-                states: states_tx,
-            },
-        );
+        let controller = DaemonController::new(compensation, servo_mailbox);
 
         let registry = SharedRegistry::default();
         let listener = server::bind(&self.socket, config.socket_mode()?).with_context(|| {
@@ -459,7 +466,7 @@ impl Daemon {
             started: Instant::now(),
             calibration: None,
             abort_sent: false,
-            garbled: 0,
+            log: EventLog::new(),
         };
         let mut watchdog_usec = 0u64;
         let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
@@ -469,18 +476,7 @@ impl Daemon {
         while !servo.is_finished() {
             // Channels fed by the servo thread are polled, never waited on (see servo::thread::POLL);
             // the hub waits on its client requests instead, at most a millisecond.
-            for s in states_rx.try_iter() {
-                hub.fan_out(&s);
-            }
-            for e in events_rx.try_iter() {
-                if let ServoEvent::Stats(s) = &e {
-                    hub.status.servo = *s;
-                }
-                log_event(&e, &mut hub.garbled);
-            }
-            for r in returns_rx.try_iter() {
-                hub.handle_return(r);
-            }
+            hub.take_from_servo(&mut hub_mailbox, &events_rx);
             if let Ok(r) = hub_rx.recv_timeout(Duration::from_millis(1)) {
                 hub.handle_request(r);
             }
@@ -488,6 +484,7 @@ impl Daemon {
                 last_housekeeping = Instant::now();
                 hub.forward_calibration_events();
                 hub.abort_orphaned_calibration();
+                hub.log.flush();
                 if signals.reload.swap(false, Ordering::SeqCst) {
                     hub.reload();
                 }
@@ -510,8 +507,9 @@ impl Daemon {
             .join()
             .map_err(|_| anyhow::anyhow!("the servo thread panicked"))?;
         for e in events_rx.try_iter() {
-            log_event(&e, &mut hub.garbled);
+            hub.log.log(&e);
         }
+        hub.log.flush();
         let report = result.context("servo loop")?;
         info!("servo loop ended: {:?}", report.exit);
         Ok(report)

@@ -99,6 +99,12 @@ pub struct StatsSnapshot {
     pub worst_compute_us: f64,
     /// Longest interval between two reports so far, µs.
     pub worst_period_us: f64,
+    /// Reports received more than one period after they were due.
+    #[serde(default)]
+    pub late_wakeups: u64,
+    /// Largest lateness of a report against its timestamp so far, µs.
+    #[serde(default)]
+    pub worst_lateness_us: f64,
 }
 
 impl TimingStats {
@@ -112,6 +118,8 @@ impl TimingStats {
             watchdog_faults: self.watchdog_faults,
             worst_compute_us: self.compute.max_us(),
             worst_period_us: self.period.max_us(),
+            late_wakeups: self.late_wakeups,
+            worst_lateness_us: self.lateness.max_us(),
         }
     }
 }
@@ -309,13 +317,17 @@ impl ServoCore {
             self.foaw.reset();
             self.resync = false;
         }
+        let time = self.clock.seconds(report.timestamp_us);
+        self.stats.record_lateness(arrived, time);
         let state = DeviceState {
-            time: self.clock.seconds(report.timestamp_us),
+            time,
+            host_time: arrived,
             position: report.position,
             velocity: self.foaw.update(&report.position),
             status: report.status,
             tick: self.stats.ticks,
         };
+        controller.before_tick(&state);
         let output = controller.tick(&state);
         let (force, limited) = self.safety.limit(&output.force, faulted);
         if limited.non_finite {
@@ -323,6 +335,7 @@ impl ServoCore {
             emit(events, ServoEvent::NonFiniteForce);
         }
         self.encode(&force, true);
+        controller.after_tick(&state, &force);
         self.stats.ticks += 1;
         self.last_state = Some(state);
         Ok(if output.done {
@@ -397,7 +410,9 @@ fn run_loop(
         } else {
             (last_report_at + options.watchdog - now).max(0.0)
         };
-        if let Some(n) = transport.read_input(&mut buf, Duration::from_secs_f64(wait))? {
+        let read = transport.read_input(&mut buf, Duration::from_secs_f64(wait))?;
+        core.stats.garbled += transport.take_garbled_skipped();
+        if let Some(n) = read {
             let received = Instant::now();
             let arrived = transport.now();
             if silent {

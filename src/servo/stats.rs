@@ -66,9 +66,15 @@ pub struct TimingStats {
     pub period: Histogram,
     /// Time from receiving a report to having handed the output report over (wall clock).
     pub compute: Histogram,
+    /// Lateness of each report: host receive time minus device timestamp, less the smallest such
+    /// difference seen (see [`TimingStats::record_lateness`]). On a simulated device the
+    /// timestamp is the report's absolute deadline, so this is lateness against the deadline.
+    pub lateness: Histogram,
     pub ticks: u64,
     /// Reports that came more than 1.5 periods after the previous one.
     pub late: u64,
+    /// Reports received more than one period after their timestamp said they were due.
+    pub late_wakeups: u64,
     /// Reports the loop never saw (gaps in the device's sequence numbers).
     pub missed: u64,
     /// Ticks after which the loop skipped ahead over missed reports.
@@ -81,7 +87,14 @@ pub struct TimingStats {
     pub device_fault_ticks: u64,
     /// Ticks whose controller force was not finite.
     pub non_finite_forces: u64,
+    /// Smallest (host − device) clock difference, s, allowing for drift; None before a report.
+    clock_floor: Option<f64>,
+    last_device_time: f64,
 }
+
+/// How fast the device clock may run slow against the host's before lateness is overstated: the
+/// floor of the clock difference rises at this rate (1000 ppm, ten times a USB crystal's).
+const CLOCK_DRIFT: f64 = 1e-3;
 
 impl TimingStats {
     pub fn new(nominal_period: f64) -> Self {
@@ -89,14 +102,40 @@ impl TimingStats {
             nominal_period,
             period: Histogram::new(20_000),
             compute: Histogram::new(5_000),
+            lateness: Histogram::new(20_000),
             ticks: 0,
             late: 0,
+            late_wakeups: 0,
             missed: 0,
             overruns: 0,
             garbled: 0,
             watchdog_faults: 0,
             device_fault_ticks: 0,
             non_finite_forces: 0,
+            clock_floor: None,
+            last_device_time: 0.0,
+        }
+    }
+
+    /// Record a report received at host time `received` (s) with device time `device` (s). The
+    /// difference of the two clocks is an unknown constant plus the report's lateness; the
+    /// constant is the smallest difference seen, let rise by [`CLOCK_DRIFT`] so a slow device
+    /// clock is not mistaken for growing lateness. Allocation-free.
+    pub fn record_lateness(&mut self, received: f64, device: f64) {
+        let difference = received - device;
+        let floor = match self.clock_floor {
+            Some(floor) => {
+                let elapsed = (device - self.last_device_time).max(0.0);
+                (floor + CLOCK_DRIFT * elapsed).min(difference)
+            }
+            None => difference,
+        };
+        self.clock_floor = Some(floor);
+        self.last_device_time = device;
+        let lateness = difference - floor;
+        self.lateness.record_ns((lateness * 1e9) as u64);
+        if lateness > self.nominal_period {
+            self.late_wakeups += 1;
         }
     }
 
@@ -125,6 +164,15 @@ impl fmt::Display for TimingStats {
             q(&self.period, 0.99),
             q(&self.period, 0.999),
             self.period.max_us()
+        )?;
+        writeln!(
+            f,
+            "  lateness µs   p50 {}  p99 {}  p99.9 {}  max {:.0}  (more than a period late: {})",
+            q(&self.lateness, 0.5),
+            q(&self.lateness, 0.99),
+            q(&self.lateness, 0.999),
+            self.lateness.max_us(),
+            self.late_wakeups
         )?;
         writeln!(
             f,
@@ -161,5 +209,32 @@ mod tests {
         assert_eq!(h.quantile_us(0.99), Some(99.0));
         h.record_ns(1_000_000);
         assert_eq!(h.quantile_us(1.0), Some(1000.0));
+    }
+
+    #[test]
+    fn lateness_is_measured_against_the_device_timestamps() {
+        let mut s = TimingStats::new(1e-3);
+        // Host clock 5 s ahead of the device's; every report 20 µs late, then one 1.5 ms late.
+        for k in 0..1000 {
+            let due = k as f64 * 1e-3;
+            s.record_lateness(5.0 + due + 20e-6, due);
+        }
+        s.record_lateness(5.0 + 1.0 + 1.5e-3, 1.0);
+        // A constant delay is indistinguishable from the clock offset: lateness counts from it.
+        assert_eq!(s.lateness.quantile_us(0.5), Some(1.0));
+        assert!((s.lateness.max_us() - 1480.0).abs() < 2.0);
+        assert_eq!(s.late_wakeups, 1);
+    }
+
+    #[test]
+    fn a_slow_device_clock_is_not_mistaken_for_lateness() {
+        let mut s = TimingStats::new(1e-3);
+        // The device clock runs 100 ppm slow for 60 s: the difference grows by 6 ms.
+        for k in 0..60_000 {
+            let host = k as f64 * 1e-3;
+            s.record_lateness(host, host * (1.0 - 1e-4));
+        }
+        assert!(s.lateness.max_us() < 2.0, "{}", s.lateness.max_us());
+        assert_eq!(s.late_wakeups, 0);
     }
 }

@@ -1,20 +1,22 @@
 //! `hid:VID:PID[:SERIAL]`: real devices through hidapi (Linux hidraw backend, no system library).
 //!
 //! `hid_write` is synchronous and has been seen to stall for over 5 ms every few cycles
-//! (libusb/hidapi#506), so output reports go to a writer thread through a one-slot channel that
-//! always holds the newest report: the servo thread never waits for the device to accept a write.
+//! (libusb/hidapi#506), so output reports go to a writer thread ([`OutputWriter`]) through a
+//! newest-wins slot: the servo thread never waits for the device to accept a write, and handing a
+//! report over takes no lock (a triple-buffer swap and an unpark, which is an atomic swap and at
+//! most a futex wake).
 
 use std::ffi::CString;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::thread::JoinHandle;
+use std::thread::{JoinHandle, Thread};
 use std::time::{Duration, Instant};
 
 use hidapi::{HidApi, HidDevice};
 
-use super::{Transport, TransportError, MAX_REPORT_LEN};
+use super::{Burst, Transport, TransportError, MAX_REPORT_LEN};
 use crate::config::DeviceSpec;
-use crate::newest::{newest_wins, NewestSender};
+use crate::newest::{newest, NewestWriter};
 use crate::protocol::OUTPUT_REPORT_LEN;
 
 /// A HID device the system shows, as `hgcd devices` lists it.
@@ -58,6 +60,8 @@ pub fn list_devices() -> Result<Vec<HidDeviceEntry>, TransportError> {
 
 /// Host side of a HID device: reads on the servo thread, writes on a writer thread.
 pub struct HidTransport {
+    /// Dropped first (fields drop in order): the final report is written while the lock is held.
+    writer: OutputWriter,
     /// Exclusive advisory lock on the hidraw node: one hgcd process per device.
     _lock: std::fs::File,
     /// VID, PID and the serial number the device reports.
@@ -65,10 +69,77 @@ pub struct HidTransport {
     reader: HidDevice,
     spec: String,
     start: Instant,
-    /// One-slot outbox to the writer thread; the newest report replaces one not yet taken.
-    outbox: Option<NewestSender<[u8; OUTPUT_REPORT_LEN]>>,
-    writer_failed: Arc<AtomicBool>,
-    writer: Option<JoinHandle<()>>,
+    garbled_skipped: u64,
+}
+
+/// A thread that writes output reports as they come, newest first: [`OutputWriter::send`] never
+/// blocks, allocates or locks, so the servo thread can call it every tick; a report the thread
+/// has not written yet is replaced by a newer one. Dropping it writes the last report sent (the
+/// final zero force) and joins the thread.
+pub struct OutputWriter {
+    slot: NewestWriter<[u8; OUTPUT_REPORT_LEN]>,
+    thread: Thread,
+    handle: Option<JoinHandle<()>>,
+    failed: Arc<AtomicBool>,
+    closing: Arc<AtomicBool>,
+}
+
+impl OutputWriter {
+    /// Start the thread; `write` hands one report to the device (on the writer thread).
+    pub fn spawn<W>(mut write: W) -> std::io::Result<Self>
+    where
+        W: FnMut(&[u8; OUTPUT_REPORT_LEN]) -> std::io::Result<()> + Send + 'static,
+    {
+        let (slot, mut reports) = newest::<[u8; OUTPUT_REPORT_LEN]>();
+        let failed = Arc::new(AtomicBool::new(false));
+        let closing = Arc::new(AtomicBool::new(false));
+        let (failed_w, closing_w) = (failed.clone(), closing.clone());
+        let handle = std::thread::Builder::new()
+            .name("hgcd-hid-writer".into())
+            .spawn(move || loop {
+                // Read the flag before the slot: a report sent before closing is still written.
+                let last_round = closing_w.load(Ordering::Acquire);
+                match reports.take() {
+                    Some(report) => {
+                        if write(&report).is_err() {
+                            failed_w.store(true, Ordering::Release);
+                            return;
+                        }
+                    }
+                    None if last_round => return,
+                    // Woken by `send` (or `drop`); the timeout only bounds a lost wake-up.
+                    None => std::thread::park_timeout(Duration::from_millis(100)),
+                }
+            })?;
+        Ok(Self {
+            slot,
+            thread: handle.thread().clone(),
+            handle: Some(handle),
+            failed,
+            closing,
+        })
+    }
+
+    /// Hand `report` to the writer thread.
+    pub fn send(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) {
+        self.slot.publish(*report);
+        self.thread.unpark();
+    }
+
+    /// Whether a write has failed (the thread has then stopped).
+    pub fn failed(&self) -> bool {
+        self.failed.load(Ordering::Acquire)
+    }
+}
+
+impl Drop for OutputWriter {
+    fn drop(&mut self) {
+        self.closing.store(true, Ordering::Release);
+        self.thread.unpark();
+        if let Some(handle) = self.handle.take() {
+            let _ = handle.join();
+        }
+    }
 }
 
 impl HidTransport {
@@ -118,20 +189,13 @@ impl HidTransport {
         let lock = lock_device(&path).map_err(open_err)?;
         let reader = open("opening")?;
         let writer_dev = open("opening a second handle on")?;
-        let (outbox, inbox) = newest_wins::<[u8; OUTPUT_REPORT_LEN]>(1);
-        let writer_failed = Arc::new(AtomicBool::new(false));
-        let failed = writer_failed.clone();
-        let writer = std::thread::Builder::new()
-            .name("hgcd-hid-writer".into())
-            .spawn(move || {
-                for report in inbox.iter() {
-                    if writer_dev.write(&report).is_err() {
-                        failed.store(true, Ordering::Release);
-                        break;
-                    }
-                }
-            })
-            .map_err(|e| open_err(format!("cannot start writer thread: {e}")))?;
+        let writer = OutputWriter::spawn(move |report| {
+            writer_dev
+                .write(report)
+                .map(|_| ())
+                .map_err(std::io::Error::other)
+        })
+        .map_err(|e| open_err(format!("cannot start writer thread: {e}")))?;
         Ok(Self {
             _lock: lock,
             resolved: DeviceSpec::Hid {
@@ -142,9 +206,8 @@ impl HidTransport {
             reader,
             spec,
             start: Instant::now(),
-            outbox: Some(outbox),
-            writer_failed,
-            writer: Some(writer),
+            garbled_skipped: 0,
+            writer,
         })
     }
 }
@@ -178,7 +241,7 @@ impl Transport for HidTransport {
         buf: &mut [u8; MAX_REPORT_LEN],
         timeout: Duration,
     ) -> Result<Option<usize>, TransportError> {
-        if self.writer_failed.load(Ordering::Acquire) {
+        if self.writer.failed() {
             return Err(TransportError::Disconnected(format!(
                 "{}: write failed",
                 self.spec
@@ -186,33 +249,38 @@ impl Transport for HidTransport {
         }
         let ms = timeout.as_millis().clamp(1, i32::MAX as u128) as i32;
         let map = |e: hidapi::HidError| TransportError::Disconnected(format!("{}: {e}", self.spec));
-        let mut n = self.reader.read_timeout(buf, ms).map_err(map)?;
+        let mut report = [0u8; MAX_REPORT_LEN];
+        let n = self.reader.read_timeout(&mut report, ms).map_err(map)?;
         if n == 0 {
             return Ok(None);
         }
-        // Skip ahead to the newest queued report rather than work through a backlog.
-        let mut newer = [0u8; MAX_REPORT_LEN];
+        // Skip ahead to the newest valid queued report rather than work through a backlog.
+        let mut burst = Burst::default();
+        burst.offer(&report[..n], buf);
         loop {
-            let m = self.reader.read_timeout(&mut newer, 0).map_err(map)?;
+            let m = self.reader.read_timeout(&mut report, 0).map_err(map)?;
             if m == 0 {
                 break;
             }
-            buf[..m].copy_from_slice(&newer[..m]);
-            n = m;
+            burst.offer(&report[..m], buf);
         }
-        Ok(Some(n))
+        let (chosen, garbled) = burst.finish();
+        self.garbled_skipped += garbled;
+        Ok(chosen)
     }
 
     fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
         // A writer still busy with an older report finds this one in its place.
-        if let Some(outbox) = &self.outbox {
-            let _ = outbox.send(*report);
-        }
+        self.writer.send(report);
         Ok(())
     }
 
     fn now(&self) -> f64 {
         self.start.elapsed().as_secs_f64()
+    }
+
+    fn take_garbled_skipped(&mut self) -> u64 {
+        std::mem::take(&mut self.garbled_skipped)
     }
 
     fn describe(&self) -> String {
@@ -224,12 +292,46 @@ impl Transport for HidTransport {
     }
 }
 
-impl Drop for HidTransport {
-    fn drop(&mut self) {
-        // Closing the channel ends the writer after it has sent what it holds (the final zero).
-        self.outbox = None;
-        if let Some(w) = self.writer.take() {
-            let _ = w.join();
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Mutex;
+
+    fn report(n: u8) -> [u8; OUTPUT_REPORT_LEN] {
+        let mut r = [0u8; OUTPUT_REPORT_LEN];
+        r[1] = n;
+        r
+    }
+
+    #[test]
+    fn the_writer_writes_in_order_newest_wins_and_the_last_report_always_lands() {
+        let written = Arc::new(Mutex::new(Vec::new()));
+        let sink = written.clone();
+        let mut writer = OutputWriter::spawn(move |r| {
+            sink.lock().unwrap().push(r[1]);
+            Ok(())
+        })
+        .unwrap();
+        for n in 1..=200u8 {
+            writer.send(&report(n));
+        }
+        drop(writer);
+        let written = written.lock().unwrap();
+        assert_eq!(written.last(), Some(&200), "the final report is written");
+        assert!(
+            written.windows(2).all(|w| w[0] < w[1]),
+            "never an older one after a newer one"
+        );
+    }
+
+    #[test]
+    fn a_failed_write_is_reported() {
+        let mut writer = OutputWriter::spawn(|_| Err(std::io::Error::other("unplugged"))).unwrap();
+        writer.send(&report(1));
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while !writer.failed() {
+            assert!(Instant::now() < deadline, "the failure was never reported");
+            std::thread::yield_now();
         }
     }
 }

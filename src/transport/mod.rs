@@ -11,7 +11,7 @@ use std::time::Duration;
 use thiserror::Error;
 
 use crate::config::{Config, DeviceSpec};
-use crate::protocol::OUTPUT_REPORT_LEN;
+use crate::protocol::{InputReport, OUTPUT_REPORT_LEN};
 
 /// Largest report a transport hands up; longer ones are cut and then rejected by the decoder.
 pub const MAX_REPORT_LEN: usize = 64;
@@ -29,8 +29,9 @@ pub enum TransportError {
 
 /// One device connection, as the servo loop uses it.
 pub trait Transport: Send {
-    /// Wait at most `timeout` for the next input report. Returns the newest report available (older
-    /// queued ones are skipped, as after an overrun), `Ok(None)` when none came in time.
+    /// Wait at most `timeout` for the next input report. Returns the newest *valid* report
+    /// available (older queued ones are skipped, as after an overrun; see [`Burst`]), a garbled
+    /// one only when nothing valid came, `Ok(None)` when nothing came in time.
     fn read_input(
         &mut self,
         buf: &mut [u8; MAX_REPORT_LEN],
@@ -44,6 +45,12 @@ pub trait Transport: Send {
     /// Seconds on this transport's clock: virtual time for batch simulations, monotonic otherwise.
     fn now(&self) -> f64;
 
+    /// Garbled reports dropped from bursts since the last call (not counting one `read_input`
+    /// returned). Transports that deliver one report per read have none.
+    fn take_garbled_skipped(&mut self) -> u64 {
+        0
+    }
+
     /// Human-readable description for logs.
     fn describe(&self) -> String;
 
@@ -52,6 +59,46 @@ pub trait Transport: Send {
     /// serial finds the same grid.
     fn resolved_spec(&self) -> Option<DeviceSpec> {
         None
+    }
+}
+
+/// Picks the report to act on from a burst of queued input reports, offered oldest first: the
+/// newest valid one. A garbled report is never chosen over a valid one, so a device (or a line)
+/// that garbles the last report of every burst still drives the loop; garbled ones are counted.
+#[derive(Debug, Default)]
+pub(crate) struct Burst {
+    /// Length of the chosen report (in the caller's buffer) and whether it is valid.
+    chosen: Option<(usize, bool)>,
+    garbled: u64,
+}
+
+impl Burst {
+    /// Consider `report` (newer than all offered before); copied into `buf` if it is chosen.
+    pub(crate) fn offer(&mut self, report: &[u8], buf: &mut [u8; MAX_REPORT_LEN]) {
+        let n = report.len().min(MAX_REPORT_LEN);
+        let valid = InputReport::decode(&report[..n]).is_ok();
+        if !valid {
+            self.garbled += 1;
+        }
+        if valid || !matches!(self.chosen, Some((_, true))) {
+            buf[..n].copy_from_slice(&report[..n]);
+            self.chosen = Some((n, valid));
+        }
+    }
+
+    /// Whether a report has been chosen.
+    pub(crate) fn is_empty(&self) -> bool {
+        self.chosen.is_none()
+    }
+
+    /// The chosen report's length, and the garbled reports dropped (a garbled report that was
+    /// chosen is left for the loop to count).
+    pub(crate) fn finish(self) -> (Option<usize>, u64) {
+        match self.chosen {
+            Some((n, true)) => (Some(n), self.garbled),
+            Some((n, false)) => (Some(n), self.garbled - 1),
+            None => (None, 0),
+        }
     }
 }
 

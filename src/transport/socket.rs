@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use super::sim::SimDevice;
-use super::{Transport, TransportError, MAX_REPORT_LEN};
+use super::{Burst, Transport, TransportError, MAX_REPORT_LEN};
 use crate::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
 
 /// Host side of the socket transport.
@@ -22,6 +22,7 @@ pub struct SocketTransport {
     filled: usize,
     start: Instant,
     dropped_writes: u64,
+    garbled_skipped: u64,
 }
 
 impl SocketTransport {
@@ -42,6 +43,7 @@ impl SocketTransport {
             filled: 0,
             start: Instant::now(),
             dropped_writes: 0,
+            garbled_skipped: 0,
         })
     }
 
@@ -81,11 +83,12 @@ impl Transport for SocketTransport {
         timeout: Duration,
     ) -> Result<Option<usize>, TransportError> {
         let deadline = Instant::now() + timeout;
-        let mut newest = None;
+        let mut burst = Burst::default();
+        let mut frame = [0u8; MAX_REPORT_LEN];
         loop {
-            // Drain every complete frame; keep the newest (skip ahead after an overrun).
-            while let Some(n) = self.take_frame(buf)? {
-                newest = Some(n);
+            // Drain every complete frame; keep the newest valid one (skip ahead after an overrun).
+            while let Some(n) = self.take_frame(&mut frame)? {
+                burst.offer(&frame[..n], buf);
             }
             let space = self.pending.len() - self.filled;
             match self
@@ -101,8 +104,10 @@ impl Transport for SocketTransport {
                 Ok(n) => self.filled += n,
                 Err(e) if e.kind() == ErrorKind::WouldBlock => {
                     // Nothing queued: return what we have, or wait for more.
-                    if newest.is_some() {
-                        return Ok(newest);
+                    if !burst.is_empty() {
+                        let (chosen, garbled) = burst.finish();
+                        self.garbled_skipped += garbled;
+                        return Ok(chosen);
                     }
                     let now = Instant::now();
                     if now >= deadline {
@@ -151,6 +156,10 @@ impl Transport for SocketTransport {
 
     fn now(&self) -> f64 {
         self.start.elapsed().as_secs_f64()
+    }
+
+    fn take_garbled_skipped(&mut self) -> u64 {
+        std::mem::take(&mut self.garbled_skipped)
     }
 
     fn describe(&self) -> String {

@@ -1,0 +1,316 @@
+//! The servo thread never allocates once its loop runs: a counting global allocator counts every
+//! allocation per thread, and a tap transport (which runs on the servo thread) checks that count
+//! at every report after a short warm-up, through each transport and each servo-side controller.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::os::unix::net::UnixListener;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use nalgebra::Vector3;
+
+use hgcd::client::{Client, Role};
+use hgcd::config::Config;
+use hgcd::control::calibration::{Calibration, CalibrationParams};
+use hgcd::control::pd::{LinearisedGains, PdHold};
+use hgcd::daemon::{Daemon, RunRequest, Signals};
+use hgcd::grid::MassGrid;
+use hgcd::protocol::OUTPUT_REPORT_LEN;
+use hgcd::servo::{self, ServoOptions};
+use hgcd::transport::hid::OutputWriter;
+use hgcd::transport::sim::{SimDevice, SimTransport};
+use hgcd::transport::socket::{self, SocketTransport};
+use hgcd::transport::{Pacing, Transport, TransportError, MAX_REPORT_LEN};
+
+mod common;
+use common::{truth_field_27, with_device_id};
+
+struct Counting;
+
+thread_local! {
+    /// Allocations (alloc, alloc_zeroed, realloc) made by the current thread.
+    static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+}
+
+fn count() {
+    let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+}
+
+// SAFETY: every call is forwarded to the system allocator unchanged; the counter is a
+// thread-local Cell with a const initialiser and no destructor, so counting never allocates.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        count();
+        System.alloc(layout)
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        count();
+        System.alloc_zeroed(layout)
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        count();
+        System.realloc(ptr, layout, new_size)
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        System.dealloc(ptr, layout)
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocations_here() -> u64 {
+    ALLOCATIONS.with(Cell::get)
+}
+
+/// Reports seen before the count starts: the loop's first ticks may still touch lazily
+/// initialised state (thread-locals, the first page of a ring).
+const WARM_UP: u64 = 50;
+
+/// What the tap saw: reports read, and allocations on the reading thread after the warm-up.
+#[derive(Default)]
+struct Seen {
+    reads: AtomicU64,
+    allocations: AtomicU64,
+}
+
+/// Passes everything through; counts the servo thread's allocations after the warm-up.
+struct Tap<T> {
+    inner: T,
+    seen: Arc<Seen>,
+    baseline: Option<u64>,
+}
+
+impl<T> Tap<T> {
+    fn new(inner: T) -> (Self, Arc<Seen>) {
+        let seen = Arc::new(Seen::default());
+        (
+            Self {
+                inner,
+                seen: seen.clone(),
+                baseline: None,
+            },
+            seen,
+        )
+    }
+}
+
+impl<T: Transport> Transport for Tap<T> {
+    fn read_input(
+        &mut self,
+        buf: &mut [u8; MAX_REPORT_LEN],
+        timeout: Duration,
+    ) -> Result<Option<usize>, TransportError> {
+        let reads = self.seen.reads.fetch_add(1, Ordering::Relaxed) + 1;
+        let now = allocations_here();
+        match self.baseline {
+            None if reads >= WARM_UP => self.baseline = Some(now),
+            Some(base) => self.seen.allocations.store(now - base, Ordering::Relaxed),
+            None => {}
+        }
+        self.inner.read_input(buf, timeout)
+    }
+    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+        self.inner.write_output(report)
+    }
+    fn now(&self) -> f64 {
+        self.inner.now()
+    }
+    fn take_garbled_skipped(&mut self) -> u64 {
+        self.inner.take_garbled_skipped()
+    }
+    fn describe(&self) -> String {
+        "tap".into()
+    }
+}
+
+fn config() -> Config {
+    let mut config = Config::default();
+    config.servo.lock_memory = false;
+    config.servo.realtime_priority = 0;
+    config
+}
+
+fn hold() -> PdHold {
+    PdHold {
+        set_point: Vector3::new(0.0, 0.0, 0.005),
+        gains: LinearisedGains::from_rise_time(0.1, 1.0),
+        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
+    }
+}
+
+fn assert_quiet(what: &str, seen: &Seen, at_least: u64) {
+    let reads = seen.reads.load(Ordering::Relaxed);
+    assert!(reads >= at_least, "{what}: only {reads} reports");
+    assert_eq!(
+        seen.allocations.load(Ordering::Relaxed),
+        0,
+        "{what}: the servo thread allocated after its warm-up"
+    );
+}
+
+#[test]
+fn a_simulated_device_in_virtual_time_with_a_pd_hold() {
+    let config = config();
+    let sim = SimTransport::new(
+        SimDevice::from_config("point-mass", &config).unwrap(),
+        Pacing::Virtual,
+    );
+    let (mut tap, seen) = Tap::new(sim);
+    let mut options = ServoOptions::from_config(&config);
+    options.duration = Some(2.0);
+    let (events, _rx) = crossbeam_channel::bounded(16);
+    servo::run(
+        &mut tap,
+        &mut hold(),
+        &options,
+        &AtomicBool::new(false),
+        Some(&events),
+    )
+    .unwrap();
+    assert_quiet("sim", &seen, 2000);
+}
+
+#[test]
+fn a_calibration_on_a_simulated_device() {
+    let mut config = config();
+    let dir = tempfile::tempdir().unwrap();
+    let truth = dir.path().join("truth.toml");
+    truth_field_27().save_atomic(&truth).unwrap();
+    config.sim.mass_grid = Some(truth);
+    config.sim.damping_n_s_per_m = 1.0;
+    let sim = SimTransport::new(
+        SimDevice::from_config("point-mass", &config).unwrap(),
+        Pacing::Virtual,
+    );
+    let (mut tap, seen) = Tap::new(sim);
+    let (tx, _rx) = crossbeam_channel::bounded(4096);
+    let mut calibration =
+        Calibration::new(CalibrationParams::from_config(&config), Some(tx)).unwrap();
+    let mut options = ServoOptions::from_config(&config);
+    options.stop_on_fault = true;
+    servo::run(
+        &mut tap,
+        &mut calibration,
+        &options,
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
+    assert!(
+        matches!(calibration.outcome(), Some(Ok(_))),
+        "the calibration completes"
+    );
+    assert_quiet("calibration", &seen, 10_000);
+}
+
+#[test]
+fn a_device_behind_the_socket_transport() {
+    let config = config();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("device.sock");
+    let listener = UnixListener::bind(&path).unwrap();
+    let device_config = config.clone();
+    let stop_device = Arc::new(AtomicBool::new(false));
+    let flag = stop_device.clone();
+    let device = std::thread::spawn(move || {
+        let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
+        socket::serve(&listener, &mut device, true, &flag).unwrap();
+    });
+    let (mut tap, seen) = Tap::new(SocketTransport::connect(&path).unwrap());
+    let mut options = ServoOptions::from_config(&config);
+    options.watchdog = 5.0; // wall clock in lock-step: generous on a loaded machine
+    struct Ticks(PdHold, u64);
+    impl hgcd::control::Controller for Ticks {
+        fn tick(&mut self, s: &hgcd::control::DeviceState) -> hgcd::control::ControlOutput {
+            let out = self.0.tick(s);
+            if s.tick + 1 >= self.1 {
+                hgcd::control::ControlOutput::done(out.force)
+            } else {
+                out
+            }
+        }
+    }
+    servo::run(
+        &mut tap,
+        &mut Ticks(hold(), 1000),
+        &options,
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
+    drop(tap);
+    stop_device.store(true, Ordering::SeqCst);
+    device.join().unwrap();
+    assert_quiet("socket", &seen, 1000);
+}
+
+#[test]
+fn the_daemon_with_a_client_sending_offsets_and_reading_states() {
+    let mut config = config();
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    std::fs::create_dir_all(&state).unwrap();
+    with_device_id(truth_field_27(), "sim-point-mass")
+        .save_atomic(&state.join("sim-point-mass.toml"))
+        .unwrap();
+    config.paths.state_dir = Some(state);
+    let socket = dir.path().join("hgcd.sock");
+    config.app.socket = Some(socket.clone());
+    let sim = SimTransport::new(
+        SimDevice::from_config("point-mass", &config).unwrap(),
+        Pacing::Virtual,
+    );
+    let (tap, seen) = Tap::new(sim);
+    let request = RunRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        duration: None,
+        pacing: Pacing::Virtual,
+    };
+    let signals = Signals::default();
+    let daemon_signals = signals.clone();
+    let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
+    let daemon = std::thread::spawn(move || {
+        Daemon::new(config, &request).run(Box::new(tap), daemon_signals, &mut |_| {
+            let _ = ready_tx.send(());
+        })
+    });
+    ready_rx.recv().unwrap();
+    let mut client = Client::connect(&socket, Role::Control, "offsets").unwrap();
+    client
+        .set_read_timeout(Some(Duration::from_secs(30)))
+        .unwrap();
+    client.subscribe(1000.0).unwrap();
+    for n in 1..=2000u32 {
+        let x = 0.1 * (f64::from(n) * 0.01).sin();
+        client.set_force(Vector3::new(x, 0.0, 0.0)).unwrap();
+    }
+    let _ = client.status().unwrap();
+    drop(client);
+    signals.stop.store(true, Ordering::SeqCst);
+    daemon.join().unwrap().unwrap();
+    assert_quiet("daemon", &seen, 1000);
+}
+
+#[test]
+fn handing_output_reports_to_the_hid_writer_thread() {
+    let written = Arc::new(AtomicU64::new(0));
+    let sink = written.clone();
+    let mut writer = OutputWriter::spawn(move |_| {
+        sink.fetch_add(1, Ordering::Relaxed);
+        Ok(())
+    })
+    .unwrap();
+    let mut report = [0u8; OUTPUT_REPORT_LEN];
+    writer.send(&report);
+    let before = allocations_here();
+    for n in 0..10_000u32 {
+        report[..4].copy_from_slice(&n.to_le_bytes());
+        writer.send(&report);
+    }
+    assert_eq!(allocations_here(), before, "send allocated");
+    drop(writer);
+    assert!(written.load(Ordering::Relaxed) >= 1);
+}
