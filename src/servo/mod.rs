@@ -479,4 +479,56 @@ mod tests {
         assert!((c.seconds(10) - 2000e-6).abs() < 1e-12);
         assert!((c.seconds(20) - 2010e-6).abs() < 1e-12);
     }
+
+    /// Asks for a large force and remembers what `after_tick` says was sent.
+    struct Pushy {
+        sent: Vec<Vector3<f64>>,
+    }
+
+    impl Controller for Pushy {
+        fn tick(&mut self, _: &DeviceState) -> crate::control::ControlOutput {
+            crate::control::ControlOutput::force(Vector3::new(20.0, 0.0, 0.0))
+        }
+        fn after_tick(&mut self, _: &DeviceState, sent: &Vector3<f64>) {
+            self.sent.push(*sent);
+        }
+    }
+
+    fn report(sequence: u16, status: Status) -> [u8; crate::protocol::INPUT_REPORT_LEN] {
+        let mut out = [0; crate::protocol::INPUT_REPORT_LEN];
+        InputReport {
+            sequence,
+            timestamp_us: u32::from(sequence) * 1000,
+            position: Vector3::zeros(),
+            status,
+        }
+        .encode(&mut out)
+        .unwrap();
+        out
+    }
+
+    #[test]
+    fn after_tick_sees_the_force_the_output_report_carries() {
+        let options = ServoOptions::from_config(&Config::default());
+        let mut core = ServoCore::new(&options).unwrap();
+        let mut c = Pushy { sent: Vec::new() };
+        for k in 0..100u16 {
+            core.tick(
+                &report(k, Status::default()),
+                f64::from(k) * 1e-3,
+                &mut c,
+                None,
+            )
+            .unwrap();
+            let carried = OutputReport::decode(core.output()).unwrap().force;
+            assert!((carried - c.sent[usize::from(k)]).norm() < 1e-6);
+        }
+        // Rate-limited to 4 N/ms, then clamped to 8 N: never the 20 N asked for.
+        assert!((c.sent[0].x - 4.0).abs() < 1e-9);
+        assert!((c.sent[99].x - 8.0).abs() < 1e-9);
+        // During a device fault the report carries zero, and so does what is published.
+        let fault = Status::default().with(Status::FAULT, true);
+        core.tick(&report(100, fault), 0.1, &mut c, None).unwrap();
+        assert_eq!(c.sent[100], Vector3::zeros());
+    }
 }
