@@ -573,10 +573,10 @@ impl Calibration {
 
     /// Feedback-linearised PD toward `target` plus the gravity term M_j g v_G (Eq. 10).
     fn pd_force(&self, target: &Vector3<f64>, s: &DeviceState) -> Vector3<f64> {
-        let gains = &self.params.gains;
-        let m = self.gain_mass * self.gain_scale;
-        (target - s.position) * gains.stiffness(m) - s.velocity * gains.damping(m)
-            + self.gravity_direction * (self.mass * self.params.g)
+        let gravity = self.gravity_direction * (self.mass * self.params.g);
+        self.params
+            .gains
+            .pd_force(self.gain_mass * self.gain_scale, target, s, &gravity)
     }
 }
 
