@@ -11,8 +11,13 @@ use nalgebra::Vector3;
 
 use hgcd::calibrate::{calibrate, CalibrateRequest};
 use hgcd::config::Config;
-use hgcd::control::calibration::CalibrationEvent;
+use hgcd::control::calibration::{
+    Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
+};
+use hgcd::control::{Controller, DeviceState};
 use hgcd::grid::MassGrid;
+use hgcd::servo::{self, ExitReason, ServoOptions};
+use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::Pacing;
 
 mod common;
@@ -40,6 +45,39 @@ fn hgcd_with(cfg: &Path) -> Command {
     let mut c = hgcd();
     c.arg("--config").arg(cfg).arg("--log-level").arg("warn");
     c
+}
+
+/// The loaded config of [`setup`].
+fn config(dir: &Path, extra: &str) -> Config {
+    Config::load(&setup(dir, extra).0).unwrap()
+}
+
+type Outcome = Result<CalibrationResult, CalibrationFailure>;
+
+/// A calibration driven tick by tick through the servo loop on the simulated device of `config`,
+/// in virtual time, as `hgcd calibrate` runs it: its outcome and every event it sent.
+fn run_calibration(config: &Config) -> (Outcome, Vec<CalibrationEvent>) {
+    let device = SimDevice::from_config("point-mass", config).unwrap();
+    let mut transport = SimTransport::new(device, Pacing::Virtual);
+    let (tx, events) = crossbeam_channel::unbounded();
+    let mut calibration =
+        Calibration::new(CalibrationParams::from_config(config), Some(tx)).unwrap();
+    let mut options = ServoOptions::from_config(config);
+    options.stop_on_fault = true;
+    let stop = AtomicBool::new(false);
+    let report = servo::run(&mut transport, &mut calibration, &options, &stop, None).unwrap();
+    assert_eq!(report.exit, ExitReason::ControllerDone);
+    let outcome = calibration
+        .outcome()
+        .expect("a finished calibration has an outcome");
+    (outcome, events.try_iter().collect())
+}
+
+fn vertices_done(events: &[CalibrationEvent]) -> usize {
+    events
+        .iter()
+        .filter(|e| matches!(e, CalibrationEvent::VertexDone { .. }))
+        .count()
 }
 
 #[test]
@@ -229,28 +267,6 @@ fn vertices_outside_the_workspace_are_left_out_and_reported() {
 }
 
 #[test]
-fn a_vertex_behind_a_mechanical_stop_fails_with_its_name_and_writes_nothing() {
-    let dir = tempfile::tempdir().unwrap();
-    // The simulated device's top stop is at +30 mm, but the config claims ±70 mm is safe: the
-    // vertices at z = +40 mm cannot be reached.
-    let (cfg, _) = setup(
-        dir.path(),
-        "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration]\nvertex_timeout_s = 8.0\n",
-    );
-    let out_file = dir.path().join("grid.toml");
-    let out = calibrate_to(&cfg, &out_file);
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    let last = stderr.trim().lines().last().unwrap();
-    assert!(
-        last.contains("vertex (-1, -1, 1) at (-40.0, -40.0, 40.0) mm could not be reached"),
-        "{stderr}"
-    );
-    assert!(last.contains("nothing was written"), "{last}");
-    assert!(!out_file.exists());
-}
-
-#[test]
 fn unwritable_state_dir_fails_before_calibrating() {
     let dir = tempfile::tempdir().unwrap();
     let (cfg, _) = setup(dir.path(), "");
@@ -310,48 +326,164 @@ fn a_full_disk_during_the_write_gives_a_clear_error_and_no_partial_file() {
     assert_eq!(names.len(), 3, "no temporary file left behind: {names:?}");
 }
 
+/// The simulated device's top stop is at +30 mm, but the config claims ±70 mm is safe.
+const STOP_AT_30_MM: &str =
+    "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration]\nvertex_timeout_s = 8.0\n";
+
 #[test]
-fn a_handle_too_light_to_sag_gets_a_message_that_says_so() {
+fn a_vertex_behind_a_mechanical_stop_is_unreachable_and_named() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = dir.path().join("hgcd.toml");
-    // 10 g sags 0.2 mm on 0.5 N/mm: below the 0.3 mm (3 ε_init) that tells a free handle from a
-    // held one.
-    std::fs::write(
-        &cfg,
-        "[sim]\nmass_kg = 0.01\n[calibration]\nvertex_timeout_s = 2.0\n",
-    )
-    .unwrap();
-    let out = calibrate_to(&cfg, &dir.path().join("grid.toml"));
+    let (outcome, events) = run_calibration(&config(dir.path(), STOP_AT_30_MM));
+    let Err(CalibrationFailure::Unreachable {
+        vertex,
+        distance_mm,
+    }) = outcome
+    else {
+        panic!("{outcome:?}");
+    };
+    // The first vertex of the top layer (z = +40 mm), after the 18 of the layers below it.
+    assert_eq!(vertex.index, [-1, -1, 1]);
+    assert_eq!(vertices_done(&events), 18);
+    // The stop holds the handle 10 mm below the vertex, whatever the mass.
+    assert!((distance_mm - 10.0).abs() < 0.1, "{distance_mm} mm");
+}
+
+#[test]
+fn a_failed_calibration_tells_the_user_why_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = setup(dir.path(), STOP_AT_30_MM);
+    let (outcome, _) = run_calibration(&Config::load(&cfg).unwrap());
+    let failure = outcome.unwrap_err();
+    let out_file = dir.path().join("grid.toml");
+    let out = calibrate_to(&cfg, &out_file);
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
+    let last = stderr.trim().lines().last().unwrap();
+    assert!(last.contains(&failure.to_string()), "{stderr}");
+    assert!(!out_file.exists());
+}
+
+#[test]
+fn a_handle_too_light_to_sag_fails_with_its_sag_and_the_lightest_mass_that_would_pass() {
+    // 10 g on 0.5 N/mm sags m g / k_init = 0.196 mm: below the 0.3 mm (3 ε_init) that tells a
+    // free handle from a held one.
+    let mut config = Config::default();
+    config.sim.mass_kg = 0.01;
+    config.calibration.vertex_timeout_s = 2.0;
+    let (outcome, _) = run_calibration(&config);
+    let Err(CalibrationFailure::NoSag { sag_mm, min_mass_g }) = outcome else {
+        panic!("{outcome:?}");
+    };
+    let k_init = 500.0;
     assert!(
-        stderr.contains("sagged only 0.19") && stderr.contains("weighs less than 15 g"),
-        "{stderr}"
+        (sag_mm - 0.01 * 9.81 / k_init * 1e3).abs() < 0.005,
+        "{sag_mm} mm"
+    );
+    // 3 ε_init k_init / g: the mass that sags exactly the minimum.
+    assert!(
+        (min_mass_g - 3e-4 * k_init / 9.81 * 1e3).abs() < 1e-9,
+        "{min_mass_g} g"
     );
 }
 
 #[test]
-fn a_vertex_that_does_not_converge_in_time_or_in_updates_fails_with_its_name() {
+fn position_noise_beyond_eps_init_keeps_the_initialisation_from_any_steady_state() {
+    // Noise of twice ε_init: no window of n_init samples stays within ε_init of its first.
+    let mut config = Config::default();
+    config.sim.noise_mm = 0.2;
+    config.calibration.vertex_timeout_s = 2.0;
+    let (outcome, events) = run_calibration(&config);
+    assert_eq!(
+        outcome,
+        Err(CalibrationFailure::InitTimeout { timeout: 2.0 }),
+        "{events:?}"
+    );
+    assert_eq!(
+        events,
+        [
+            CalibrationEvent::InitStarted,
+            CalibrationEvent::Failed(CalibrationFailure::InitTimeout { timeout: 2.0 })
+        ]
+    );
+}
+
+#[test]
+fn a_vertex_that_needs_more_time_than_allowed_fails_with_vertex_timeout() {
     let dir = tempfile::tempdir().unwrap();
-    // The first vertex (−40, −40, −40) mm weighs 50 g after a 219 g start: it needs several
-    // updates and over a second.
-    for (extra, expected) in [
-        (
-            "[calibration]\nvertex_timeout_s = 1.0\n",
-            "vertex (-1, -1, -1) at (-40.0, -40.0, -40.0) mm did not converge within 1 s",
-        ),
-        (
-            "[calibration]\nmax_iterations = 2\n",
-            "vertex (-1, -1, -1) at (-40.0, -40.0, -40.0) mm did not converge after 2 mass updates",
-        ),
-    ] {
-        let (cfg, _) = setup(dir.path(), extra);
-        let out_file = dir.path().join("grid.toml");
-        let out = calibrate_to(&cfg, &out_file);
-        assert!(!out.status.success());
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert!(stderr.contains(expected), "{stderr}");
-        assert!(stderr.contains("nothing was written"), "{stderr}");
-        assert!(!out_file.exists());
+    // The first vertex (−40, −40, −40) mm weighs 50 g after a 212 g start: it needs 5 updates,
+    // over 2 s.
+    let (outcome, events) = run_calibration(&config(
+        dir.path(),
+        "[calibration]\nvertex_timeout_s = 1.0\n",
+    ));
+    let Err(CalibrationFailure::VertexTimeout {
+        vertex,
+        timeout,
+        iterations,
+    }) = outcome
+    else {
+        panic!("{outcome:?}");
+    };
+    assert_eq!(vertex.index, [-1, -1, -1]);
+    assert_eq!(timeout, 1.0);
+    assert!(iterations < 5, "{iterations}");
+    assert_eq!(vertices_done(&events), 0);
+}
+
+#[test]
+fn a_vertex_that_needs_more_updates_than_allowed_fails_with_too_many_iterations() {
+    let dir = tempfile::tempdir().unwrap();
+    let (outcome, events) =
+        run_calibration(&config(dir.path(), "[calibration]\nmax_iterations = 2\n"));
+    let Err(CalibrationFailure::TooManyIterations { vertex, iterations }) = outcome else {
+        panic!("{outcome:?}");
+    };
+    assert_eq!(vertex.index, [-1, -1, -1]);
+    assert_eq!(iterations, 2);
+    assert_eq!(vertices_done(&events), 0);
+}
+
+#[test]
+fn a_vertex_where_the_linkage_is_over_balanced_fails_with_a_non_positive_mass() {
+    // A 120 g handle on a counterbalance spring (70 N/m, relaxed at z = 0) that pulls it up
+    // when below the centre: its apparent weight m g + k_s z reverses at z = −16.8 mm. Driven
+    // tick by tick at 1 kHz without noise, with the true velocity.
+    let config = Config::default();
+    let mut calibration = Calibration::new(CalibrationParams::from_config(&config), None).unwrap();
+    let (m, g, k_s, dt) = (0.12, 9.81, 70.0, 1e-3);
+    let (mut x, mut v) = (Vector3::<f64>::zeros(), Vector3::<f64>::zeros());
+    let mut tick = 0u64;
+    loop {
+        let state = DeviceState {
+            time: tick as f64 * dt,
+            position: x,
+            velocity: v,
+            status: Default::default(),
+            tick,
+        };
+        let out = calibration.tick(&state);
+        if out.done {
+            break;
+        }
+        assert!(tick < 60_000, "still running after 60 s");
+        let passive = Vector3::new(0.0, 0.0, -(m * g + k_s * x.z));
+        v += (out.force + passive) / m * dt;
+        x += v * dt;
+        tick += 1;
     }
+    let Some(Err(CalibrationFailure::NonPositiveMass { vertex, mass })) = calibration.outcome()
+    else {
+        panic!("{:?}", calibration.outcome());
+    };
+    assert_eq!(vertex.index, [-1, -1, -1]);
+    // The update measures the apparent mass where the hold settled, above the vertex: there
+    // the spring outweighs the handle.
+    let z = x.z;
+    assert!(z > vertex.position.z, "settled at {z} m");
+    let apparent = (m * g + k_s * z) / g;
+    assert!(apparent < 0.0);
+    assert!(
+        (mass - apparent).abs() < 1e-5,
+        "{mass} kg, apparent {apparent} kg"
+    );
 }

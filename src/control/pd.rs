@@ -1,5 +1,7 @@
 //! Feedback-linearised PD hold (paper Eqs. 3–5): F = k_P (X_D − X) − k_D V̂ + F_G(X), with
-//! k_D = α M and k_P = β M, so that Ẍ = −α Ẋ + β (X_D − X) when M is right.
+//! k_D = α M and k_P = β M, so that Ẍ = −α Ẋ + β (X_D − X) when M is right. The law itself is
+//! [`LinearisedGains::pd_force`]; every controller that holds or moves the handle (the holds here,
+//! the calibration's moves and holds of Eq. 10) calls it.
 
 use nalgebra::Vector3;
 
@@ -32,6 +34,19 @@ impl LinearisedGains {
     /// k_D = α M, N·s/m.
     pub fn damping(&self, mass: f64) -> f64 {
         self.alpha * mass
+    }
+
+    /// The feedback-linearised PD law, N: F = k_P (X_D − X) − k_D V̂ + F_G, with k_P and k_D built
+    /// on `mass` (the mass the loop is linearised for) and `gravity` the gravity term F_G (M g v_G,
+    /// or a grid's M(X) g v_G).
+    pub fn pd_force(
+        &self,
+        mass: f64,
+        set_point: &Vector3<f64>,
+        s: &DeviceState,
+        gravity: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        (set_point - s.position) * self.stiffness(mass) - s.velocity * self.damping(mass) + gravity
     }
 }
 
@@ -67,11 +82,12 @@ pub struct PdHold {
 
 impl Controller for PdHold {
     fn tick(&mut self, s: &DeviceState) -> ControlOutput {
-        let m = self.field.mass_at(&s.position);
-        let force = (self.set_point - s.position) * self.gains.stiffness(m)
-            - s.velocity * self.gains.damping(m)
-            + self.field.gravity_force(&s.position);
-        ControlOutput::force(force)
+        ControlOutput::force(self.gains.pd_force(
+            self.field.mass_at(&s.position),
+            &self.set_point,
+            s,
+            &self.field.gravity_force(&s.position),
+        ))
     }
 }
 
@@ -91,9 +107,8 @@ pub struct PointHold {
 
 impl PointHold {
     pub fn force(&self, s: &DeviceState) -> Vector3<f64> {
-        (self.set_point - s.position) * self.gains.stiffness(self.mass)
-            - s.velocity * self.gains.damping(self.mass)
-            + self.gravity_direction * (self.mass * self.g)
+        let gravity = self.gravity_direction * (self.mass * self.g);
+        self.gains.pd_force(self.mass, &self.set_point, s, &gravity)
     }
 }
 
@@ -108,6 +123,24 @@ mod tests {
         let g = LinearisedGains::from_rise_time(0.1, 1.0);
         assert!((g.beta.sqrt() - 33.579).abs() < 0.02);
         assert!((g.alpha - 2.0 * g.beta.sqrt()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_pd_law_pulls_with_beta_m_damps_with_alpha_m_and_adds_the_gravity_term() {
+        let gains = LinearisedGains {
+            alpha: 20.0,
+            beta: 100.0,
+        };
+        let s = DeviceState {
+            time: 0.0,
+            position: Vector3::new(0.01, 0.0, 0.0),
+            velocity: Vector3::new(0.0, 0.2, 0.0),
+            status: Default::default(),
+            tick: 0,
+        };
+        let f = gains.pd_force(0.5, &Vector3::zeros(), &s, &Vector3::new(0.0, 0.0, 4.9));
+        // k_P = 50 N/m pulls 10 mm back (−0.5 N), k_D = 10 N·s/m resists 0.2 m/s (−2 N).
+        assert!((f - Vector3::new(-0.5, -2.0, 4.9)).norm() < 1e-12, "{f}");
     }
 
     #[test]
