@@ -456,6 +456,7 @@ fn a_vertex_where_the_linkage_is_over_balanced_fails_with_a_non_positive_mass() 
     loop {
         let state = DeviceState {
             time: tick as f64 * dt,
+            host_time: tick as f64 * dt,
             position: x,
             velocity: v,
             status: Default::default(),

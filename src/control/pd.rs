@@ -133,6 +133,7 @@ mod tests {
         };
         let s = DeviceState {
             time: 0.0,
+            host_time: 0.0,
             position: Vector3::new(0.01, 0.0, 0.0),
             velocity: Vector3::new(0.0, 0.2, 0.0),
             status: Default::default(),
