@@ -87,7 +87,7 @@ pub fn grid_from_result(
         g: c.g,
         gravity_direction: result.gravity_direction,
         origin: result.origin,
-        spacing: c.spacing_mm * 1e-3,
+        spacing: c.spacing(),
         dims: result.dims,
         masses: result.vertices.iter().map(|v| v.mass).collect(),
         extra: toml::Table::new(),

@@ -1,10 +1,12 @@
 //! Typed configuration (`config/hgcd.toml` documents every key). Any subset of keys may be given;
 //! the rest take their defaults. Unknown keys and invalid values are rejected with the key's name.
-//! Units in the file are the ones users speak (mm, N/mm, ms); accessors return SI.
+//! Units in the file are the ones users speak (mm, N/mm, ms); the accessors on each section are
+//! the one place they are converted to SI (m, s, N/m).
 
 use std::fmt;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
+use std::time::Duration;
 
 use nalgebra::Vector3;
 use serde::Deserialize;
@@ -428,8 +430,122 @@ impl Default for PathsConfig {
     }
 }
 
-pub(crate) fn mm(v: [f64; 3]) -> Vector3<f64> {
-    Vector3::new(v[0], v[1], v[2]) * 1e-3
+/// A point given in mm, in m.
+fn mm(v: [f64; 3]) -> Vector3<f64> {
+    Vector3::from(v) * 1e-3
+}
+
+/// A box given by its corners in mm, in m.
+fn mm_box(lo: [f64; 3], hi: [f64; 3]) -> (Vector3<f64>, Vector3<f64>) {
+    (mm(lo), mm(hi))
+}
+
+impl DeviceConfig {
+    /// The safe workspace box (smallest corner, largest corner), m.
+    pub fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
+        mm_box(self.workspace_min_mm, self.workspace_max_mm)
+    }
+}
+
+impl ServoConfig {
+    /// Nominal report period, s.
+    pub fn period(&self) -> f64 {
+        1.0 / self.rate_hz
+    }
+
+    /// Silence that counts as a device fault, s.
+    pub fn watchdog(&self) -> f64 {
+        self.watchdog_ms * 1e-3
+    }
+}
+
+impl EstimateConfig {
+    /// Peak position measurement noise d, m.
+    pub fn noise_bound(&self) -> f64 {
+        self.noise_bound_mm * 1e-3
+    }
+}
+
+impl SimConfig {
+    /// The mechanical stops (smallest corner, largest corner), m.
+    pub fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
+        mm_box(self.workspace_min_mm, self.workspace_max_mm)
+    }
+
+    /// Rest position at start, m.
+    pub fn start_position(&self) -> Vector3<f64> {
+        mm(self.start_position_mm)
+    }
+
+    /// Encoder resolution, m (0: no quantisation).
+    pub fn encoder_resolution(&self) -> f64 {
+        self.encoder_resolution_mm * 1e-3
+    }
+
+    /// Standard deviation of the position noise, m (0: none).
+    pub fn noise(&self) -> f64 {
+        self.noise_mm * 1e-3
+    }
+
+    /// Output-report silence after which the simulated firmware zeroes force, s.
+    pub fn device_watchdog(&self) -> f64 {
+        self.device_watchdog_ms * 1e-3
+    }
+}
+
+impl CalibrationConfig {
+    /// Cube side L, m.
+    pub fn spacing(&self) -> f64 {
+        self.spacing_mm * 1e-3
+    }
+
+    /// Grid centre, m.
+    pub fn centre(&self) -> Vector3<f64> {
+        mm(self.centre_mm)
+    }
+
+    /// Stiffness of the initial holding field, N/m.
+    pub fn k_init(&self) -> f64 {
+        self.k_init_n_per_mm * 1e3
+    }
+
+    /// Radius of the initial steady-state sphere, m.
+    pub fn eps_init(&self) -> f64 {
+        self.eps_init_mm * 1e-3
+    }
+
+    /// Radius of the vertex steady-state sphere and of the convergence test, m.
+    pub fn eps_m(&self) -> f64 {
+        self.eps_m_mm * 1e-3
+    }
+
+    /// 10–90 % rise time of the linearised closed loop, s.
+    pub fn rise_time(&self) -> f64 {
+        self.rise_time_ms * 1e-3
+    }
+
+    /// Duration of a one-cell move, s.
+    pub fn move_time(&self) -> f64 {
+        self.move_time_ms * 1e-3
+    }
+}
+
+impl AppConfig {
+    /// Age at which a force offset starts ramping to zero, s.
+    pub fn stale_offset(&self) -> f64 {
+        self.stale_offset_ms * 1e-3
+    }
+
+    /// Duration of the ramp from a stale offset to zero, s.
+    pub fn stale_ramp(&self) -> f64 {
+        self.stale_ramp_ms * 1e-3
+    }
+
+    /// Time a client has to say hello. A validated config gives 10 ms to 60 s (an unchecked
+    /// value outside what `Duration` holds panics).
+    pub fn hello_timeout(&self) -> Duration {
+        Duration::from_secs_f64(self.hello_timeout_ms * 1e-3)
+    }
 }
 
 fn positive(key: &str, v: f64) -> Result<(), ConfigError> {
@@ -600,7 +716,7 @@ impl Config {
 
     /// Nominal servo period, s.
     pub fn servo_period(&self) -> f64 {
-        1.0 / self.servo.rate_hz
+        self.servo.period()
     }
 
     /// The socket file's permission bits.
