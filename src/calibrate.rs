@@ -194,6 +194,7 @@ pub fn calibrate(
     stop: Arc<AtomicBool>,
     progress: &mut dyn FnMut(&CalibrationEvent),
 ) -> Result<CalibrationRun> {
+    config.validate()?;
     let transport = transport::open(&request.device, config, request.pacing)
         .with_context(|| format!("opening {}", request.device))?;
     // Name the grid after the device actually opened (a HID serial number the spec left out).

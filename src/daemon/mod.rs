@@ -364,6 +364,7 @@ impl Daemon {
         signals: Signals,
         ready: &mut dyn FnMut(&Path),
     ) -> Result<ServoReport> {
+        self.config.validate()?;
         if let Some(spec) = transport.resolved_spec() {
             self.device = spec;
         }
