@@ -87,7 +87,7 @@ pub fn grid_from_result(
         g: c.g,
         gravity_direction: result.gravity_direction,
         origin: result.origin,
-        spacing: c.spacing_mm * 1e-3,
+        spacing: c.spacing(),
         dims: result.dims,
         masses: result.vertices.iter().map(|v| v.mass).collect(),
         extra: toml::Table::new(),
@@ -194,6 +194,7 @@ pub fn calibrate(
     stop: Arc<AtomicBool>,
     progress: &mut dyn FnMut(&CalibrationEvent),
 ) -> Result<CalibrationRun> {
+    config.validate()?;
     let transport = transport::open(&request.device, config, request.pacing)
         .with_context(|| format!("opening {}", request.device))?;
     // Name the grid after the device actually opened (a HID serial number the spec left out).

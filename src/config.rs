@@ -1,10 +1,14 @@
 //! Typed configuration (`config/hgcd.toml` documents every key). Any subset of keys may be given;
-//! the rest take their defaults. Unknown keys and invalid values are rejected with the key's name.
-//! Units in the file are the ones users speak (mm, N/mm, ms); accessors return SI.
+//! the rest take their defaults. Unknown keys are rejected with the key's name; every numeric key
+//! has a physically sane range ([`RANGES`]), checked by [`Config::validate`] on load, and a value
+//! outside it is rejected with one line naming the key, the value and the range.
+//! Units in the file are the ones users speak (mm, N/mm, ms); the accessors on each section are
+//! the one place they are converted to SI (m, s, N/m).
 
 use std::fmt;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
+use std::time::Duration;
 
 use nalgebra::Vector3;
 use serde::Deserialize;
@@ -31,6 +35,13 @@ pub enum ConfigError {
     Parse { path: PathBuf, message: String },
     #[error("config key `{key}`: {message}")]
     Invalid { key: String, message: String },
+    #[error("config key `{key}`: {} is out of range ({range})", Number(*.value))]
+    OutOfRange {
+        key: &'static str,
+        /// The value given (for an array key, the first element out of range).
+        value: f64,
+        range: Range,
+    },
     #[error("device spec `{spec}`: {message}")]
     DeviceSpec { spec: String, message: String },
 }
@@ -40,6 +51,138 @@ fn invalid(key: &str, message: impl Into<String>) -> ConfigError {
         key: key.to_string(),
         message: message.into(),
     }
+}
+
+/// The closed interval a numeric key must lie in, in the unit the file uses.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Range {
+    pub min: f64,
+    pub max: f64,
+    /// The file's unit; empty for counts and ratios.
+    pub unit: &'static str,
+}
+
+impl Range {
+    const fn new(min: f64, max: f64, unit: &'static str) -> Self {
+        Self { min, max, unit }
+    }
+
+    /// Whether `value` lies in the range (never for NaN).
+    pub fn contains(&self, value: f64) -> bool {
+        value >= self.min && value <= self.max
+    }
+}
+
+impl fmt::Display for Range {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} to {}", Number(self.min), Number(self.max))?;
+        if !self.unit.is_empty() {
+            write!(f, " {}", self.unit)?;
+        }
+        Ok(())
+    }
+}
+
+/// A number as a user would write it in TOML: `1e308` rather than 309 digits, `nan`, `inf`.
+struct Number(f64);
+
+impl fmt::Display for Number {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let v = self.0;
+        let magnitude = v.abs();
+        if v.is_nan() {
+            write!(f, "nan")
+        } else if v.is_infinite() {
+            write!(f, "{}inf", if v < 0.0 { "-" } else { "" })
+        } else if v != 0.0 && !(1e-4..1e9).contains(&magnitude) {
+            write!(f, "{v:e}")
+        } else {
+            write!(f, "{v}")
+        }
+    }
+}
+
+/// Every numeric key and its range, in the file's units (`config/hgcd.toml` states each one; a
+/// test pins them together). Array keys apply the range to each element. Cross-key rules (a
+/// watchdog of at least two report periods, ordered workspace corners, ...) are checked on top.
+pub const RANGES: &[(&str, Range)] = &[
+    ("device.workspace_min_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("device.workspace_max_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("servo.rate_hz", Range::new(100.0, 10_000.0, "Hz")),
+    ("servo.watchdog_ms", Range::new(1.0, 1000.0, "ms")),
+    ("servo.realtime_priority", Range::new(0.0, 99.0, "")),
+    (
+        "servo.cpu",
+        Range::new(-1.0, libc::CPU_SETSIZE as f64 - 1.0, ""),
+    ),
+    ("safety.max_force_n", Range::new(0.1, 50.0, "N")),
+    (
+        "safety.max_force_rate_n_per_s",
+        Range::new(10.0, 100_000.0, "N/s"),
+    ),
+    ("estimate.noise_bound_mm", Range::new(1e-4, 1.0, "mm")),
+    (
+        "estimate.max_window",
+        Range::new(1.0, crate::estimate::foaw::MAX_WINDOW as f64, "periods"),
+    ),
+    ("sim.mass_kg", Range::new(0.001, 10.0, "kg")),
+    ("sim.g", Range::new(1.0, 30.0, "m/s^2")),
+    ("sim.gravity_direction", Range::new(-1000.0, 1000.0, "")),
+    ("sim.workspace_min_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("sim.workspace_max_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("sim.start_position_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("sim.max_force_n", Range::new(0.1, 100.0, "N")),
+    ("sim.encoder_resolution_mm", Range::new(0.0, 1.0, "mm")),
+    ("sim.noise_mm", Range::new(0.0, 1.0, "mm")),
+    ("sim.damping_n_s_per_m", Range::new(0.0, 100.0, "N*s/m")),
+    ("sim.probe_mass_kg", Range::new(0.0, 1.0, "kg")),
+    ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
+    ("sim.device_watchdog_ms", Range::new(1.0, 1000.0, "ms")),
+    ("sim.stop_reporting_after_s", Range::new(0.0, 1e6, "s")),
+    ("calibration.spacing_mm", Range::new(1.0, 500.0, "mm")),
+    ("calibration.half_size", Range::new(1.0, 10.0, "")),
+    ("calibration.centre_mm", Range::new(-1000.0, 1000.0, "mm")),
+    (
+        "calibration.k_init_n_per_mm",
+        Range::new(0.01, 20.0, "N/mm"),
+    ),
+    (
+        "calibration.init_damping_n_s_per_m",
+        Range::new(0.0, 100.0, "N*s/m"),
+    ),
+    ("calibration.n_init", Range::new(1.0, 10_000.0, "samples")),
+    ("calibration.eps_init_mm", Range::new(0.001, 10.0, "mm")),
+    ("calibration.n_m", Range::new(1.0, 10_000.0, "samples")),
+    ("calibration.eps_m_mm", Range::new(0.001, 10.0, "mm")),
+    ("calibration.g", Range::new(1.0, 30.0, "m/s^2")),
+    ("calibration.rise_time_ms", Range::new(10.0, 10_000.0, "ms")),
+    ("calibration.damping_ratio", Range::new(0.1, 10.0, "")),
+    ("calibration.move_time_ms", Range::new(10.0, 60_000.0, "ms")),
+    ("calibration.vertex_timeout_s", Range::new(0.1, 3600.0, "s")),
+    ("calibration.max_iterations", Range::new(2.0, 1000.0, "")),
+    ("app.stale_offset_ms", Range::new(1.0, 1000.0, "ms")),
+    ("app.stale_ramp_ms", Range::new(1.0, 1000.0, "ms")),
+    ("app.max_clients", Range::new(1.0, 1024.0, "")),
+    ("app.hello_timeout_ms", Range::new(10.0, 60_000.0, "ms")),
+];
+
+/// `value` checked against the range of `key` (an entry of [`RANGES`]).
+fn in_range(key: &'static str, value: f64) -> Result<(), ConfigError> {
+    let range = RANGES
+        .iter()
+        .find(|(k, _)| *k == key)
+        .map(|(_, r)| *r)
+        .unwrap_or_else(|| panic!("no range for config key {key}"));
+    if range.contains(value) {
+        Ok(())
+    } else {
+        Err(ConfigError::OutOfRange { key, value, range })
+    }
+}
+
+/// Every element of an array key checked against its range.
+fn each_in_range(key: &'static str, values: [f64; 3]) -> Result<(), ConfigError> {
+    values.iter().try_for_each(|v| in_range(key, *v))
 }
 
 /// Which device to open.
@@ -284,7 +427,7 @@ pub struct SimConfig {
     pub damping_n_s_per_m: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
     pub probe_mass_kg: f64,
-    /// Integration rate, Hz (at least 10 kHz).
+    /// Integration rate, Hz (at least the report rate; 10 kHz or more keeps the physics accurate).
     pub substep_hz: f64,
     /// The device zeroes force when no output report arrives for this long, ms.
     pub device_watchdog_ms: f64,
@@ -428,34 +571,162 @@ impl Default for PathsConfig {
     }
 }
 
-pub(crate) fn mm(v: [f64; 3]) -> Vector3<f64> {
-    Vector3::new(v[0], v[1], v[2]) * 1e-3
+/// A point given in mm, in m.
+fn mm(v: [f64; 3]) -> Vector3<f64> {
+    Vector3::from(v) * 1e-3
 }
 
-fn positive(key: &str, v: f64) -> Result<(), ConfigError> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
-    } else {
-        Err(invalid(key, format!("must be a positive number, got {v}")))
+/// A box given by its corners in mm, in m.
+fn mm_box(lo: [f64; 3], hi: [f64; 3]) -> (Vector3<f64>, Vector3<f64>) {
+    (mm(lo), mm(hi))
+}
+
+/// Two corners in range, each minimum below its maximum.
+fn ordered_box(
+    min_key: &'static str,
+    max_key: &'static str,
+    lo: [f64; 3],
+    hi: [f64; 3],
+) -> Result<(), ConfigError> {
+    each_in_range(min_key, lo)?;
+    each_in_range(max_key, hi)?;
+    match (0..3).find(|&a| lo[a] >= hi[a]) {
+        None => Ok(()),
+        Some(a) => Err(invalid(
+            max_key,
+            format!(
+                "{} is not above {min_key}'s {} on the {} axis; each maximum must exceed its minimum",
+                Number(hi[a]),
+                Number(lo[a]),
+                ["x", "y", "z"][a]
+            ),
+        )),
     }
 }
 
-fn non_negative(key: &str, v: f64) -> Result<(), ConfigError> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(())
-    } else {
-        Err(invalid(key, format!("must be zero or positive, got {v}")))
-    }
-}
-
-fn ordered_box(key: &str, lo: [f64; 3], hi: [f64; 3]) -> Result<(), ConfigError> {
-    if (0..3).all(|a| lo[a].is_finite() && hi[a].is_finite() && lo[a] < hi[a]) {
+/// A duration key (ms) that must cover at least two report periods at `servo.rate_hz`.
+fn two_periods(key: &str, value_ms: f64, rate_hz: f64) -> Result<(), ConfigError> {
+    let least_ms = 2.0 * 1e3 / rate_hz;
+    if value_ms >= least_ms {
         Ok(())
     } else {
         Err(invalid(
             key,
-            "each minimum must be finite and below its maximum",
+            format!(
+                "{} ms is shorter than two report periods ({} ms at servo.rate_hz = {})",
+                Number(value_ms),
+                Number(least_ms),
+                Number(rate_hz)
+            ),
         ))
+    }
+}
+
+impl DeviceConfig {
+    /// The safe workspace box (smallest corner, largest corner), m.
+    pub fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
+        mm_box(self.workspace_min_mm, self.workspace_max_mm)
+    }
+}
+
+impl ServoConfig {
+    /// Nominal report period, s.
+    pub fn period(&self) -> f64 {
+        1.0 / self.rate_hz
+    }
+
+    /// Silence that counts as a device fault, s.
+    pub fn watchdog(&self) -> f64 {
+        self.watchdog_ms * 1e-3
+    }
+}
+
+impl EstimateConfig {
+    /// Peak position measurement noise d, m.
+    pub fn noise_bound(&self) -> f64 {
+        self.noise_bound_mm * 1e-3
+    }
+}
+
+impl SimConfig {
+    /// The mechanical stops (smallest corner, largest corner), m.
+    pub fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
+        mm_box(self.workspace_min_mm, self.workspace_max_mm)
+    }
+
+    /// Rest position at start, m.
+    pub fn start_position(&self) -> Vector3<f64> {
+        mm(self.start_position_mm)
+    }
+
+    /// Encoder resolution, m (0: no quantisation).
+    pub fn encoder_resolution(&self) -> f64 {
+        self.encoder_resolution_mm * 1e-3
+    }
+
+    /// Standard deviation of the position noise, m (0: none).
+    pub fn noise(&self) -> f64 {
+        self.noise_mm * 1e-3
+    }
+
+    /// Output-report silence after which the simulated firmware zeroes force, s.
+    pub fn device_watchdog(&self) -> f64 {
+        self.device_watchdog_ms * 1e-3
+    }
+}
+
+impl CalibrationConfig {
+    /// Cube side L, m.
+    pub fn spacing(&self) -> f64 {
+        self.spacing_mm * 1e-3
+    }
+
+    /// Grid centre, m.
+    pub fn centre(&self) -> Vector3<f64> {
+        mm(self.centre_mm)
+    }
+
+    /// Stiffness of the initial holding field, N/m.
+    pub fn k_init(&self) -> f64 {
+        self.k_init_n_per_mm * 1e3
+    }
+
+    /// Radius of the initial steady-state sphere, m.
+    pub fn eps_init(&self) -> f64 {
+        self.eps_init_mm * 1e-3
+    }
+
+    /// Radius of the vertex steady-state sphere and of the convergence test, m.
+    pub fn eps_m(&self) -> f64 {
+        self.eps_m_mm * 1e-3
+    }
+
+    /// 10–90 % rise time of the linearised closed loop, s.
+    pub fn rise_time(&self) -> f64 {
+        self.rise_time_ms * 1e-3
+    }
+
+    /// Duration of a one-cell move, s.
+    pub fn move_time(&self) -> f64 {
+        self.move_time_ms * 1e-3
+    }
+}
+
+impl AppConfig {
+    /// Age at which a force offset starts ramping to zero, s.
+    pub fn stale_offset(&self) -> f64 {
+        self.stale_offset_ms * 1e-3
+    }
+
+    /// Duration of the ramp from a stale offset to zero, s.
+    pub fn stale_ramp(&self) -> f64 {
+        self.stale_ramp_ms * 1e-3
+    }
+
+    /// Time a client has to say hello. A validated config gives 10 ms to 60 s (an unchecked
+    /// value outside what `Duration` holds panics).
+    pub fn hello_timeout(&self) -> Duration {
+        Duration::from_secs_f64(self.hello_timeout_ms * 1e-3)
     }
 }
 
@@ -486,110 +757,114 @@ impl Config {
         Ok(config)
     }
 
-    /// Check every value; the error names the offending key.
+    /// Check every value against its range ([`RANGES`]) and the cross-key rules; the first
+    /// failure is returned as one line naming the key, the value and what is allowed. A config
+    /// built in code should pass here before it runs anything ([`crate::daemon::Daemon::run`]
+    /// and [`crate::calibrate::calibrate`] check).
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.device_spec()?;
+        let d = &self.device;
         ordered_box(
-            "device.workspace_min_mm/workspace_max_mm",
-            self.device.workspace_min_mm,
-            self.device.workspace_max_mm,
+            "device.workspace_min_mm",
+            "device.workspace_max_mm",
+            d.workspace_min_mm,
+            d.workspace_max_mm,
         )?;
+
         let s = &self.servo;
-        if !(s.rate_hz.is_finite() && (10.0..=20_000.0).contains(&s.rate_hz)) {
-            return Err(invalid("servo.rate_hz", "must be between 10 and 20000 Hz"));
-        }
-        positive("servo.watchdog_ms", s.watchdog_ms)?;
-        if s.realtime_priority > 99 {
-            return Err(invalid(
-                "servo.realtime_priority",
-                "must be 0 (normal) or 1–99",
-            ));
-        }
-        if s.cpu < -1 || s.cpu >= libc::CPU_SETSIZE {
-            return Err(invalid(
-                "servo.cpu",
-                format!("must be a CPU index below {} or -1", libc::CPU_SETSIZE),
-            ));
-        }
-        positive("safety.max_force_n", self.safety.max_force_n)?;
-        positive(
+        in_range("servo.rate_hz", s.rate_hz)?;
+        in_range("servo.watchdog_ms", s.watchdog_ms)?;
+        two_periods("servo.watchdog_ms", s.watchdog_ms, s.rate_hz)?;
+        in_range("servo.realtime_priority", s.realtime_priority.into())?;
+        in_range("servo.cpu", s.cpu.into())?;
+
+        in_range("safety.max_force_n", self.safety.max_force_n)?;
+        in_range(
             "safety.max_force_rate_n_per_s",
             self.safety.max_force_rate_n_per_s,
         )?;
-        positive("estimate.noise_bound_mm", self.estimate.noise_bound_mm)?;
-        if !(1..=crate::estimate::foaw::MAX_WINDOW).contains(&self.estimate.max_window) {
-            return Err(invalid(
-                "estimate.max_window",
-                format!("must be 1–{}", crate::estimate::foaw::MAX_WINDOW),
-            ));
-        }
+
+        in_range("estimate.noise_bound_mm", self.estimate.noise_bound_mm)?;
+        in_range("estimate.max_window", self.estimate.max_window as f64)?;
+
         let sim = &self.sim;
-        positive("sim.mass_kg", sim.mass_kg)?;
-        positive("sim.g", sim.g)?;
-        let gd = Vector3::from(sim.gravity_direction);
-        if !(gd.norm().is_finite() && gd.norm() > 1e-9) {
+        in_range("sim.mass_kg", sim.mass_kg)?;
+        in_range("sim.g", sim.g)?;
+        each_in_range("sim.gravity_direction", sim.gravity_direction)?;
+        if Vector3::from(sim.gravity_direction).norm() < 1e-6 {
             return Err(invalid(
                 "sim.gravity_direction",
-                "must be a non-zero vector",
+                "must not be the zero vector: give the direction opposite to gravity, e.g. [0.0, 0.0, 1.0]",
             ));
         }
         ordered_box(
-            "sim.workspace_min_mm/workspace_max_mm",
+            "sim.workspace_min_mm",
+            "sim.workspace_max_mm",
             sim.workspace_min_mm,
             sim.workspace_max_mm,
         )?;
-        positive("sim.max_force_n", sim.max_force_n)?;
-        non_negative("sim.encoder_resolution_mm", sim.encoder_resolution_mm)?;
-        non_negative("sim.noise_mm", sim.noise_mm)?;
-        non_negative("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
-        non_negative("sim.probe_mass_kg", sim.probe_mass_kg)?;
-        if !(sim.substep_hz.is_finite() && sim.substep_hz >= 10_000.0) {
-            return Err(invalid("sim.substep_hz", "must be at least 10000 Hz"));
+        each_in_range("sim.start_position_mm", sim.start_position_mm)?;
+        in_range("sim.max_force_n", sim.max_force_n)?;
+        in_range("sim.encoder_resolution_mm", sim.encoder_resolution_mm)?;
+        in_range("sim.noise_mm", sim.noise_mm)?;
+        in_range("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
+        in_range("sim.probe_mass_kg", sim.probe_mass_kg)?;
+        in_range("sim.substep_hz", sim.substep_hz)?;
+        if sim.substep_hz < s.rate_hz {
+            return Err(invalid(
+                "sim.substep_hz",
+                format!(
+                    "{} Hz is below servo.rate_hz ({} Hz): the plant must be integrated at least once per report",
+                    Number(sim.substep_hz),
+                    Number(s.rate_hz)
+                ),
+            ));
         }
-        positive("sim.device_watchdog_ms", sim.device_watchdog_ms)?;
+        in_range("sim.device_watchdog_ms", sim.device_watchdog_ms)?;
+        two_periods("sim.device_watchdog_ms", sim.device_watchdog_ms, s.rate_hz)?;
         if let Some(t) = sim.stop_reporting_after_s {
-            non_negative("sim.stop_reporting_after_s", t)?;
+            in_range("sim.stop_reporting_after_s", t)?;
         }
+
         let c = &self.calibration;
-        positive("calibration.spacing_mm", c.spacing_mm)?;
-        if c.half_size == 0 || c.half_size > 10 {
-            return Err(invalid("calibration.half_size", "must be 1–10"));
-        }
-        if !c.centre_mm.iter().all(|v| v.is_finite()) {
-            return Err(invalid("calibration.centre_mm", "must be finite"));
-        }
-        positive("calibration.k_init_n_per_mm", c.k_init_n_per_mm)?;
-        non_negative(
+        in_range("calibration.spacing_mm", c.spacing_mm)?;
+        in_range("calibration.half_size", c.half_size.into())?;
+        each_in_range("calibration.centre_mm", c.centre_mm)?;
+        in_range("calibration.k_init_n_per_mm", c.k_init_n_per_mm)?;
+        in_range(
             "calibration.init_damping_n_s_per_m",
             c.init_damping_n_s_per_m,
         )?;
-        if c.n_init == 0 {
-            return Err(invalid("calibration.n_init", "must be at least 1"));
-        }
-        if c.n_m == 0 {
-            return Err(invalid("calibration.n_m", "must be at least 1"));
-        }
-        positive("calibration.eps_init_mm", c.eps_init_mm)?;
-        positive("calibration.eps_m_mm", c.eps_m_mm)?;
-        positive("calibration.g", c.g)?;
-        positive("calibration.rise_time_ms", c.rise_time_ms)?;
-        positive("calibration.damping_ratio", c.damping_ratio)?;
-        positive("calibration.move_time_ms", c.move_time_ms)?;
-        positive("calibration.vertex_timeout_s", c.vertex_timeout_s)?;
-        if c.max_iterations < 2 {
+        in_range("calibration.n_init", c.n_init as f64)?;
+        in_range("calibration.eps_init_mm", c.eps_init_mm)?;
+        in_range("calibration.n_m", c.n_m as f64)?;
+        in_range("calibration.eps_m_mm", c.eps_m_mm)?;
+        in_range("calibration.g", c.g)?;
+        in_range("calibration.rise_time_ms", c.rise_time_ms)?;
+        let least_rise_ms = 10.0 * 1e3 / s.rate_hz;
+        if c.rise_time_ms < least_rise_ms {
             return Err(invalid(
-                "calibration.max_iterations",
-                "must be at least 2 (a vertex ends at its second steady state near the vertex)",
+                "calibration.rise_time_ms",
+                format!(
+                    "{} ms is shorter than ten report periods ({} ms at servo.rate_hz = {}): the sampled loop would not follow it",
+                    Number(c.rise_time_ms),
+                    Number(least_rise_ms),
+                    Number(s.rate_hz)
+                ),
             ));
         }
+        in_range("calibration.damping_ratio", c.damping_ratio)?;
+        in_range("calibration.move_time_ms", c.move_time_ms)?;
+        in_range("calibration.vertex_timeout_s", c.vertex_timeout_s)?;
+        in_range("calibration.max_iterations", c.max_iterations.into())?;
+
         let a = &self.app;
         self.socket_mode()?;
-        positive("app.stale_offset_ms", a.stale_offset_ms)?;
-        positive("app.stale_ramp_ms", a.stale_ramp_ms)?;
-        positive("app.hello_timeout_ms", a.hello_timeout_ms)?;
-        if a.max_clients == 0 || a.max_clients > 1024 {
-            return Err(invalid("app.max_clients", "must be 1–1024"));
-        }
+        in_range("app.stale_offset_ms", a.stale_offset_ms)?;
+        two_periods("app.stale_offset_ms", a.stale_offset_ms, s.rate_hz)?;
+        in_range("app.stale_ramp_ms", a.stale_ramp_ms)?;
+        in_range("app.max_clients", a.max_clients as f64)?;
+        in_range("app.hello_timeout_ms", a.hello_timeout_ms)?;
         Ok(())
     }
 
@@ -600,7 +875,7 @@ impl Config {
 
     /// Nominal servo period, s.
     pub fn servo_period(&self) -> f64 {
-        1.0 / self.servo.rate_hz
+        self.servo.period()
     }
 
     /// The socket file's permission bits.
@@ -682,6 +957,333 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("usb:1"), "{err}");
+    }
+
+    fn parse(text: &str) -> Result<Config, ConfigError> {
+        Config::from_toml_str(text, Path::new("t"))
+    }
+
+    /// `[section]\nname = value` for a dotted key.
+    fn one_key(key: &str, value: &str) -> String {
+        let (section, name) = key.split_once('.').unwrap();
+        format!("[{section}]\n{name} = {value}\n")
+    }
+
+    /// How the shipped file writes a key's value: array, integer or float (absent keys are the
+    /// optional floats).
+    #[derive(Clone, Copy, PartialEq)]
+    enum Shape {
+        Float,
+        Integer,
+        Array,
+    }
+
+    fn shape(key: &str) -> Shape {
+        let shipped: toml::Table = include_str!("../config/hgcd.toml").parse().unwrap();
+        let (section, name) = key.split_once('.').unwrap();
+        match shipped[section].get(name) {
+            Some(toml::Value::Array(_)) => Shape::Array,
+            Some(toml::Value::Integer(_)) => Shape::Integer,
+            _ => Shape::Float,
+        }
+    }
+
+    /// `value` written for `key`: every element of an array key.
+    fn written(key: &str, value: &str) -> String {
+        match shape(key) {
+            Shape::Array => one_key(key, &format!("[{value}, {value}, {value}]")),
+            _ => one_key(key, value),
+        }
+    }
+
+    #[test]
+    fn values_from_the_issue_are_refused_with_key_value_and_range_on_one_line() {
+        // Each of these was accepted, then panicked the servo thread (watchdog), panicked at
+        // start-up (hello timeout 1e308), was silently not applied (hello timeout 1e-9), hung the
+        // simulated device (substeps) or turned a safety limit off (max force, stale offset).
+        for (key, value, message) in [
+            (
+                "servo.watchdog_ms",
+                "1e308",
+                "config key `servo.watchdog_ms`: 1e308 is out of range (1 to 1000 ms)",
+            ),
+            (
+                "app.hello_timeout_ms",
+                "1e308",
+                "config key `app.hello_timeout_ms`: 1e308 is out of range (10 to 60000 ms)",
+            ),
+            (
+                "app.hello_timeout_ms",
+                "1e-9",
+                "config key `app.hello_timeout_ms`: 1e-9 is out of range (10 to 60000 ms)",
+            ),
+            (
+                "sim.substep_hz",
+                "1e308",
+                "config key `sim.substep_hz`: 1e308 is out of range (100 to 1000000 Hz)",
+            ),
+            (
+                "safety.max_force_n",
+                "1e308",
+                "config key `safety.max_force_n`: 1e308 is out of range (0.1 to 50 N)",
+            ),
+            (
+                "app.stale_offset_ms",
+                "1e308",
+                "config key `app.stale_offset_ms`: 1e308 is out of range (1 to 1000 ms)",
+            ),
+        ] {
+            let err = parse(&one_key(key, value)).unwrap_err();
+            assert!(
+                matches!(err, ConfigError::OutOfRange { key: k, .. } if k == key),
+                "{err:?}"
+            );
+            assert_eq!(err.to_string(), message);
+        }
+    }
+
+    #[test]
+    fn nan_and_infinities_are_refused_for_every_numeric_key() {
+        for (key, _) in RANGES {
+            for value in ["nan", "inf", "-inf"] {
+                let err = parse(&written(key, value)).unwrap_err();
+                let text = err.to_string();
+                assert_eq!(text.lines().count(), 1, "{text}");
+                if shape(key) == Shape::Integer {
+                    // Not an integer: the TOML layer refuses it, quoting the line.
+                    assert!(matches!(err, ConfigError::Parse { .. }), "{err:?}");
+                    assert!(text.contains(key.split_once('.').unwrap().1), "{text}");
+                } else {
+                    assert!(
+                        matches!(err, ConfigError::OutOfRange { key: k, .. } if k == *key),
+                        "{key} = {value}: {err:?}"
+                    );
+                    assert!(text.contains(&format!("`{key}`: {value} is out")), "{text}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn every_range_holds_at_its_bounds_and_refuses_just_beyond() {
+        for (key, range) in RANGES {
+            let integer = shape(key) == Shape::Integer;
+            let show = |v: f64| {
+                if integer {
+                    format!("{v}")
+                } else {
+                    format!("{v:?}")
+                }
+            };
+            for bound in [range.min, range.max] {
+                // A bound may still break a cross-key rule at the other keys' defaults, but it
+                // is never out of range.
+                if let Err(e) = parse(&written(key, &show(bound))) {
+                    assert!(!matches!(e, ConfigError::OutOfRange { .. }), "{key}: {e}");
+                }
+            }
+            let step = |v: f64| {
+                if integer {
+                    1.0
+                } else {
+                    (v.abs() * 1e-6).max(1e-9)
+                }
+            };
+            for beyond in [range.min - step(range.min), range.max + step(range.max)] {
+                match parse(&written(key, &show(beyond))) {
+                    Err(ConfigError::OutOfRange {
+                        key: k,
+                        value,
+                        range: r,
+                    }) => {
+                        assert_eq!((k, value, r), (*key, beyond, *range));
+                    }
+                    // An unsigned key cannot even hold -1.
+                    Err(ConfigError::Parse { .. }) if integer && beyond < 0.0 => {}
+                    other => panic!("{key} = {beyond}: {other:?}"),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_shipped_file_states_every_range_above_its_key() {
+        let text = include_str!("../config/hgcd.toml");
+        for (key, range) in RANGES {
+            let (section, name) = key.split_once('.').unwrap();
+            let body = text
+                .split(&format!("[{section}]\n"))
+                .nth(1)
+                .and_then(|rest| rest.split("\n[").next())
+                .unwrap_or_else(|| panic!("no [{section}] in config/hgcd.toml"));
+            // The comment block above `name = ...` (or `# name = ...`) and the settings it
+            // documents together (`workspace_min_mm` and `workspace_max_mm` share one).
+            let is_setting = |line: &str| {
+                line.trim_start_matches("# ")
+                    .split_once(" = ")
+                    .is_some_and(|(k, _)| {
+                        !k.is_empty() && k.chars().all(|c| c.is_ascii_lowercase() || c == '_')
+                    })
+            };
+            let mut doc = Vec::new();
+            let mut after_setting = false;
+            for line in body.lines() {
+                if line
+                    .trim_start_matches("# ")
+                    .starts_with(&format!("{name} = "))
+                {
+                    break;
+                }
+                if is_setting(line) {
+                    after_setting = true;
+                } else if line.starts_with('#') {
+                    if after_setting {
+                        doc.clear();
+                        after_setting = false;
+                    }
+                    doc.push(line);
+                }
+            }
+            let doc = doc.join(" ");
+            assert!(
+                doc.contains(&format!("Range: {range}")),
+                "config/hgcd.toml must say `Range: {range}` above {key}: {doc}"
+            );
+        }
+    }
+
+    #[test]
+    fn cross_key_rules_name_the_key_and_the_rule() {
+        let refused = |text: &str, key: &str, says: &str| {
+            let err = parse(text).unwrap_err();
+            let line = err.to_string();
+            assert!(
+                matches!(&err, ConfigError::Invalid { key: k, .. } if k == key),
+                "{err:?}"
+            );
+            assert!(line.contains(says), "{line}");
+            assert_eq!(line.lines().count(), 1, "{line}");
+        };
+        // At 100 Hz two report periods are 20 ms.
+        refused(
+            "[servo]\nrate_hz = 100.0\nwatchdog_ms = 15.0\n",
+            "servo.watchdog_ms",
+            "15 ms is shorter than two report periods (20 ms at servo.rate_hz = 100)",
+        );
+        refused(
+            "[servo]\nrate_hz = 100.0\nwatchdog_ms = 20.0\n[sim]\ndevice_watchdog_ms = 19.0\n",
+            "sim.device_watchdog_ms",
+            "two report periods",
+        );
+        refused(
+            "[servo]\nrate_hz = 100.0\nwatchdog_ms = 20.0\n[app]\nstale_offset_ms = 10.0\n",
+            "app.stale_offset_ms",
+            "two report periods",
+        );
+        refused(
+            "[servo]\nrate_hz = 5000.0\n[sim]\nsubstep_hz = 2000.0\n",
+            "sim.substep_hz",
+            "below servo.rate_hz (5000 Hz)",
+        );
+        refused(
+            "[servo]\nrate_hz = 100.0\nwatchdog_ms = 20.0\n[calibration]\nrise_time_ms = 50.0\n",
+            "calibration.rise_time_ms",
+            "ten report periods (100 ms",
+        );
+        refused(
+            "[device]\nworkspace_min_mm = [0.0, 0.0, 0.0]\nworkspace_max_mm = [10.0, -10.0, 10.0]\n",
+            "device.workspace_max_mm",
+            "-10 is not above device.workspace_min_mm's 0 on the y axis",
+        );
+        refused(
+            "[sim]\nworkspace_min_mm = [0.0, 5.0, 0.0]\nworkspace_max_mm = [10.0, 5.0, 10.0]\n",
+            "sim.workspace_max_mm",
+            "on the y axis",
+        );
+        refused(
+            "[sim]\ngravity_direction = [0.0, 0.0, 0.0]\n",
+            "sim.gravity_direction",
+            "must not be the zero vector",
+        );
+        // The same rules at a rate where they are met.
+        parse(
+            "[servo]\nrate_hz = 100.0\nwatchdog_ms = 20.0\n[sim]\ndevice_watchdog_ms = 20.0\n\
+             [app]\nstale_offset_ms = 20.0\n[calibration]\nrise_time_ms = 100.0\n",
+        )
+        .unwrap();
+        // A stale offset needs a ramp to zero of at least a millisecond, never an instant one.
+        assert!(matches!(
+            parse("[app]\nstale_ramp_ms = 0.0\n").unwrap_err(),
+            ConfigError::OutOfRange {
+                key: "app.stale_ramp_ms",
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn a_config_built_in_code_is_checked_by_validate() {
+        let mut config = Config::default();
+        config.validate().unwrap();
+        config.servo.watchdog_ms = f64::INFINITY;
+        assert!(matches!(
+            config.validate().unwrap_err(),
+            ConfigError::OutOfRange {
+                key: "servo.watchdog_ms",
+                ..
+            }
+        ));
+        let mut config = Config::default();
+        config.calibration.n_m = 0;
+        assert!(matches!(
+            config.validate().unwrap_err(),
+            ConfigError::OutOfRange {
+                key: "calibration.n_m",
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn accessors_convert_file_units_to_si() {
+        let c = Config::default();
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs().max(1.0);
+        assert!(close(c.servo.period(), 1e-3));
+        assert!(close(c.servo.watchdog(), 0.010));
+        assert!(close(c.estimate.noise_bound(), 1e-5));
+        assert!(close(c.sim.encoder_resolution(), 5e-6));
+        assert!(close(c.sim.noise(), 2e-6));
+        assert!(close(c.sim.device_watchdog(), 0.050));
+        assert_eq!(
+            c.sim.workspace(),
+            (Vector3::repeat(-0.08), Vector3::repeat(0.08))
+        );
+        assert_eq!(
+            c.device.workspace(),
+            (Vector3::repeat(-0.07), Vector3::repeat(0.07))
+        );
+        assert_eq!(c.sim.start_position(), Vector3::zeros());
+        let cal = &c.calibration;
+        assert!(close(cal.spacing(), 0.040));
+        assert_eq!(cal.centre(), Vector3::zeros());
+        assert!(close(cal.k_init(), 500.0));
+        assert!(close(cal.eps_init(), 1e-4));
+        assert!(close(cal.eps_m(), 1e-4));
+        assert!(close(cal.rise_time(), 0.100));
+        assert!(close(cal.move_time(), 0.400));
+        assert!(close(c.app.stale_offset(), 0.050));
+        assert!(close(c.app.stale_ramp(), 0.050));
+        assert_eq!(c.app.hello_timeout(), Duration::from_secs(5));
+        // Both ends of the accepted hello timeout make a real timeout: 1e-9 ms rounded to a zero
+        // Duration, which the socket layer refuses, so no timeout applied at all.
+        for ms in ["10.0", "60000.0"] {
+            let c = parse(&one_key("app.hello_timeout_ms", ms)).unwrap();
+            let t = c.app.hello_timeout();
+            assert!(
+                t >= Duration::from_millis(10) && t <= Duration::from_secs(60),
+                "{t:?}"
+            );
+        }
     }
 
     #[test]

@@ -227,3 +227,71 @@ fn the_socket_transport_runs_against_hgcd_sim_device() {
     assert!(text.contains("0 output reports rejected"), "{text}");
     assert!(!device.exists());
 }
+
+/// Exit status and stderr of `command`, which must end within a generous deadline (before the
+/// ranges were checked, `sim.substep_hz = 1e308` never ended).
+fn finished(mut command: std::process::Command) -> (std::process::ExitStatus, String) {
+    let child = command
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as i32;
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || tx.send(child.wait_with_output()));
+    match rx.recv_timeout(std::time::Duration::from_secs(30)) {
+        Ok(out) => {
+            let out = out.unwrap();
+            (
+                out.status,
+                String::from_utf8_lossy(&out.stderr).into_owned(),
+            )
+        }
+        Err(_) => {
+            // SAFETY: kill(2) on our own child, which has not been reaped (wait never returned).
+            unsafe { libc::kill(pid, libc::SIGKILL) };
+            panic!("hung: {command:?}");
+        }
+    }
+}
+
+#[test]
+fn out_of_range_config_values_stop_run_and_calibrate_with_one_line() {
+    // Before: a panicked servo thread, a panic at start-up, a hang, or a run without the limit.
+    let dir = tempfile::tempdir().unwrap();
+    for (section, key, value, range) in [
+        ("servo", "watchdog_ms", "1e308", "(1 to 1000 ms)"),
+        ("app", "hello_timeout_ms", "1e308", "(10 to 60000 ms)"),
+        ("app", "hello_timeout_ms", "1e-9", "(10 to 60000 ms)"),
+        ("sim", "substep_hz", "1e308", "(100 to 1000000 Hz)"),
+        ("safety", "max_force_n", "1e308", "(0.1 to 50 N)"),
+        ("app", "stale_offset_ms", "1e308", "(1 to 1000 ms)"),
+        ("servo", "watchdog_ms", "nan", "(1 to 1000 ms)"),
+    ] {
+        let cfg = empty_config();
+        std::fs::write(cfg.path(), format!("[{section}]\n{key} = {value}\n")).unwrap();
+        let expected = format!("config key `{section}.{key}`: {value} is out of range {range}");
+        for args in [
+            &[
+                "run",
+                "--device",
+                "sim:point-mass",
+                "--duration",
+                "0.2",
+                "--virtual-time",
+            ][..],
+            &["calibrate", "--device", "sim:point-mass", "--output"][..],
+        ] {
+            let mut command = hgcd_in(&cfg, &dir.path().join("s.sock"), dir.path());
+            command.args(args);
+            if args[0] == "calibrate" {
+                command.arg(dir.path().join("grid.toml"));
+            }
+            let (status, stderr) = finished(command);
+            assert!(!status.success(), "{args:?} with {key} = {value}: {stderr}");
+            assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+            assert!(stderr.contains(&expected), "{stderr}");
+        }
+    }
+    assert!(!dir.path().join("grid.toml").exists());
+}

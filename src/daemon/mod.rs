@@ -382,6 +382,7 @@ impl Daemon {
         signals: Signals,
         ready: &mut dyn FnMut(&Path),
     ) -> Result<ServoReport> {
+        self.config.validate()?;
         if let Some(spec) = transport.resolved_spec() {
             self.device = spec;
         }
@@ -395,10 +396,7 @@ impl Daemon {
         }
         let model = load_model(config, &self.device, &grid_path)?;
         let mode = mode_name(&model);
-        let offset = ForceOffset::new(
-            config.app.stale_offset_ms * 1e-3,
-            config.app.stale_ramp_ms * 1e-3,
-        );
+        let offset = ForceOffset::new(config.app.stale_offset(), config.app.stale_ramp());
         let compensation = Compensation::new(model, offset);
 
         let (commands_tx, offsets_tx, servo_mailbox, mut hub_mailbox) = mailbox();
@@ -423,7 +421,7 @@ impl Daemon {
             rate_hz: config.servo.rate_hz,
             max_force: config.safety.max_force_n,
             max_clients: config.app.max_clients,
-            hello_timeout: Duration::from_secs_f64(config.app.hello_timeout_ms * 1e-3),
+            hello_timeout: config.app.hello_timeout(),
         });
         let server_stop = Arc::new(AtomicBool::new(false));
         let listener_thread =

@@ -47,7 +47,7 @@ impl ServoOptions {
     pub fn from_config(config: &Config) -> Self {
         Self {
             period: config.servo_period(),
-            watchdog: config.servo.watchdog_ms * 1e-3,
+            watchdog: config.servo.watchdog(),
             duration: None,
             stop_on_fault: false,
             safety: config.safety.clone(),
@@ -215,7 +215,7 @@ impl ServoCore {
         Ok(Self {
             foaw: Foaw::new(
                 est.foaw_variant,
-                est.noise_bound_mm * 1e-3,
+                est.noise_bound(),
                 est.max_window,
                 options.period,
             )?,

@@ -8,7 +8,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
-use crate::config::{mm, SimConfig};
+use crate::config::SimConfig;
 use crate::grid::{GridError, MassGrid};
 
 /// The physics of a simulated device.
@@ -60,8 +60,7 @@ impl PointMass {
 
     /// The plant a `[sim]` config section describes: a uniform mass, or the field of `mass_grid`.
     pub fn from_config(sim: &SimConfig) -> Result<Self, GridError> {
-        let lo = mm(sim.workspace_min_mm);
-        let hi = mm(sim.workspace_max_mm);
+        let (lo, hi) = sim.workspace();
         let field = match &sim.mass_grid {
             Some(path) => MassGrid::load(path)?,
             None => MassGrid::uniform(
@@ -73,12 +72,7 @@ impl PointMass {
                 [2, 2, 2],
             ),
         };
-        let mut plant = Self::new(
-            field,
-            sim.damping_n_s_per_m,
-            (lo, hi),
-            mm(sim.start_position_mm),
-        );
+        let mut plant = Self::new(field, sim.damping_n_s_per_m, (lo, hi), sim.start_position());
         plant.payload = sim.probe_mass_kg;
         Ok(plant)
     }
@@ -137,11 +131,7 @@ impl Encoder {
     }
 
     pub fn from_config(sim: &SimConfig) -> Self {
-        Self::new(
-            sim.encoder_resolution_mm * 1e-3,
-            sim.noise_mm * 1e-3,
-            sim.seed,
-        )
+        Self::new(sim.encoder_resolution(), sim.noise(), sim.seed)
     }
 
     /// The position the device would report for the true position `x`.

@@ -79,7 +79,7 @@ impl SimDevice {
             config.servo_period(),
             sim.substep_hz,
             sim.max_force_n,
-            sim.device_watchdog_ms * 1e-3,
+            sim.device_watchdog(),
         );
         device.stop_reporting_after = sim.stop_reporting_after_s;
         Ok(device)

@@ -32,7 +32,7 @@ pub use plan::{GridPlan, PlanError, Vertex};
 use nalgebra::Vector3;
 
 use super::pd::LinearisedGains;
-use crate::config::{mm, Config};
+use crate::config::Config;
 
 /// Calibration parameters in SI units.
 #[derive(Clone, Debug, PartialEq)]
@@ -70,27 +70,24 @@ pub struct CalibrationParams {
 impl CalibrationParams {
     pub fn from_config(config: &Config) -> Self {
         let c = &config.calibration;
-        let rise_time = c.rise_time_ms * 1e-3;
+        let rise_time = c.rise_time();
         Self {
-            spacing: c.spacing_mm * 1e-3,
+            spacing: c.spacing(),
             half_size: c.half_size,
-            centre: mm(c.centre_mm),
-            k_init: c.k_init_n_per_mm * 1e3,
+            centre: c.centre(),
+            k_init: c.k_init(),
             init_damping: c.init_damping_n_s_per_m,
             n_init: c.n_init,
-            eps_init: c.eps_init_mm * 1e-3,
+            eps_init: c.eps_init(),
             n_m: c.n_m,
-            eps_m: c.eps_m_mm * 1e-3,
+            eps_m: c.eps_m(),
             g: c.g,
             gains: LinearisedGains::from_rise_time(rise_time, c.damping_ratio),
             settle_time: 2.0 * rise_time,
-            move_time: c.move_time_ms * 1e-3,
+            move_time: c.move_time(),
             vertex_timeout: c.vertex_timeout_s,
             max_iterations: c.max_iterations,
-            workspace: (
-                mm(config.device.workspace_min_mm),
-                mm(config.device.workspace_max_mm),
-            ),
+            workspace: config.device.workspace(),
         }
     }
 }
