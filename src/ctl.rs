@@ -35,6 +35,10 @@ pub fn status(socket: &Path) -> Result<()> {
         s.servo.worst_compute_us,
         s.servo.worst_period_us
     );
+    println!(
+        "lateness      worst {:.0} µs after the report's timestamp; {} report(s) more than a period late",
+        s.servo.worst_lateness_us, s.servo.late_wakeups
+    );
     Ok(())
 }
 

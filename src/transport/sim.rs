@@ -293,7 +293,7 @@ impl Transport for SimTransport {
 }
 
 /// Sleep until `deadline` on CLOCK_MONOTONIC with an absolute timer (no drift from wake-up latency).
-pub(crate) fn sleep_until(deadline: Instant) {
+pub fn sleep_until(deadline: Instant) {
     let now = Instant::now();
     if deadline <= now {
         return;
