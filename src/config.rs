@@ -14,7 +14,6 @@ use nalgebra::Vector3;
 use serde::Deserialize;
 use thiserror::Error;
 
-use crate::control::compensation::{CompensationMode, OutsideGrid};
 use crate::estimate::FoawVariant;
 
 /// Default configuration file of an installed daemon.
@@ -295,6 +294,28 @@ impl DeviceSpec {
             ),
         }
     }
+}
+
+/// Which gravity model compensation uses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CompensationMode {
+    /// F_G = M(X) g v_G (paper Eq. 15).
+    #[default]
+    Scalar,
+    /// F_G interpolated from the calibrated per-vertex force vectors.
+    Vector,
+}
+
+/// What compensation does outside the calibrated grid.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OutsideGrid {
+    /// Clamp the position onto the grid: the nearest cell's face values hold.
+    #[default]
+    HoldNearest,
+    /// No gravity force outside the grid.
+    Zero,
 }
 
 /// The whole configuration.

@@ -8,32 +8,10 @@
 //! over `ramp_time`; removing it (client gone) is immediate.
 
 use nalgebra::Vector3;
-use serde::{Deserialize, Serialize};
 
 use super::{ControlOutput, Controller, DeviceState};
+pub use crate::config::{CompensationMode, OutsideGrid};
 use crate::grid::MassGrid;
-
-/// Which gravity model compensation uses.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum CompensationMode {
-    /// F_G = M(X) g v_G (paper Eq. 15).
-    #[default]
-    Scalar,
-    /// F_G interpolated from the calibrated per-vertex force vectors.
-    Vector,
-}
-
-/// What compensation does outside the calibrated grid.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum OutsideGrid {
-    /// Clamp the position onto the grid: the nearest cell's face values hold.
-    #[default]
-    HoldNearest,
-    /// No gravity force outside the grid.
-    Zero,
-}
 
 /// The calibrated gravity force field F_G(X).
 #[derive(Clone, Debug, PartialEq)]
