@@ -134,7 +134,16 @@ pub enum ExitReason {
     /// The controller said it was done.
     ControllerDone,
     /// A fault ended the run (`stop_on_fault`).
-    Fault(&'static str),
+    Fault(Fault),
+}
+
+/// A fault that ends a run with `stop_on_fault`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Error)]
+pub enum Fault {
+    #[error("device reported a fault")]
+    DeviceReported,
+    #[error("device stopped reporting")]
+    DeviceSilent,
 }
 
 /// What a finished run reports.
@@ -440,9 +449,7 @@ fn run_loop(
                     match outcome {
                         TickOutcome::Continue => continue,
                         TickOutcome::Done => return Ok(ExitReason::ControllerDone),
-                        TickOutcome::Fault => {
-                            return Ok(ExitReason::Fault("device reported a fault"))
-                        }
+                        TickOutcome::Fault => return Ok(ExitReason::Fault(Fault::DeviceReported)),
                     }
                 }
                 Err(e) => {
@@ -459,7 +466,7 @@ fn run_loop(
             emit(events, ServoEvent::WatchdogFault { silent_for });
             transport.write_output(core.prepare_zero())?;
             if options.stop_on_fault {
-                return Ok(ExitReason::Fault("device stopped reporting"));
+                return Ok(ExitReason::Fault(Fault::DeviceSilent));
             }
         }
     }
