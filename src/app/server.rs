@@ -547,6 +547,7 @@ fn serve_client(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
     /// A reader over `bytes`, then end of stream.
     fn reader_over(bytes: &[u8]) -> BufReader<UnixStream> {
@@ -599,5 +600,65 @@ mod tests {
         assert!(took >= Duration::from_millis(100), "{took:?}");
         // Generous: a loaded machine may wake late, but not by seconds.
         assert!(took < Duration::from_secs(5), "{took:?}");
+    }
+
+    /// What `read_line` must make of `bytes`, written out on its own: the lines, then how the
+    /// stream ends (None: cleanly).
+    fn expected_lines(bytes: &[u8]) -> (Vec<String>, Option<&'static str>) {
+        let mut lines = Vec::new();
+        let mut rest = bytes;
+        while let Some(end) = rest.iter().position(|&b| b == b'\n') {
+            if end > MAX_LINE_LEN {
+                return (lines, Some("too long"));
+            }
+            match std::str::from_utf8(&rest[..end]) {
+                Ok(line) => lines.push(line.to_string()),
+                Err(_) => return (lines, Some("not UTF-8")),
+            }
+            rest = &rest[end + 1..];
+        }
+        let end = match rest.len() {
+            0 => None,
+            n if n > MAX_LINE_LEN => Some("too long"),
+            _ => Some("unfinished"),
+        };
+        (lines, end)
+    }
+
+    /// Byte streams of short and long segments, with and without newlines between them.
+    fn streams() -> impl Strategy<Value = Vec<u8>> {
+        let segment = prop_oneof![
+            4 => proptest::collection::vec(any::<u8>(), 0..40),
+            1 => proptest::collection::vec(prop::sample::select(b"{}\"a:,1 \xff".to_vec()), 0..60),
+            1 => (MAX_LINE_LEN - 2..MAX_LINE_LEN + 3).prop_map(|n| vec![b' '; n]),
+        ];
+        (proptest::collection::vec(segment, 0..6), any::<bool>()).prop_map(|(segments, last)| {
+            let mut bytes = segments.join(&b'\n');
+            if last {
+                bytes.push(b'\n');
+            }
+            bytes
+        })
+    }
+
+    proptest! {
+        #![proptest_config(crate::protocol::fuzz::config())]
+
+        #[test]
+        fn any_stream_splits_into_the_lines_it_holds(bytes in streams()) {
+            let mut reader = reader_over(&bytes);
+            let mut lines = Vec::new();
+            let end = loop {
+                match read_line(&mut reader, None) {
+                    Ok(Some(line)) => lines.push(line),
+                    Ok(None) => break None,
+                    Err(ReadError::TooLong) => break Some("too long"),
+                    Err(ReadError::NotUtf8) => break Some("not UTF-8"),
+                    Err(ReadError::Unfinished) => break Some("unfinished"),
+                    Err(e) => panic!("{e}"),
+                }
+            };
+            prop_assert_eq!((lines, end), expected_lines(&bytes));
+        }
     }
 }
