@@ -42,7 +42,7 @@ pub struct ClientEntry {
     pub state_divider: u64,
     pub outbound: Sender<Reply>,
     /// Admitted beyond `max_clients`: may only ask for status, closed at its hello deadline.
-    pub status_only: bool,
+    status_only: bool,
     stream: UnixStream,
 }
 
