@@ -559,7 +559,7 @@ pub struct AppConfig {
     pub stale_offset_ms: f64,
     /// Duration of that ramp from the full offset to zero, ms.
     pub stale_ramp_ms: f64,
-    /// Most clients connected at once; more are refused.
+    /// Most clients connected at once; one more may still ask for status, further ones are refused.
     pub max_clients: usize,
     /// A client that has not said hello within this time is closed, ms.
     pub hello_timeout_ms: f64,

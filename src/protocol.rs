@@ -366,11 +366,149 @@ mod tests {
         assert_eq!(REPORT_DESCRIPTOR[27] as usize, OUTPUT_REPORT_LEN - 1);
     }
 
+    /// The rules of the v1 input report, written out independently of the decoder.
+    fn valid_input(bytes: &[u8]) -> bool {
+        bytes.len() == INPUT_REPORT_LEN
+            && bytes[0] == INPUT_REPORT_ID
+            && bytes[1] == PROTOCOL_VERSION
+            && (0..3).all(|axis| read_i32(bytes, 8 + 4 * axis).unsigned_abs() <= 1_000_000_000)
+            && u16::from_le_bytes([bytes[20], bytes[21]]) & !Status::DEFINED == 0
+            && bytes[22..].iter().all(|&b| b == 0)
+    }
+
+    /// The rules of the v1 output report, written out independently of the decoder.
+    fn valid_output(bytes: &[u8]) -> bool {
+        bytes.len() == OUTPUT_REPORT_LEN
+            && bytes[0] == OUTPUT_REPORT_ID
+            && bytes[1] == PROTOCOL_VERSION
+            && (0..3).all(|axis| read_i32(bytes, 4 + 4 * axis).unsigned_abs() <= 100_000_000)
+            && bytes[16] & !OutputReport::FLAG_ENABLE == 0
+            && bytes[17..].iter().all(|&b| b == 0)
+    }
+
+    /// What the decoder accepted is in range, and encodes back to the very same bytes.
+    fn check_input(bytes: &[u8]) -> Result<(), TestCaseError> {
+        let decoded = InputReport::decode(bytes);
+        prop_assert_eq!(decoded.is_ok(), valid_input(bytes), "{:?}", decoded);
+        if let Ok(r) = decoded {
+            prop_assert!(r
+                .position
+                .iter()
+                .all(|p| p.is_finite() && p.abs() <= MAX_POSITION));
+            prop_assert_eq!(r.status.bits() & !Status::DEFINED, 0);
+            let mut again = [0; INPUT_REPORT_LEN];
+            r.encode(&mut again).unwrap();
+            prop_assert_eq!(&again[..], bytes);
+        }
+        Ok(())
+    }
+
+    fn check_output(bytes: &[u8]) -> Result<(), TestCaseError> {
+        let decoded = OutputReport::decode(bytes);
+        prop_assert_eq!(decoded.is_ok(), valid_output(bytes), "{:?}", decoded);
+        if let Ok(r) = decoded {
+            prop_assert!(r
+                .force
+                .iter()
+                .all(|f| f.is_finite() && f.abs() <= MAX_FORCE));
+            let mut again = [0; OUTPUT_REPORT_LEN];
+            r.encode(&mut again).unwrap();
+            prop_assert_eq!(&again[..], bytes);
+        }
+        Ok(())
+    }
+
+    /// A valid report's bytes: any header fields, and per axis either any value in range or one
+    /// at (or just beyond) the edge of the range.
+    fn valid_input_bytes() -> impl Strategy<Value = Vec<u8>> {
+        let axis = prop_oneof![
+            -1_000_000_000i32..=1_000_000_000,
+            Just(1_000_000_000),
+            Just(-1_000_000_000),
+        ];
+        (
+            any::<u16>(),
+            any::<u32>(),
+            [axis.clone(), axis.clone(), axis],
+            0..=Status::DEFINED,
+        )
+            .prop_map(|(seq, ts, nm, bits)| {
+                let mut b = vec![INPUT_REPORT_ID, PROTOCOL_VERSION];
+                b.extend_from_slice(&seq.to_le_bytes());
+                b.extend_from_slice(&ts.to_le_bytes());
+                for v in nm {
+                    b.extend_from_slice(&v.to_le_bytes());
+                }
+                b.extend_from_slice(&bits.to_le_bytes());
+                b.extend_from_slice(&[0, 0]);
+                b
+            })
+    }
+
+    fn valid_output_bytes() -> impl Strategy<Value = Vec<u8>> {
+        let axis = prop_oneof![
+            -100_000_000i32..=100_000_000,
+            Just(100_000_000),
+            Just(-100_000_000),
+        ];
+        (
+            any::<u16>(),
+            [axis.clone(), axis.clone(), axis],
+            any::<bool>(),
+        )
+            .prop_map(|(seq, un, enable)| {
+                let mut b = vec![OUTPUT_REPORT_ID, PROTOCOL_VERSION];
+                b.extend_from_slice(&seq.to_le_bytes());
+                for v in un {
+                    b.extend_from_slice(&v.to_le_bytes());
+                }
+                b.extend_from_slice(&[u8::from(enable), 0, 0, 0]);
+                b
+            })
+    }
+
+    /// `bytes` with a few bytes overwritten, single bits flipped, and its length changed.
+    fn mutated(bytes: impl Strategy<Value = Vec<u8>>) -> impl Strategy<Value = Vec<u8>> {
+        let edit = (any::<prop::sample::Index>(), any::<u8>(), any::<bool>());
+        (
+            bytes,
+            proptest::collection::vec(edit, 0..4),
+            prop_oneof![3 => Just(None), 1 => (0usize..32).prop_map(Some)],
+            any::<u8>(),
+        )
+            .prop_map(|(mut b, edits, resize, fill)| {
+                for (at, value, flip_one_bit) in edits {
+                    let i = at.index(b.len());
+                    b[i] = if flip_one_bit {
+                        b[i] ^ (1 << (value % 8))
+                    } else {
+                        value
+                    };
+                }
+                if let Some(len) = resize {
+                    b.resize(len, fill);
+                }
+                b
+            })
+    }
+
     proptest! {
+        #![proptest_config(fuzz::config())]
+
         #[test]
         fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..64)) {
-            let _ = InputReport::decode(&bytes);
-            let _ = OutputReport::decode(&bytes);
+            check_input(&bytes)?;
+            check_output(&bytes)?;
+        }
+
+        #[test]
+        fn mutated_input_reports_are_refused_or_exact(bytes in mutated(valid_input_bytes())) {
+            check_input(&bytes)?;
+        }
+
+        #[test]
+        fn mutated_output_reports_are_refused_or_exact(bytes in mutated(valid_output_bytes())) {
+            check_output(&bytes)?;
         }
 
         #[test]
@@ -385,6 +523,7 @@ mod tests {
             prop_assert!((back.position - r.position).amax() <= 0.5e-9);
             prop_assert_eq!(back.status, r.status);
             prop_assert_eq!(back.sequence, seq);
+            prop_assert_eq!(back.timestamp_us, ts);
         }
 
         #[test]
@@ -397,5 +536,23 @@ mod tests {
             prop_assert!((back.force - r.force).amax() <= 0.5e-6);
             prop_assert_eq!(back.enable, enable);
         }
+    }
+}
+
+/// Settings shared by the fuzz properties of the wire codecs (`docs/fuzzing.md`).
+#[cfg(test)]
+pub(crate) mod fuzz {
+    use proptest::test_runner::Config;
+
+    /// Cases per property in a plain `cargo test`.
+    pub const DEFAULT_CASES: u32 = 4096;
+
+    /// `DEFAULT_CASES` cases, or `PROPTEST_CASES` when it is set (a long campaign).
+    pub fn config() -> Config {
+        let mut config = Config::default();
+        if std::env::var_os("PROPTEST_CASES").is_none() {
+            config.cases = DEFAULT_CASES;
+        }
+        config
     }
 }

@@ -176,6 +176,9 @@ pub fn encode_reply(reply: &Reply) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::protocol::fuzz;
+    use proptest::prelude::*;
+    use serde_json::{json, Value};
 
     #[test]
     fn requests_parse_and_validate() {
@@ -247,5 +250,258 @@ mod tests {
         let line = encode_reply(&reply);
         assert_eq!(line.matches('\n').count(), 1);
         assert_eq!(serde_json::from_str::<Reply>(line.trim()).unwrap(), reply);
+    }
+
+    const MAX_FORCE: f64 = 8.0;
+    const MAX_RATE: f64 = 1000.0;
+
+    /// Parse `line`; whatever is accepted must be within the daemon's limits.
+    fn check_line(line: &str) -> Result<Option<Request>, TestCaseError> {
+        let parsed = parse_request(line, MAX_FORCE, MAX_RATE);
+        if let Ok(request) = &parsed {
+            match request {
+                Request::SetForce { seq, force } => {
+                    prop_assert!(*seq >= 1);
+                    prop_assert!(force.iter().all(|f| f.is_finite() && f.abs() <= MAX_FORCE));
+                }
+                Request::Subscribe { rate_hz } => {
+                    prop_assert!(rate_hz.is_finite() && (0.0..=MAX_RATE).contains(rate_hz));
+                }
+                Request::Hello { .. } | Request::Calibrate {} | Request::Status {} => {}
+            }
+        }
+        Ok(parsed.ok())
+    }
+
+    /// Requests the daemon accepts: every type, every field, values up to the limits.
+    fn valid_request() -> impl Strategy<Value = Request> {
+        let role = prop_oneof![Just(Role::Control), Just(Role::Observe)];
+        let force = prop_oneof![
+            -MAX_FORCE..=MAX_FORCE,
+            Just(MAX_FORCE),
+            Just(-MAX_FORCE),
+            Just(0.0),
+            Just(-0.0),
+            Just(f64::MIN_POSITIVE),
+        ];
+        prop_oneof![
+            (any::<u32>(), role, ".{0,80}").prop_map(|(version, role, name)| Request::Hello {
+                version,
+                role,
+                name
+            }),
+            (1..=u64::MAX, [force.clone(), force.clone(), force])
+                .prop_map(|(seq, force)| Request::SetForce { seq, force }),
+            prop_oneof![0.0..=MAX_RATE, Just(0.0), Just(MAX_RATE)]
+                .prop_map(|rate_hz| Request::Subscribe { rate_hz }),
+            Just(Request::Calibrate {}),
+            Just(Request::Status {}),
+        ]
+    }
+
+    /// Any JSON value, nested a little, with numbers at and beyond the edges of what fits.
+    fn json_value() -> impl Strategy<Value = Value> {
+        let leaf = prop_oneof![
+            Just(Value::Null),
+            any::<bool>().prop_map(Value::from),
+            any::<i64>().prop_map(Value::from),
+            any::<u64>().prop_map(Value::from),
+            any::<f64>().prop_map(Value::from),
+            prop_oneof![
+                Just(-0.0),
+                Just(8.0),
+                Just(8.000001),
+                Just(1000.0),
+                Just(1e308)
+            ]
+            .prop_map(Value::from),
+            prop_oneof![
+                Just("control"),
+                Just("observe"),
+                Just("status"),
+                Just("set_force")
+            ]
+            .prop_map(Value::from),
+            ".{0,12}".prop_map(Value::from),
+        ];
+        leaf.prop_recursive(3, 16, 4, |inner| {
+            prop_oneof![
+                proptest::collection::vec(inner.clone(), 0..5).prop_map(Value::from),
+                proptest::collection::btree_map(".{0,8}", inner, 0..3)
+                    .prop_map(|m| Value::Object(m.into_iter().collect())),
+            ]
+        })
+    }
+
+    /// A number near the scales and limits of the requests' fields.
+    fn number() -> impl Strategy<Value = Value> {
+        prop_oneof![
+            -10.0..10.0f64,
+            -1100.0..1100.0f64,
+            prop::sample::select(vec![
+                -0.0,
+                8.0,
+                -8.0,
+                8.000001,
+                1000.0,
+                1000.000001,
+                -1e-300
+            ]),
+        ]
+        .prop_map(Value::from)
+    }
+
+    /// A value of the type `field` has, mostly in range.
+    fn plausible(field: &str) -> BoxedStrategy<Value> {
+        match field {
+            "version" => prop_oneof![Just(1u64), 0..3u64]
+                .prop_map(Value::from)
+                .boxed(),
+            "role" => prop::sample::select(vec!["control", "observe", "admin"])
+                .prop_map(Value::from)
+                .boxed(),
+            "name" => ".{0,70}".prop_map(Value::from).boxed(),
+            "seq" => prop_oneof![0..4u64, Just(u64::MAX)]
+                .prop_map(Value::from)
+                .boxed(),
+            "force" => {
+                let axis = prop_oneof![3 => (-8.0..=8.0f64).prop_map(Value::from), 1 => number()];
+                prop_oneof![
+                    3 => proptest::collection::vec(axis.clone(), 3),
+                    1 => proptest::collection::vec(axis, 0..=4),
+                ]
+                .prop_map(Value::from)
+                .boxed()
+            }
+            _ => number().boxed(),
+        }
+    }
+
+    /// Objects shaped like requests: mostly a known type with mostly its own fields, values
+    /// mostly of the right type and near the limits, and now and then anything at all.
+    fn request_shaped() -> impl Strategy<Value = String> {
+        const TYPES: [(&str, &[&str]); 5] = [
+            ("hello", &["version", "role", "name"]),
+            ("set_force", &["seq", "force"]),
+            ("subscribe", &["rate_hz"]),
+            ("calibrate", &[]),
+            ("status", &[]),
+        ];
+        let all_fields = ["version", "role", "name", "seq", "force", "rate_hz"];
+        (0..TYPES.len(), any::<bool>())
+            .prop_flat_map(move |(t, unknown_type)| {
+                let (name, own) = TYPES[t];
+                let kind = if unknown_type {
+                    prop_oneof![3 => Just(Value::from(name)), 1 => json_value()].boxed()
+                } else {
+                    Just(Value::from(name)).boxed()
+                };
+                let fields: Vec<_> = all_fields
+                    .iter()
+                    .map(|&field| {
+                        let present = if own.contains(&field) { 0.8 } else { 0.05 };
+                        let value = prop_oneof![4 => plausible(field), 1 => json_value()];
+                        proptest::option::weighted(present, value)
+                            .prop_map(move |v| v.map(|v| (field.to_string(), v)))
+                    })
+                    .collect();
+                let stranger = proptest::option::weighted(0.05, (".{0,8}", json_value()));
+                (kind, fields, stranger)
+            })
+            .prop_map(|(kind, fields, stranger)| {
+                let mut object = serde_json::Map::new();
+                object.insert("type".into(), kind);
+                object.extend(fields.into_iter().flatten().chain(stranger));
+                Value::Object(object).to_string()
+            })
+    }
+
+    /// `line` with a few bytes replaced, inserted or removed, biased towards JSON syntax.
+    fn mutated(line: impl Strategy<Value = String>) -> impl Strategy<Value = String> {
+        let byte = prop_oneof![
+            prop::sample::select(b"{}[]\",:.-+eE0123456789 tfn\\u".to_vec()),
+            any::<u8>(),
+        ];
+        let edit = (0u8..3, any::<prop::sample::Index>(), byte);
+        (line, proptest::collection::vec(edit, 1..4)).prop_map(|(line, edits)| {
+            let mut bytes = line.into_bytes();
+            for (kind, at, b) in edits {
+                let i = at.index(bytes.len() + 1);
+                match kind {
+                    0 if i < bytes.len() => bytes[i] = b,
+                    1 => bytes.insert(i, b),
+                    _ if i < bytes.len() => {
+                        bytes.remove(i);
+                    }
+                    _ => bytes.push(b),
+                }
+            }
+            String::from_utf8_lossy(&bytes).into_owned()
+        })
+    }
+
+    fn request_line(request: &Request) -> String {
+        serde_json::to_string(request).unwrap()
+    }
+
+    proptest! {
+        #![proptest_config(fuzz::config())]
+
+        #[test]
+        fn arbitrary_text_is_refused_or_in_range(line in ".{0,200}") {
+            check_line(&line)?;
+        }
+
+        #[test]
+        fn arbitrary_bytes_are_refused_or_in_range(
+            bytes in proptest::collection::vec(any::<u8>(), 0..=MAX_LINE_LEN)
+        ) {
+            check_line(&String::from_utf8_lossy(&bytes))?;
+        }
+
+        #[test]
+        fn request_shaped_objects_are_refused_or_in_range(line in request_shaped()) {
+            check_line(&line)?;
+        }
+
+        #[test]
+        fn mutated_requests_are_refused_or_in_range(
+            line in mutated(valid_request().prop_map(|r| request_line(&r)))
+        ) {
+            check_line(&line)?;
+        }
+
+        #[test]
+        fn valid_requests_round_trip(request in valid_request()) {
+            let parsed = check_line(&request_line(&request))?;
+            prop_assert_eq!(parsed, Some(request));
+        }
+
+        #[test]
+        fn forces_and_rates_beyond_the_limits_are_refused(
+            seq in 1..=u64::MAX,
+            axis in 0usize..3,
+            beyond in prop_oneof![
+                (MAX_FORCE..1e308).prop_filter("beyond", |f| *f > MAX_FORCE),
+                Just(f64::MAX)
+            ],
+            negative in any::<bool>(),
+            rate in (MAX_RATE..1e308).prop_filter("beyond", |r| *r > MAX_RATE),
+        ) {
+            let mut force = [0.0; 3];
+            force[axis] = if negative { -beyond } else { beyond };
+            prop_assert_eq!(
+                parse_request(&json!({"type": "set_force", "seq": seq, "force": force}).to_string(),
+                              MAX_FORCE, MAX_RATE),
+                Err(RequestError::ForceOutOfRange { limit: MAX_FORCE })
+            );
+            for rate_hz in [rate, -rate, -f64::MIN_POSITIVE] {
+                prop_assert_eq!(
+                    parse_request(&json!({"type": "subscribe", "rate_hz": rate_hz}).to_string(),
+                                  MAX_FORCE, MAX_RATE),
+                    Err(RequestError::RateOutOfRange { limit: MAX_RATE })
+                );
+            }
+        }
     }
 }

@@ -2,16 +2,23 @@
 //! and a writer thread (sends replies). Force offsets go straight to the servo thread through a
 //! bounded channel where the newest wins; everything else goes to the daemon's hub. A client that
 //! misbehaves is closed with a logged reason and affects nobody else.
+//!
+//! Admission: up to `max_clients` connections are served in full. While they are all taken, one
+//! more connection is admitted as a *status-only* connection (granted observe, may send `hello`
+//! and `status` only), so `hgcd status` answers whoever holds the places; any further connection
+//! is refused. Every connection must say hello within `hello_timeout` of being accepted (an
+//! absolute deadline, however the bytes trickle in); a status-only connection is closed at that
+//! deadline whatever it sends.
 
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader, ErrorKind, Read, Write};
+use std::io::{BufRead, BufReader, ErrorKind, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::{self, JoinHandle};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender};
 use nalgebra::Vector3;
@@ -33,6 +40,8 @@ pub struct ClientEntry {
     /// Send every n-th servo state; 0: not subscribed.
     pub state_divider: u64,
     pub outbound: Sender<Reply>,
+    /// Admitted beyond `max_clients`: may only ask for status, closed at its hello deadline.
+    status_only: bool,
     stream: UnixStream,
 }
 
@@ -86,8 +95,10 @@ pub struct ServerContext {
     pub device_id: String,
     pub rate_hz: f64,
     pub max_force: f64,
+    /// Connections served in full; one more may connect for status only.
     pub max_clients: usize,
-    /// A client that has not said hello within this time is closed.
+    /// A client that has not said hello within this time of being accepted is closed; a
+    /// status-only connection is closed at that deadline in any case.
     pub hello_timeout: Duration,
 }
 
@@ -154,11 +165,19 @@ pub fn spawn_listener(
         })
 }
 
+/// What a status-only connection is told, and why its other requests are refused.
+const STATUS_ONLY: &str =
+    "the daemon has app.max_clients clients: this connection may only ask for status, and is \
+     closed app.hello_timeout_ms after it connected";
+
 fn accept(stream: UnixStream, ctx: &Arc<ServerContext>) {
+    // The hello deadline counts from here, not from the last byte received.
+    let deadline = Instant::now().checked_add(ctx.hello_timeout);
     let _ = stream.set_nonblocking(false);
-    let (id, rx) = {
+    let (id, rx, status_only) = {
         let mut reg = lock(&ctx.registry);
-        if reg.clients.len() >= ctx.max_clients {
+        let full = reg.clients.values().filter(|c| !c.status_only).count() >= ctx.max_clients;
+        if full && reg.clients.values().any(|c| c.status_only) {
             drop(reg);
             warn!("application socket: refused a client (max_clients reached)");
             let mut s = stream;
@@ -184,11 +203,15 @@ fn accept(stream: UnixStream, ctx: &Arc<ServerContext>) {
                 role: Role::Observe,
                 state_divider: 0,
                 outbound: tx,
+                status_only: full,
                 stream: clone,
             },
         );
-        (id, rx)
+        (id, rx, full)
     };
+    if status_only {
+        info!("application client {id} admitted for status only (max_clients reached)");
+    }
     let Ok(write_half) = stream.try_clone() else {
         forget(ctx, id);
         return;
@@ -199,7 +222,7 @@ fn accept(stream: UnixStream, ctx: &Arc<ServerContext>) {
         .stack_size(CLIENT_STACK)
         .spawn(move || {
             let writer = spawn_writer(write_half, rx, id);
-            let reason = serve_client(stream, id, &ctx2);
+            let reason = serve_client(stream, id, status_only, deadline, &ctx2);
             info!("application client {id} closed: {reason}");
             forget(&ctx2, id);
             if let Ok(w) = writer {
@@ -256,30 +279,76 @@ fn spawn_writer(
         })
 }
 
-/// Read one line of at most `MAX_LINE_LEN` bytes. Ok(None) at end of stream.
-fn read_line(reader: &mut impl BufRead) -> Result<Option<String>, String> {
-    let mut buf = Vec::with_capacity(128);
-    let n = reader
-        .take(MAX_LINE_LEN as u64 + 1)
-        .read_until(b'\n', &mut buf)
-        .map_err(|e| match e.kind() {
-            ErrorKind::WouldBlock | ErrorKind::TimedOut => "no hello within the time limit".into(),
-            _ => format!("read error: {e}"),
-        })?;
-    if n == 0 {
-        return Ok(None);
-    }
-    if buf.last() != Some(&b'\n') {
-        return if buf.len() > MAX_LINE_LEN {
-            Err(format!("line longer than {MAX_LINE_LEN} bytes"))
-        } else {
-            Err("connection closed in the middle of a line".into())
+/// Why no request line could be read.
+#[derive(Debug, thiserror::Error)]
+enum ReadError {
+    #[error("the connection's time limit was reached")]
+    Deadline,
+    #[error("line longer than {MAX_LINE_LEN} bytes")]
+    TooLong,
+    #[error("connection closed in the middle of a line")]
+    Unfinished,
+    #[error("line is not UTF-8")]
+    NotUtf8,
+    #[error("read error: {0}")]
+    Io(#[source] std::io::Error),
+}
+
+/// Read one line of at most `MAX_LINE_LEN` bytes (newline excluded). Ok(None) at end of stream.
+/// With a `deadline`, every read is bounded by the time left until it, so a client that trickles
+/// bytes cannot stretch the line past it.
+fn read_line(
+    reader: &mut BufReader<UnixStream>,
+    deadline: Option<Instant>,
+) -> Result<Option<String>, ReadError> {
+    let mut line = Vec::with_capacity(128);
+    loop {
+        if let Some(deadline) = deadline {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Err(ReadError::Deadline);
+            }
+            reader
+                .get_ref()
+                .set_read_timeout(Some(left))
+                .map_err(ReadError::Io)?;
+        }
+        let (taken, complete) = match reader.fill_buf() {
+            Ok([]) if line.is_empty() => return Ok(None),
+            Ok([]) => return Err(ReadError::Unfinished),
+            Ok(chunk) => {
+                let window = &chunk[..chunk.len().min(MAX_LINE_LEN + 1 - line.len())];
+                match window.iter().position(|&b| b == b'\n') {
+                    Some(end) => {
+                        line.extend_from_slice(&window[..end]);
+                        (end + 1, true)
+                    }
+                    None => {
+                        line.extend_from_slice(window);
+                        (window.len(), false)
+                    }
+                }
+            }
+            // A read timed out: the loop's head decides whether the deadline has passed.
+            Err(e)
+                if deadline.is_some()
+                    && matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) =>
+            {
+                continue
+            }
+            Err(e) if e.kind() == ErrorKind::Interrupted => continue,
+            Err(e) => return Err(ReadError::Io(e)),
         };
+        reader.consume(taken);
+        if complete {
+            return String::from_utf8(line)
+                .map(Some)
+                .map_err(|_| ReadError::NotUtf8);
+        }
+        if line.len() > MAX_LINE_LEN {
+            return Err(ReadError::TooLong);
+        }
     }
-    buf.pop();
-    String::from_utf8(buf)
-        .map(Some)
-        .map_err(|_| "line is not UTF-8".into())
 }
 
 /// How long a reply other than a state sample may wait for room in a client's queue.
@@ -308,17 +377,34 @@ fn fatal(ctx: &ServerContext, id: u64, message: String) -> String {
 }
 
 /// Serve one client until it leaves or breaks the protocol; returns the reason it ended.
-fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
-    // A client must say hello in time, or idle connections could hold every place.
-    let _ = stream.set_read_timeout(Some(ctx.hello_timeout));
+/// `deadline`: when it must have said hello (a status-only connection: when it is closed); None
+/// when the hello timeout is too long to represent.
+fn serve_client(
+    stream: UnixStream,
+    id: u64,
+    status_only: bool,
+    mut deadline: Option<Instant>,
+    ctx: &ServerContext,
+) -> String {
     let mut reader = BufReader::new(stream);
     let mut greeted = false;
     let mut last_seq: Option<u64> = None;
     loop {
-        let line = match read_line(&mut reader) {
+        let line = match read_line(&mut reader, deadline) {
             Ok(Some(line)) => line,
             Ok(None) => return "disconnected".into(),
-            Err(e) => return fatal(ctx, id, e),
+            Err(ReadError::Deadline) if !greeted => {
+                return fatal(ctx, id, "no hello within the time limit".into())
+            }
+            Err(ReadError::Deadline) => {
+                return fatal(
+                    ctx,
+                    id,
+                    "status-only connection: its time limit (app.hello_timeout_ms) was reached"
+                        .into(),
+                )
+            }
+            Err(e) => return fatal(ctx, id, e.to_string()),
         };
         let request = match parse_request(&line, ctx.max_force, ctx.rate_hz) {
             Ok(r) => r,
@@ -341,10 +427,13 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                     );
                 }
                 greeted = true;
-                let _ = reader.get_ref().set_read_timeout(None);
+                if !status_only {
+                    deadline = None;
+                    let _ = reader.get_ref().set_read_timeout(None);
+                }
                 let granted = {
                     let mut reg = lock(&ctx.registry);
-                    let granted = if role == Role::Control && reg.owner.is_none() {
+                    let granted = if role == Role::Control && reg.owner.is_none() && !status_only {
                         reg.owner = Some(id);
                         Role::Control
                     } else {
@@ -373,7 +462,16 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                         rate_hz: ctx.rate_hz,
                     },
                 );
-                if role == Role::Control && granted != Role::Control {
+                if status_only {
+                    reply(
+                        ctx,
+                        id,
+                        Reply::Error {
+                            message: STATUS_ONLY.into(),
+                            fatal: false,
+                        },
+                    );
+                } else if role == Role::Control && granted != Role::Control {
                     reply(
                         ctx,
                         id,
@@ -385,6 +483,10 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                 }
             }
             _ if !greeted => return fatal(ctx, id, "the first message must be hello".into()),
+            Request::Status {} => {
+                let _ = ctx.hub.send(HubRequest::Status { client: id });
+            }
+            _ if status_only => return fatal(ctx, id, STATUS_ONLY.into()),
             Request::SetForce { seq, force } => {
                 if lock(&ctx.registry).owner != Some(id) {
                     reply(
@@ -441,9 +543,125 @@ fn serve_client(stream: UnixStream, id: u64, ctx: &ServerContext) -> String {
                 }
                 let _ = ctx.hub.send(HubRequest::Calibrate { client: id });
             }
-            Request::Status {} => {
-                let _ = ctx.hub.send(HubRequest::Status { client: id });
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A reader over `bytes`, then end of stream.
+    fn reader_over(bytes: &[u8]) -> BufReader<UnixStream> {
+        let (mut tx, rx) = UnixStream::pair().unwrap();
+        tx.write_all(bytes).unwrap();
+        BufReader::new(rx)
+    }
+
+    #[test]
+    fn lines_are_split_bounded_and_checked() {
+        let longest = "x".repeat(MAX_LINE_LEN);
+        let mut r = reader_over(format!("a\n{longest}\n\nb").as_bytes());
+        assert_eq!(read_line(&mut r, None).unwrap().as_deref(), Some("a"));
+        assert_eq!(read_line(&mut r, None).unwrap(), Some(longest.clone()));
+        assert_eq!(read_line(&mut r, None).unwrap().as_deref(), Some(""));
+        assert!(matches!(
+            read_line(&mut r, None),
+            Err(ReadError::Unfinished)
+        ));
+        let mut r = reader_over(format!("{longest}x\n").as_bytes());
+        assert!(matches!(read_line(&mut r, None), Err(ReadError::TooLong)));
+        let mut r = reader_over(b"\xff\n");
+        assert!(matches!(read_line(&mut r, None), Err(ReadError::NotUtf8)));
+        let mut r = reader_over(b"");
+        assert!(matches!(read_line(&mut r, None), Ok(None)));
+    }
+
+    #[test]
+    fn a_trickling_writer_cannot_stretch_the_deadline() {
+        let (mut tx, rx) = UnixStream::pair().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let trickler = thread::spawn({
+            let stop = stop.clone();
+            move || {
+                // A byte every 10 ms, never a newline.
+                while !stop.load(Ordering::Relaxed) && tx.write_all(b" ").is_ok() {
+                    thread::sleep(Duration::from_millis(10));
+                }
             }
+        });
+        let start = Instant::now();
+        let result = read_line(
+            &mut BufReader::new(rx),
+            Some(start + Duration::from_millis(100)),
+        );
+        let took = start.elapsed();
+        stop.store(true, Ordering::Relaxed);
+        trickler.join().unwrap();
+        assert!(matches!(result, Err(ReadError::Deadline)), "{result:?}");
+        assert!(took >= Duration::from_millis(100), "{took:?}");
+        // Generous: a loaded machine may wake late, but not by seconds.
+        assert!(took < Duration::from_secs(5), "{took:?}");
+    }
+
+    /// What `read_line` must make of `bytes`, written out on its own: the lines, then how the
+    /// stream ends (None: cleanly).
+    fn expected_lines(bytes: &[u8]) -> (Vec<String>, Option<&'static str>) {
+        let mut lines = Vec::new();
+        let mut rest = bytes;
+        while let Some(end) = rest.iter().position(|&b| b == b'\n') {
+            if end > MAX_LINE_LEN {
+                return (lines, Some("too long"));
+            }
+            match std::str::from_utf8(&rest[..end]) {
+                Ok(line) => lines.push(line.to_string()),
+                Err(_) => return (lines, Some("not UTF-8")),
+            }
+            rest = &rest[end + 1..];
+        }
+        let end = match rest.len() {
+            0 => None,
+            n if n > MAX_LINE_LEN => Some("too long"),
+            _ => Some("unfinished"),
+        };
+        (lines, end)
+    }
+
+    /// Byte streams of short and long segments, with and without newlines between them.
+    fn streams() -> impl Strategy<Value = Vec<u8>> {
+        let segment = prop_oneof![
+            4 => proptest::collection::vec(any::<u8>(), 0..40),
+            1 => proptest::collection::vec(prop::sample::select(b"{}\"a:,1 \xff".to_vec()), 0..60),
+            1 => (MAX_LINE_LEN - 2..MAX_LINE_LEN + 3).prop_map(|n| vec![b' '; n]),
+        ];
+        (proptest::collection::vec(segment, 0..6), any::<bool>()).prop_map(|(segments, last)| {
+            let mut bytes = segments.join(&b'\n');
+            if last {
+                bytes.push(b'\n');
+            }
+            bytes
+        })
+    }
+
+    proptest! {
+        #![proptest_config(crate::protocol::fuzz::config())]
+
+        #[test]
+        fn any_stream_splits_into_the_lines_it_holds(bytes in streams()) {
+            let mut reader = reader_over(&bytes);
+            let mut lines = Vec::new();
+            let end = loop {
+                match read_line(&mut reader, None) {
+                    Ok(Some(line)) => lines.push(line),
+                    Ok(None) => break None,
+                    Err(ReadError::TooLong) => break Some("too long"),
+                    Err(ReadError::NotUtf8) => break Some("not UTF-8"),
+                    Err(ReadError::Unfinished) => break Some("unfinished"),
+                    Err(e) => panic!("{e}"),
+                }
+            };
+            prop_assert_eq!((lines, end), expected_lines(&bytes));
         }
     }
 }
