@@ -333,7 +333,7 @@ impl Hub {
         }
         for e in events.try_iter() {
             if let ServoEvent::Stats(s) = &e {
-                self.status.servo = *s;
+                self.status.servo = (*s).into();
             }
             self.log.log(&e);
         }

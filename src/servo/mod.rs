@@ -87,7 +87,7 @@ pub enum ServoEvent {
 pub const STATS_EVERY: u64 = 500;
 
 /// The loop's counters at one moment.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StatsSnapshot {
     pub ticks: u64,
     pub late: u64,
@@ -100,10 +100,8 @@ pub struct StatsSnapshot {
     /// Longest interval between two reports so far, µs.
     pub worst_period_us: f64,
     /// Reports received more than one period after they were due.
-    #[serde(default)]
     pub late_wakeups: u64,
     /// Largest lateness of a report against its timestamp so far, µs.
-    #[serde(default)]
     pub worst_lateness_us: f64,
 }
 
