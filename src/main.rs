@@ -165,27 +165,7 @@ fn real_main(cli: Cli) -> Result<()> {
             device,
             duration,
             virtual_time,
-        } => {
-            if let Some(d) = duration {
-                anyhow::ensure!(
-                    d.is_finite() && d > 0.0,
-                    "--duration must be a positive number of seconds"
-                );
-            }
-            let request = RunRequest {
-                device: device_spec(device.as_deref(), &config)?,
-                duration,
-                pacing: if virtual_time {
-                    Pacing::Virtual
-                } else {
-                    Pacing::RealTime
-                },
-            };
-            let signals = install_signal_handlers()?;
-            let report = daemon::run(&config, &request, signals)?;
-            println!("{}", report.stats);
-            Ok(())
-        }
+        } => run(&config, device.as_deref(), duration, virtual_time),
         Command::Calibrate {
             via_daemon: true,
             yes,
@@ -196,84 +176,125 @@ fn real_main(cli: Cli) -> Result<()> {
             }
             ctl::calibrate_via_daemon(&config.socket_path())
         }
-        Command::Status => ctl::status(&config.socket_path()),
-        Command::SimDevice { listen, lockstep } => {
-            let stop = install_stop_handler()?;
-            let mut device = hgcd::transport::sim::SimDevice::from_config("point-mass", &config)?;
-            // Replaces a stale socket, refuses a live one or anything that is not a socket.
-            let listener = hgcd::app::server::bind(&listen, 0o660)
-                .with_context(|| format!("listening on {}", listen.display()))?;
-            tracing::info!(
-                "simulated device listening on {} ({})",
-                listen.display(),
-                if lockstep { "lock-step" } else { "real time" }
-            );
-            let served = hgcd::transport::socket::serve(&listener, &mut device, lockstep, &stop);
-            let _ = std::fs::remove_file(&listen);
-            served.with_context(|| format!("serving {}", listen.display()))?;
-            println!(
-                "simulated device served {:.3} s of device time; {} output reports rejected",
-                device.time(),
-                device.rejected_outputs()
-            );
-            Ok(())
-        }
         Command::Calibrate {
             device,
             output,
             real_time,
             yes,
             ..
-        } => {
-            let device = device_spec(device.as_deref(), &config)?;
-            let simulated = matches!(device, DeviceSpec::Sim { .. });
-            if !simulated && !yes {
-                confirm_start()?;
-            }
-            let request = CalibrateRequest {
-                device,
-                pacing: if simulated && !real_time {
-                    Pacing::Virtual
-                } else {
-                    Pacing::RealTime
-                },
-                output,
-                state_dir: config.state_dir(),
-            };
-            let stop = install_stop_handler()?;
-            let mut display = progress::Display::new(
-                hgcd::control::calibration::GridPlan::new(
-                    &hgcd::control::calibration::CalibrationParams::from_config(&config),
-                )
-                .map(|p| p.path.len())
-                .unwrap_or(0),
-            );
-            let run = calibrate(&config, &request, stop, &mut |e| display.show(e));
-            display.finish();
-            let run = run?;
-            print!("{}", progress::summary(&run));
-            Ok(())
-        }
-        Command::Devices => {
-            let devices = hid::list_devices()?;
-            if devices.is_empty() {
-                println!(
-                    "no HID devices visible (unplugged, or no permission: see docs/install.md)"
-                );
-            }
-            for d in devices {
-                println!(
-                    "{:<32} {} {} (interface {}, {})",
-                    d.spec(),
-                    d.manufacturer.as_deref().unwrap_or("?"),
-                    d.product.as_deref().unwrap_or("?"),
-                    d.interface,
-                    d.path
-                );
-            }
-            Ok(())
-        }
+        } => calibrate_here(&config, device.as_deref(), output, real_time, yes),
+        Command::Status => ctl::status(&config.socket_path()),
+        Command::SimDevice { listen, lockstep } => sim_device(&config, &listen, lockstep),
+        Command::Devices => devices(),
     }
+}
+
+/// `hgcd run`: the daemon, until a signal or `--duration`; prints the loop's statistics.
+fn run(
+    config: &Config,
+    device: Option<&str>,
+    duration: Option<f64>,
+    virtual_time: bool,
+) -> Result<()> {
+    if let Some(d) = duration {
+        anyhow::ensure!(
+            d.is_finite() && d > 0.0,
+            "--duration must be a positive number of seconds"
+        );
+    }
+    let request = RunRequest {
+        device: device_spec(device, config)?,
+        duration,
+        pacing: if virtual_time {
+            Pacing::Virtual
+        } else {
+            Pacing::RealTime
+        },
+    };
+    let signals = install_signal_handlers()?;
+    let report = daemon::run(config, &request, signals)?;
+    println!("{}", report.stats);
+    Ok(())
+}
+
+/// `hgcd calibrate` on a device this process opens itself; prints the summary.
+fn calibrate_here(
+    config: &Config,
+    device: Option<&str>,
+    output: Option<PathBuf>,
+    real_time: bool,
+    yes: bool,
+) -> Result<()> {
+    let device = device_spec(device, config)?;
+    let simulated = matches!(device, DeviceSpec::Sim { .. });
+    if !simulated && !yes {
+        confirm_start()?;
+    }
+    let request = CalibrateRequest {
+        device,
+        pacing: if simulated && !real_time {
+            Pacing::Virtual
+        } else {
+            Pacing::RealTime
+        },
+        output,
+        state_dir: config.state_dir(),
+    };
+    let stop = install_stop_handler()?;
+    let mut display = progress::Display::new(
+        hgcd::control::calibration::GridPlan::new(
+            &hgcd::control::calibration::CalibrationParams::from_config(config),
+        )
+        .map(|p| p.path.len())
+        .unwrap_or(0),
+    );
+    let run = calibrate(config, &request, stop, &mut |e| display.show(e));
+    display.finish();
+    let run = run?;
+    print!("{}", progress::summary(&run));
+    Ok(())
+}
+
+/// `hgcd sim-device`: serve the simulated device on a Unix socket until the host leaves.
+fn sim_device(config: &Config, listen: &Path, lockstep: bool) -> Result<()> {
+    let stop = install_stop_handler()?;
+    let mut device = hgcd::transport::sim::SimDevice::from_config("point-mass", config)?;
+    // Replaces a stale socket, refuses a live one or anything that is not a socket.
+    let listener = hgcd::app::server::bind(listen, 0o660)
+        .with_context(|| format!("listening on {}", listen.display()))?;
+    tracing::info!(
+        "simulated device listening on {} ({})",
+        listen.display(),
+        if lockstep { "lock-step" } else { "real time" }
+    );
+    let served = hgcd::transport::socket::serve(&listener, &mut device, lockstep, &stop);
+    let _ = std::fs::remove_file(listen);
+    served.with_context(|| format!("serving {}", listen.display()))?;
+    println!(
+        "simulated device served {:.3} s of device time; {} output reports rejected",
+        device.time(),
+        device.rejected_outputs()
+    );
+    Ok(())
+}
+
+/// `hgcd devices`: the HID devices this process can see.
+fn devices() -> Result<()> {
+    let devices = hid::list_devices()?;
+    if devices.is_empty() {
+        println!("no HID devices visible (unplugged, or no permission: see docs/install.md)");
+    }
+    for d in devices {
+        println!(
+            "{:<32} {} {} (interface {}, {})",
+            d.spec(),
+            d.manufacturer.as_deref().unwrap_or("?"),
+            d.product.as_deref().unwrap_or("?"),
+            d.interface,
+            d.path
+        );
+    }
+    Ok(())
 }
 
 /// On a real device the user brings the handle near the workspace centre first (paper §3.1).
