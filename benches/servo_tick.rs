@@ -89,7 +89,7 @@ fn bench_tick(c: &mut Criterion) {
     let (returns, _returns_rx) = crossbeam_channel::bounded(16);
     let (states, states_rx) = crossbeam_channel::bounded(1024);
     let model = GravityModel::new(
-        hold().field,
+        hold().field.into(),
         CompensationMode::Scalar,
         OutsideGrid::HoldNearest,
     )

@@ -12,7 +12,7 @@ use nalgebra::Vector3;
 use hgcd::calibrate::{calibrate, CalibrateRequest};
 use hgcd::config::Config;
 use hgcd::control::calibration::CalibrationEvent;
-use hgcd::grid::MassGrid;
+use hgcd::grid::{GridFile, MassGrid};
 use hgcd::transport::Pacing;
 
 mod common;
@@ -21,7 +21,9 @@ use common::{file_names, hgcd, serial, truth_field_125};
 /// A config file (paper defaults) whose simulated device has the truth field; extra TOML appended.
 fn setup(dir: &Path, extra: &str) -> (PathBuf, MassGrid) {
     let truth = truth_field_125();
-    truth.save_atomic(&dir.join("truth.toml")).unwrap();
+    GridFile::from(truth.clone())
+        .save_atomic(&dir.join("truth.toml"))
+        .unwrap();
     let cfg = dir.join("hgcd.toml");
     std::fs::write(&cfg, format!("[sim]\nmass_grid = \"truth.toml\"\n{extra}")).unwrap();
     (cfg, truth)
@@ -57,7 +59,8 @@ fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let grid = MassGrid::load(&state.join("sim-point-mass.toml")).unwrap();
+    let file = GridFile::load(&state.join("sim-point-mass.toml")).unwrap();
+    let grid = &file.grid;
     assert_eq!(grid.dims, [3, 3, 3]);
     let angle = grid
         .gravity_direction
@@ -84,23 +87,15 @@ fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
         .fold((f64::MAX, 0.0f64), |(l, h), &m| (l.min(m), h.max(m)));
     assert!(lo < 0.051 && hi > 0.249, "range {lo}..{hi}");
     // The vector mode's holding forces equal the true gravity force M g v_G at each vertex.
-    let vertices = grid.extra["vertices"].as_table().unwrap();
-    let forces = vertices["force_vectors"].as_array().unwrap();
-    for (n, f) in forces.iter().enumerate() {
-        let f: Vec<f64> = f
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|c| c.as_float().unwrap())
-            .collect();
+    for (n, f) in file.vertices.force_vectors.iter().enumerate() {
         let (i, j, k) = (n % 3, (n / 3) % 3, n / 9);
         let x = grid.vertex_position(i, j, k);
         let expected = truth.gravity_force(&x);
-        let err = (Vector3::new(f[0], f[1], f[2]) - expected).norm() / expected.norm();
+        let err = (Vector3::from(*f) - expected).norm() / expected.norm();
         assert!(err < 0.01, "force vector at {x:?} off by {err}");
     }
     // Under a minute of device time (docs/performance.md).
-    let duration = grid.extra["calibration"]["duration_s"].as_float().unwrap();
+    let duration = file.calibration.as_ref().unwrap().duration_s.unwrap();
     assert!(
         duration < 60.0,
         "calibration took {duration} s of device time"
@@ -216,11 +211,10 @@ fn vertices_outside_the_workspace_are_left_out_and_reported() {
         stdout.contains("left out (outside the workspace)"),
         "{stdout}"
     );
-    let grid = MassGrid::load(&out_file).unwrap();
+    let file = GridFile::load(&out_file).unwrap();
+    let grid = &file.grid;
     assert_eq!(grid.dims, [3, 3, 3]);
-    let left_out = grid.extra["calibration"]["left_out_vertices"]
-        .as_array()
-        .unwrap();
+    let left_out = file.calibration.unwrap().left_out_vertices.unwrap();
     assert_eq!(left_out.len(), 98);
     for (n, m) in grid.masses.iter().enumerate() {
         let x = grid.vertex_position(n % 3, (n / 3) % 3, n / 9);

@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
 use crate::config::{mm, SimConfig};
-use crate::grid::{GridError, MassGrid};
+use crate::grid::{GridError, GridFile, MassGrid};
 
 /// The physics of a simulated device.
 pub trait Plant: Send {
@@ -63,7 +63,7 @@ impl PointMass {
         let lo = mm(sim.workspace_min_mm);
         let hi = mm(sim.workspace_max_mm);
         let field = match &sim.mass_grid {
-            Some(path) => MassGrid::load(path)?,
+            Some(path) => GridFile::load(path)?.grid,
             None => MassGrid::uniform(
                 sim.mass_kg,
                 sim.g,
