@@ -211,7 +211,7 @@ impl GridFile {
     /// [`MAX_FILE_BYTES`](super::MAX_FILE_BYTES)). Errors: [`GridError::Missing`] when nothing
     /// exists at `path`, and every other variant a read or a parse gives.
     pub fn load(path: &Path) -> Result<Self, GridError> {
-        Self::from_toml_str(&store::read_text(path)?, path)
+        Self::from_toml_str(&store::read_regular(path)?, path)
     }
 
     /// [`load`](Self::load), and refuse a grid whose `[device] id` names another device than

@@ -3,8 +3,8 @@
 //! - `lattice`: [`MassGrid`], the vertices and the trilinear interpolation the servo path uses;
 //! - `file`: [`GridFile`], the file format: the lattice plus typed provenance and per-vertex
 //!   records, parsed with serde and checked;
-//! - `store`: where grids live and how they are read and written: bounded reads, atomic replace
-//!   with a backup.
+//! - `store`: where grids live and how they are read and written: only regular files, bounded,
+//!   never blocking; atomic replace with a backup.
 
 mod file;
 mod lattice;
@@ -26,6 +26,15 @@ pub enum GridError {
     /// Nothing exists at the path (not even a dangling symbolic link).
     #[error("no grid file at {path}")]
     Missing { path: PathBuf },
+    #[error(
+        "grid file {path} is {kind}, not a regular file (remove it, or put a grid file there)"
+    )]
+    NotRegular { path: PathBuf, kind: &'static str },
+    #[error(
+        "grid file {path} is a symbolic link to {target}, which does not exist (remove the link, \
+         or put a grid file there)"
+    )]
+    DanglingLink { path: PathBuf, target: PathBuf },
     #[error("cannot read grid file {path}")]
     Read {
         path: PathBuf,

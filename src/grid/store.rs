@@ -1,8 +1,15 @@
-//! Where grid files live and how they are read and written: bounded reads, and an atomic
-//! replace that keeps the old file as a backup.
+//! Where grid files live and how they are read and written.
+//!
+//! Reading opens regular files only (a symbolic link to one is followed), without blocking and
+//! bounded: a FIFO, a device, a directory or a dangling link where a grid should be is an error
+//! with one line saying so, never a hang or an unbounded read. "No grid" means nothing at all
+//! exists at the path.
+//!
+//! Writing replaces the file atomically and keeps the old one as a backup.
 
-use std::fs::{self, File};
-use std::io::{self, Write};
+use std::fs::{self, File, OpenOptions};
+use std::io::{self, Read, Write};
+use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
 
 use super::GridError;
@@ -16,26 +23,86 @@ pub fn grid_path(state_dir: &Path, device_id: &str) -> PathBuf {
     state_dir.join(format!("{device_id}.toml"))
 }
 
-/// The text of the grid file at `path` (at most [`MAX_FILE_BYTES`]). Errors:
-/// [`GridError::Missing`] when there is no file, [`GridError::TooLarge`], [`GridError::Read`].
-pub(super) fn read_text(path: &Path) -> Result<String, GridError> {
-    if !path.exists() {
-        return Err(GridError::Missing {
-            path: path.to_path_buf(),
-        });
-    }
+/// The text of the grid file at `path`. Errors: [`GridError::Missing`] when nothing exists there;
+/// [`GridError::NotRegular`], [`GridError::DanglingLink`], [`GridError::TooLarge`],
+/// [`GridError::Read`] (including a path that cannot be searched), [`GridError::Syntax`] for text
+/// that is not UTF-8.
+pub(super) fn read_regular(path: &Path) -> Result<String, GridError> {
     let read_error = |source| GridError::Read {
         path: path.to_path_buf(),
         source,
     };
-    let size = fs::metadata(path).map_err(read_error)?.len();
-    if size > MAX_FILE_BYTES {
-        return Err(GridError::TooLarge {
-            path: path.to_path_buf(),
-            max: MAX_FILE_BYTES,
-        });
+    let link = match fs::symlink_metadata(path) {
+        Ok(meta) => meta,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => {
+            return Err(GridError::Missing {
+                path: path.to_path_buf(),
+            })
+        }
+        Err(e) => return Err(read_error(e)),
+    };
+    // What the path leads to, before opening it: opening a device or a FIFO can block or act.
+    let target = match fs::metadata(path) {
+        Ok(meta) => meta,
+        Err(e) if link.file_type().is_symlink() && e.kind() == io::ErrorKind::NotFound => {
+            return Err(GridError::DanglingLink {
+                path: path.to_path_buf(),
+                target: fs::read_link(path).unwrap_or_default(),
+            })
+        }
+        Err(e) => return Err(read_error(e)),
+    };
+    not_regular(path, &target)?;
+    // O_NONBLOCK: should the path be swapped for a FIFO between the check and the open, the open
+    // does not wait for a writer; the type is then checked again on the open descriptor.
+    let file = OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
+        .open(path)
+        .map_err(read_error)?;
+    let meta = file.metadata().map_err(read_error)?;
+    not_regular(path, &meta)?;
+    let too_large = || GridError::TooLarge {
+        path: path.to_path_buf(),
+        max: MAX_FILE_BYTES,
+    };
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(too_large());
     }
-    fs::read_to_string(path).map_err(read_error)
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    file.take(MAX_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(read_error)?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(too_large());
+    }
+    String::from_utf8(bytes).map_err(|e| GridError::Syntax {
+        path: path.to_path_buf(),
+        message: format!("not UTF-8 text (byte {})", e.utf8_error().valid_up_to()),
+    })
+}
+
+fn not_regular(path: &Path, meta: &fs::Metadata) -> Result<(), GridError> {
+    let t = meta.file_type();
+    let kind = if t.is_file() {
+        return Ok(());
+    } else if t.is_dir() {
+        "a directory"
+    } else if t.is_fifo() {
+        "a FIFO (named pipe)"
+    } else if t.is_char_device() {
+        "a character device"
+    } else if t.is_block_device() {
+        "a block device"
+    } else if t.is_socket() {
+        "a socket"
+    } else {
+        "of an unknown type"
+    };
+    Err(GridError::NotRegular {
+        path: path.to_path_buf(),
+        kind,
+    })
 }
 
 /// The directory `path` is in, and its file name.
@@ -102,20 +169,133 @@ pub fn check_writable(path: &Path) -> Result<(), GridError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::os::unix::fs::{symlink, PermissionsExt};
+    use std::time::Duration;
+
+    use crate::grid::lattice::tests::sample;
+    use crate::grid::GridFile;
+
+    /// `read_regular` on another thread, with a deadline: a path that blocks fails the test
+    /// instead of hanging it.
+    fn read_within_deadline(path: &Path) -> Result<String, GridError> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let path = path.to_path_buf();
+        std::thread::spawn(move || {
+            let _ = tx.send(read_regular(&path));
+        });
+        rx.recv_timeout(Duration::from_secs(20))
+            .expect("reading the path blocked")
+    }
+
+    fn mkfifo(path: &Path) {
+        let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: `c` is a valid NUL-terminated path for the duration of the call.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+    }
+
+    #[test]
+    fn a_fifo_is_refused_at_once_without_waiting_for_a_writer() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dev.toml");
+        mkfifo(&path);
+        assert!(matches!(
+            read_within_deadline(&path),
+            Err(GridError::NotRegular {
+                kind: "a FIFO (named pipe)",
+                ..
+            })
+        ));
+        // Also through a symbolic link.
+        let link = dir.path().join("link.toml");
+        symlink(&path, &link).unwrap();
+        assert!(matches!(
+            read_within_deadline(&link),
+            Err(GridError::NotRegular { .. })
+        ));
+    }
+
+    #[test]
+    fn a_link_to_dev_zero_is_refused_without_reading_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dev.toml");
+        symlink("/dev/zero", &path).unwrap();
+        let err = read_within_deadline(&path).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                GridError::NotRegular {
+                    kind: "a character device",
+                    ..
+                }
+            ),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_dangling_link_is_an_error_not_a_missing_grid() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dev.toml");
+        symlink(dir.path().join("gone.toml"), &path).unwrap();
+        let err = read_regular(&path).unwrap_err();
+        assert!(matches!(err, GridError::DanglingLink { .. }), "{err}");
+        assert!(err.to_string().contains("gone.toml"), "{err}");
+    }
 
     #[test]
     fn only_a_path_where_nothing_exists_is_a_missing_grid() {
         let dir = tempfile::tempdir().unwrap();
         let missing = dir.path().join("dev.toml");
         assert!(matches!(
-            read_text(&missing),
+            read_regular(&missing),
             Err(GridError::Missing { .. })
         ));
         // A state directory that does not exist yet holds no grid either.
         assert!(matches!(
-            read_text(&dir.path().join("state/dev.toml")),
+            read_regular(&dir.path().join("state/dev.toml")),
             Err(GridError::Missing { .. })
         ));
+        // A directory, a link loop and a path through a regular file are errors.
+        fs::create_dir(&missing).unwrap();
+        assert!(matches!(
+            read_regular(&missing),
+            Err(GridError::NotRegular {
+                kind: "a directory",
+                ..
+            })
+        ));
+        let looped = dir.path().join("loop.toml");
+        symlink(&looped, &looped).unwrap();
+        assert!(matches!(read_regular(&looped), Err(GridError::Read { .. })));
+        let file = dir.path().join("plain");
+        fs::write(&file, "").unwrap();
+        assert!(matches!(
+            read_regular(&file.join("dev.toml")),
+            Err(GridError::Read { .. })
+        ));
+    }
+
+    #[test]
+    fn an_unsearchable_state_directory_is_an_error_not_a_missing_grid() {
+        // SAFETY: geteuid has no preconditions.
+        if unsafe { libc::geteuid() } == 0 {
+            // Root searches any directory whatever its mode; `tests/grid_files.rs` covers this
+            // case as root by running `hgcd` as another user.
+            eprintln!("skipped: running as root, which bypasses directory permissions");
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let state = dir.path().join("state");
+        fs::create_dir(&state).unwrap();
+        fs::set_permissions(&state, fs::Permissions::from_mode(0o000)).unwrap();
+        let result = read_regular(&state.join("dev.toml"));
+        fs::set_permissions(&state, fs::Permissions::from_mode(0o700)).unwrap();
+        match result {
+            Err(GridError::Read { source, .. }) => {
+                assert_eq!(source.kind(), io::ErrorKind::PermissionDenied)
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]
@@ -127,7 +307,20 @@ mod tests {
             .unwrap()
             .set_len(MAX_FILE_BYTES + 1)
             .unwrap();
-        assert!(matches!(read_text(&path), Err(GridError::TooLarge { .. })));
+        assert!(matches!(
+            read_regular(&path),
+            Err(GridError::TooLarge { .. })
+        ));
+    }
+
+    #[test]
+    fn a_link_to_a_grid_file_is_followed() {
+        let dir = tempfile::tempdir().unwrap();
+        let real = dir.path().join("real.toml");
+        GridFile::from(sample()).save_atomic(&real).unwrap();
+        let link = dir.path().join("dev.toml");
+        symlink(&real, &link).unwrap();
+        assert_eq!(GridFile::load(&link).unwrap().grid, sample());
     }
 
     #[test]
