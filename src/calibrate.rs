@@ -12,8 +12,8 @@ use crate::config::{Config, DeviceSpec};
 use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
 };
-use crate::control::calibration_grid::grid_file;
-use crate::grid::{check_writable, grid_path, GridFile};
+use crate::control::calibration_grid::{check_room, grid_file};
+use crate::grid::{grid_path, GridFile};
 use crate::servo::{self, ExitReason, ServoOptions, TimingStats};
 use crate::transport::{self, Pacing};
 
@@ -65,11 +65,12 @@ pub fn calibrate(
     }
     let request = &request;
     let path = request.output_path();
-    check_writable(&path)?;
     let params = CalibrationParams::from_config(config);
     let (tx, rx) = crossbeam_channel::bounded(4096);
     let calibration = Calibration::new(params, Some(tx))?;
     let plan = calibration.plan();
+    // Fail now rather than after minutes of calibration.
+    check_room(&path, plan, &request.device)?;
     if !plan.left_out.is_empty() {
         let names: Vec<String> = plan.left_out.iter().map(|v| v.to_string()).collect();
         warn!(

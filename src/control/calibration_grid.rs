@@ -1,11 +1,15 @@
-//! What a calibration leaves on disk: the grid file built from its result. Used by `hgcd
-//! calibrate` and by the daemon's calibration on request alike.
+//! What a calibration leaves on disk: the grid file built from its result, and the check, made
+//! before it starts, that the file will fit where it goes. Used by `hgcd calibrate` and by the
+//! daemon's calibration on request alike.
 
+use std::path::Path;
 use std::time::SystemTime;
 
-use super::calibration::CalibrationResult;
+use super::calibration::{CalibrationResult, GridPlan};
 use crate::config::{Config, DeviceSpec};
-use crate::grid::{CalibrationRecord, DeviceRecord, GridFile, MassGrid, VertexRecords};
+use crate::grid::{
+    self, CalibrationRecord, DeviceRecord, GridError, GridFile, MassGrid, VertexRecords,
+};
 
 /// The record of the device a grid is made for.
 fn device_record(device: &DeviceSpec) -> DeviceRecord {
@@ -13,6 +17,14 @@ fn device_record(device: &DeviceSpec) -> DeviceRecord {
         id: device.device_id(),
         spec: Some(device.to_string()),
     }
+}
+
+/// Check that the directory of `path` exists (creating it) and has room for the grid `plan` will
+/// produce on `device` (see [`grid::check_room`]).
+pub fn check_room(path: &Path, plan: &GridPlan, device: &DeviceSpec) -> Result<(), GridError> {
+    let vertices = plan.path.len() + plan.left_out.len();
+    let bytes = GridFile::size_bound(vertices, device.to_string().len());
+    grid::check_room(path, bytes)
 }
 
 /// The grid file a finished calibration produced on `device` with `config`: the lattice, the

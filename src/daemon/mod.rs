@@ -21,7 +21,7 @@ use crate::app::protocol::{Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::config::{Config, DeviceSpec};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
-use crate::control::calibration_grid::grid_file;
+use crate::control::calibration_grid::{self, grid_file};
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
 use crate::grid::{grid_path, GridError, GridFile};
 use crate::servo::thread::log_event;
@@ -193,15 +193,18 @@ impl Hub {
                     );
                     return;
                 }
-                // Fail now rather than after minutes of calibration.
-                if let Err(e) = crate::grid::check_writable(&self.grid_path) {
-                    let message = format!("{:#}", anyhow::Error::from(e));
-                    self.reply(client, self.calibration_reply("failed", message));
-                    return;
-                }
                 let (tx, rx) = crossbeam_channel::bounded(4096);
                 match Calibration::new(CalibrationParams::from_config(&self.config), Some(tx)) {
                     Ok(calibration) => {
+                        // Fail now rather than after minutes of calibration.
+                        let plan = calibration.plan();
+                        let room =
+                            calibration_grid::check_room(&self.grid_path, plan, &self.device);
+                        if let Err(e) = room {
+                            let message = format!("{:#}", anyhow::Error::from(e));
+                            self.reply(client, self.calibration_reply("failed", message));
+                            return;
+                        }
                         let start = ServoCommand::StartCalibration(Box::new(calibration));
                         if self.command(start) {
                             info!("calibration requested by application client {client}");

@@ -278,6 +278,15 @@ impl GridFile {
         })?;
         store::replace_atomically(path, self.to_toml_string().as_bytes())
     }
+
+    /// An upper bound on the size, in bytes, of the file a calibration of `vertices` vertices
+    /// (those left out included) writes for a device spec of `spec_len` bytes.
+    pub fn size_bound(vertices: usize, spec_len: usize) -> u64 {
+        // Lattice keys and the calibration record: under 2 KiB. Per vertex: a mass, a force
+        // vector, an iteration count and an error, each number at most 24 characters, with
+        // separators, about 160 bytes; a left-out vertex's indices take less.
+        4096 + 2 * spec_len as u64 + 256 * vertices as u64
+    }
 }
 
 /// Why `text` did not deserialise: a TOML syntax error, a wrong `format` (reported first, since a
@@ -577,5 +586,61 @@ mod tests {
             })
         ));
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn the_size_bound_holds_for_the_longest_numbers() {
+        let longest = -1.2345678901234567e-300;
+        for dims in [[1, 1, 1], [3, 3, 3], [1, 1, 40], [40, 1, 1], [7, 5, 3]] {
+            let n: usize = dims.iter().product();
+            let mut grid = MassGrid::uniform(
+                longest,
+                longest,
+                Vector3::z(),
+                Vector3::zeros(),
+                longest,
+                dims,
+            );
+            grid.origin = Vector3::repeat(longest);
+            let spec = format!("socket:/{}", "d".repeat(200));
+            let mut file = GridFile::from(grid);
+            file.device = Some(DeviceRecord {
+                id: spec.clone(),
+                spec: Some(spec.clone()),
+            });
+            file.calibration = Some(CalibrationRecord {
+                created: Some("2026-11-21T23:29:02.123456789Z".parse().unwrap()),
+                hgcd_version: Some("100.100.100-alpha.1".into()),
+                spacing_mm: Some(longest),
+                half_size: Some(u32::MAX),
+                centre_mm: Some([longest; 3]),
+                k_init_n_per_mm: Some(longest),
+                init_damping_n_s_per_m: Some(longest),
+                n_init: Some(usize::MAX),
+                eps_init_mm: Some(longest),
+                n_m: Some(usize::MAX),
+                eps_m_mm: Some(longest),
+                rise_time_ms: Some(longest),
+                damping_ratio: Some(longest),
+                move_time_ms: Some(longest),
+                vertex_timeout_s: Some(longest),
+                max_iterations: Some(u32::MAX),
+                workspace_min_mm: Some([longest; 3]),
+                workspace_max_mm: Some([longest; 3]),
+                initial_mass_kg: Some(longest),
+                rest_point_mm: Some([longest; 3]),
+                duration_s: Some(longest),
+                left_out_vertices: Some(vec![[i32::MIN; 3]; n]),
+            });
+            file.vertices = VertexRecords {
+                force_vectors: vec![[longest; 3]; n],
+                iterations: vec![u32::MAX; n],
+                final_error_mm: vec![longest; n],
+            };
+            // Kept and left-out vertices counted together: here as many of each.
+            let size = file.to_toml_string().len() as u64;
+            let bound = GridFile::size_bound(2 * n, spec.len());
+            assert!(size <= bound, "{dims:?}: {size} > {bound}");
+        }
     }
 }

@@ -4,7 +4,7 @@
 //! - `file`: [`GridFile`], the file format: the lattice plus typed provenance and per-vertex
 //!   records, parsed with serde and checked;
 //! - `store`: where grids live and how they are read and written: only regular files, bounded,
-//!   never blocking; atomic replace with a backup.
+//!   never blocking; atomic replace with a backup that needs no data space; a room check.
 
 mod file;
 mod lattice;
@@ -18,7 +18,7 @@ use lattice::{DIM_RANGE, MAX_VERTICES};
 
 pub use file::{CalibrationRecord, DeviceRecord, GridFile, VertexRecords, GRID_FORMAT};
 pub use lattice::{CellWeights, MassGrid};
-pub use store::{check_writable, grid_path, MAX_FILE_BYTES};
+pub use store::{check_room, grid_path, MAX_FILE_BYTES};
 
 /// Why a grid could not be loaded, built or saved.
 #[derive(Debug, Error)]
@@ -66,10 +66,12 @@ pub enum GridError {
         source: std::io::Error,
     },
     #[error(
-        "cannot write to {dir} (read-only, full or no permission; use --state-dir or --output)"
+        "cannot write a {bytes}-byte grid file in {dir} (read-only, full, over quota or over the \
+         file size limit; free some space, or use --state-dir or --output)"
     )]
-    Unwritable {
+    NoRoom {
         dir: PathBuf,
+        bytes: u64,
         #[source]
         source: std::io::Error,
     },

@@ -5,7 +5,9 @@
 //! with one line saying so, never a hang or an unbounded read. "No grid" means nothing at all
 //! exists at the path.
 //!
-//! Writing replaces the file atomically and keeps the old one as a backup.
+//! Writing never leaves a partial or empty file: the new text goes to a temporary file that is
+//! fsynced before anything else changes; the backup of the old grid is a hard link (no data space
+//! needed) renamed into place; then the new file is renamed over the old one.
 
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, Read, Write};
@@ -119,40 +121,59 @@ fn split(path: &Path) -> io::Result<(PathBuf, String)> {
     Ok((dir, name))
 }
 
-/// Replace the file at `path` by `bytes` atomically: temporary file in the same directory, fsync,
-/// rename over `path`, fsync of the directory. An existing file at `path` is first kept as
-/// `<name>.bak`. On any error nothing at `path` has changed and the temporary file is removed.
+/// Replace the file at `path` by `bytes` atomically, keeping the old file as `<name>.bak`:
+/// 1. write `.<name>.tmp<pid>` in the same directory and fsync it: a full disk, a quota or a file
+///    size limit fails here, before anything else has changed;
+/// 2. if a file is at `path`, hard-link it as `.<name>.bak.tmp<pid>` (a copy where the file system
+///    or the kernel's link protection refuses links) and rename that over `<name>.bak`;
+/// 3. rename the temporary file over `path` and fsync the directory.
+///
+/// On any error the temporary files are removed and `path` and `<name>.bak` are as they were.
 pub(super) fn replace_atomically(path: &Path, bytes: &[u8]) -> Result<(), GridError> {
     let write_error = |source| GridError::Write {
         path: path.to_path_buf(),
         source,
     };
     let (dir, name) = split(path).map_err(write_error)?;
-    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+    let pid = std::process::id();
+    let tmp = dir.join(format!(".{name}.tmp{pid}"));
+    let bak_tmp = dir.join(format!(".{name}.bak.tmp{pid}"));
     let result = (|| {
         let mut file = File::create(&tmp)?;
         file.write_all(bytes)?;
         file.sync_all()?;
         drop(file);
-        if path.exists() {
-            let backup = dir.join(format!("{name}.bak"));
-            fs::copy(path, &backup)?;
-            File::open(&backup)?.sync_all()?;
+        let old = fs::symlink_metadata(path).ok();
+        if old.is_some_and(|m| m.is_file() || m.file_type().is_symlink()) {
+            let _ = fs::remove_file(&bak_tmp);
+            if fs::hard_link(path, &bak_tmp).is_err() {
+                copy_synced(path, &bak_tmp)?;
+            }
+            fs::rename(&bak_tmp, dir.join(format!("{name}.bak")))?;
         }
         fs::rename(&tmp, path)?;
         File::open(&dir)?.sync_all()
     })();
     if result.is_err() {
         let _ = fs::remove_file(&tmp);
+        let _ = fs::remove_file(&bak_tmp);
     }
     result.map_err(write_error)
 }
 
-/// Check before a calibration that the directory of `path` exists (creating it) and takes a
-/// file, so a long calibration does not end in an unwritable directory. Errors:
-/// [`GridError::CreateDir`], [`GridError::Unwritable`].
-pub fn check_writable(path: &Path) -> Result<(), GridError> {
-    let (dir, _) = split(path).map_err(|source| GridError::CreateDir {
+fn copy_synced(from: &Path, to: &Path) -> io::Result<()> {
+    let mut source = File::open(from)?;
+    let mut copy = File::create(to)?;
+    io::copy(&mut source, &mut copy)?;
+    copy.sync_all()
+}
+
+/// Check before a calibration that the directory of `path` exists (creating it) and takes a file
+/// of `bytes` bytes: a probe of that size is written, fsynced and removed, so a full disk, a quota
+/// or a file size limit fails now rather than after the calibration. Errors:
+/// [`GridError::CreateDir`], [`GridError::NoRoom`].
+pub fn check_room(path: &Path, bytes: u64) -> Result<(), GridError> {
+    let (dir, name) = split(path).map_err(|source| GridError::CreateDir {
         dir: path.to_path_buf(),
         source,
     })?;
@@ -160,16 +181,34 @@ pub fn check_writable(path: &Path) -> Result<(), GridError> {
         dir: dir.clone(),
         source,
     })?;
-    let probe = dir.join(format!(".hgcd-probe-{}", std::process::id()));
-    let written = fs::write(&probe, b"probe");
+    let probe = dir.join(format!(".{name}.probe{}", std::process::id()));
+    let result = (|| {
+        let mut file = File::create(&probe)?;
+        // Text-like bytes that do not compress to nothing on a compressing file system.
+        let mut chunk = [0u8; 64 << 10];
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        for b in chunk.iter_mut() {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            *b = b'0' + (state % 10) as u8;
+        }
+        let mut left = bytes;
+        while left > 0 {
+            let n = left.min(chunk.len() as u64) as usize;
+            file.write_all(&chunk[..n])?;
+            left -= n as u64;
+        }
+        file.sync_all()
+    })();
     let _ = fs::remove_file(&probe);
-    written.map_err(|source| GridError::Unwritable { dir, source })
+    result.map_err(|source| GridError::NoRoom { dir, bytes, source })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::os::unix::fs::{symlink, PermissionsExt};
+    use std::os::unix::fs::{symlink, MetadataExt, PermissionsExt};
     use std::time::Duration;
 
     use crate::grid::lattice::tests::sample;
@@ -324,14 +363,16 @@ mod tests {
     }
 
     #[test]
-    fn the_backup_holds_the_old_file_and_nothing_else_is_left() {
+    fn the_backup_is_a_link_to_the_old_file_and_nothing_else_is_left() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("dev.toml");
         fs::write(&path, "old").unwrap();
+        let old_inode = fs::metadata(&path).unwrap().ino();
         replace_atomically(&path, b"new").unwrap();
         assert_eq!(fs::read_to_string(&path).unwrap(), "new");
         let bak = dir.path().join("dev.toml.bak");
         assert_eq!(fs::read_to_string(&bak).unwrap(), "old");
+        assert_eq!(fs::metadata(&bak).unwrap().ino(), old_inode);
         // The next save replaces the backup.
         replace_atomically(&path, b"newer").unwrap();
         assert_eq!(fs::read_to_string(&bak).unwrap(), "new");
@@ -343,16 +384,85 @@ mod tests {
         assert_eq!(names, ["dev.toml", "dev.toml.bak"]);
     }
 
+    /// Set by the parent of [`a_failing_write_leaves_the_old_file_and_its_backup`] in the child
+    /// it runs under a file size limit: the directory to work in.
+    const LIMITED_CHILD: &str = "HGCD_TEST_FSIZE_CHILD_DIR";
+
     #[test]
-    fn the_writable_check_creates_the_directory_and_leaves_nothing_behind() {
+    fn a_failing_write_leaves_the_old_file_and_its_backup() {
+        if let Some(dir) = std::env::var_os(LIMITED_CHILD) {
+            // The child, where files may not grow past 4 KiB. A new file of 8 KiB cannot be
+            // written at all.
+            let dir = Path::new(&dir);
+            let err = replace_atomically(&dir.join("a/dev.toml"), &[b'n'; 8 << 10]).unwrap_err();
+            assert!(matches!(err, GridError::Write { .. }), "{err}");
+            // A new file of 2 KiB can, and the backup of the old one (16 KiB) needs no data.
+            replace_atomically(&dir.join("b/dev.toml"), &[b'n'; 2 << 10]).unwrap();
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let (old, older) = (vec![b'o'; 16 << 10], vec![b'b'; 16 << 10]);
+        for sub in ["a", "b"] {
+            fs::create_dir(dir.path().join(sub)).unwrap();
+            fs::write(dir.path().join(sub).join("dev.toml"), &old).unwrap();
+            fs::write(dir.path().join(sub).join("dev.toml.bak"), &older).unwrap();
+        }
+        let mut child = std::process::Command::new(std::env::current_exe().unwrap());
+        child
+            .args([
+                "--exact",
+                "grid::store::tests::a_failing_write_leaves_the_old_file_and_its_backup",
+                "--test-threads=1",
+            ])
+            .env(LIMITED_CHILD, dir.path());
+        limit_file_size(&mut child, 4 << 10);
+        let out = child.output().unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success() && stdout.contains("1 passed"),
+            "{stdout}"
+        );
+        let read = |sub: &str, name: &str| fs::read(dir.path().join(sub).join(name)).unwrap();
+        let names = |sub: &str| fs::read_dir(dir.path().join(sub)).unwrap().count();
+        // The failed save changed nothing and left no temporary file.
+        assert_eq!(read("a", "dev.toml"), old);
+        assert_eq!(read("a", "dev.toml.bak"), older);
+        assert_eq!(names("a"), 2);
+        // The successful one kept the whole old file as the backup.
+        assert_eq!(read("b", "dev.toml"), vec![b'n'; 2 << 10]);
+        assert_eq!(read("b", "dev.toml.bak"), old);
+        assert_eq!(names("b"), 2);
+    }
+
+    /// Make `command` run with files limited to `bytes` (writes past it fail with EFBIG).
+    fn limit_file_size(command: &mut std::process::Command, bytes: u64) {
+        use std::os::unix::process::CommandExt;
+        // SAFETY: only async-signal-safe calls between fork and exec.
+        unsafe {
+            command.pre_exec(move || {
+                libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+                let limit = libc::rlimit {
+                    rlim_cur: bytes,
+                    rlim_max: bytes,
+                };
+                if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
+                    return Err(io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+    }
+
+    #[test]
+    fn the_room_check_creates_the_directory_and_leaves_nothing_behind() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("state/dev.toml");
-        check_writable(&path).unwrap();
+        check_room(&path, 100_000).unwrap();
         assert_eq!(fs::read_dir(dir.path().join("state")).unwrap().count(), 0);
         let blocker = dir.path().join("file");
         fs::write(&blocker, "").unwrap();
         assert!(matches!(
-            check_writable(&blocker.join("dev.toml")),
+            check_room(&blocker.join("dev.toml"), 10),
             Err(GridError::CreateDir { .. })
         ));
     }
