@@ -7,7 +7,7 @@ use std::path::Path;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use super::lattice::{MassGrid, DIM_RANGE};
+use super::lattice::{MassGrid, DIM_RANGE, G_RANGE, MAX_MASS_KG};
 use super::{store, GridError, Problem};
 
 /// Format tag of version 1 grid files.
@@ -94,9 +94,11 @@ impl VertexRecords {
                 });
             }
         }
+        // The largest weight the mass and g ranges allow.
+        let max = MAX_MASS_KG * G_RANGE.end();
         for (vertex, &value) in self.force_vectors.iter().enumerate() {
-            if !value.iter().all(|c| c.is_finite()) {
-                return Err(Problem::ForceVector { vertex, value });
+            if !(value.iter().all(|c| c.is_finite()) && Vector3::from(value).norm() <= max) {
+                return Err(Problem::ForceVector { vertex, value, max });
             }
         }
         for (vertex, &value) in self.final_error_mm.iter().enumerate() {
@@ -492,7 +494,7 @@ mod tests {
             problem(&good.replace("[0.0, 0.0, 1.0]", "[0.0, 0.0, 2.0]")),
             Problem::NotUnit { .. }
         ));
-        for bad in ["-0.05", "nan", "inf"] {
+        for bad in ["-0.05", "nan", "inf", "1e9"] {
             assert!(
                 matches!(
                     problem(&good.replacen("0.05, ", &format!("{bad}, "), 1)),
@@ -501,9 +503,14 @@ mod tests {
                 "{bad}"
             );
         }
+        // Item 7 of issue 7: a grid with g = 1e308 loaded.
         assert!(matches!(
-            problem(&good.replace("spacing = 0.04", "spacing = -0.04")),
-            Problem::NotPositive { key: "spacing", .. }
+            problem(&good.replace("g = 9.81", "g = 1e308")),
+            Problem::OutOfRange { key: "g", .. }
+        ));
+        assert!(matches!(
+            problem(&good.replace("spacing = 0.04", "spacing = 40.0")),
+            Problem::OutOfRange { key: "spacing", .. }
         ));
         match problem(&good.replace("spacing = 0.04\n", "")) {
             Problem::Schema { message, .. } => {
@@ -539,10 +546,12 @@ mod tests {
                 need: 27
             }
         ));
-        assert!(matches!(
-            problem(&good.replacen("1.2]", "nan]", 1)),
-            Problem::ForceVector { vertex: 0, .. }
-        ));
+        for bad in ["nan]", "1e300]"] {
+            assert!(matches!(
+                problem(&good.replacen("1.2]", bad, 1)),
+                Problem::ForceVector { vertex: 0, .. }
+            ));
+        }
         assert!(matches!(
             parse("format = "),
             Err(GridError::Syntax { message, .. }) if message.starts_with("line 1: ")

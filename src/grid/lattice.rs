@@ -7,6 +7,14 @@ use nalgebra::Vector3;
 
 use super::Problem;
 
+/// Gravitational accelerations a grid may be relative to, m/s²: Earth's 9.81 within about 2.
+pub const G_RANGE: RangeInclusive<f64> = 8.0..=12.0;
+/// Cube sides a grid may have, m: 1 mm to 0.5 m.
+pub const SPACING_RANGE: RangeInclusive<f64> = 1e-3..=0.5;
+/// Largest magnitude of an apparent mass, kg (far beyond any haptic handle).
+pub const MAX_MASS_KG: f64 = 100.0;
+/// Largest magnitude of a coordinate of the grid's origin, m.
+pub const MAX_ORIGIN_M: f64 = 10.0;
 /// Vertices along one axis: 1 to 1000.
 pub const DIM_RANGE: RangeInclusive<i64> = 1..=1000;
 /// Largest number of vertices a grid may hold (keeps hostile files from exhausting memory).
@@ -130,29 +138,18 @@ impl MassGrid {
         self.gravity_direction * (self.mass_at(x) * self.g)
     }
 
-    /// Check every number (`docs/grid-format.md` §3), in the order the keys are listed there.
+    /// Check every number against its range (`docs/grid-format.md` §3), in the order the keys are
+    /// listed there. A grid that passes interpolates to finite masses and forces everywhere.
     pub fn check(&self) -> Result<(), Problem> {
-        if !(self.g.is_finite() && self.g > 0.0) {
-            return Err(Problem::NotPositive {
-                key: "g",
-                value: self.g,
-                unit: "m/s²",
-            });
-        }
+        in_range("g", self.g, &G_RANGE, "m/s²")?;
         let norm = self.gravity_direction.norm();
         if !norm.is_finite() || (norm - 1.0).abs() > UNIT_TOLERANCE {
             return Err(Problem::NotUnit { norm });
         }
-        if !self.origin.iter().all(|c| c.is_finite()) {
-            return Err(Problem::OriginNotFinite);
+        for c in self.origin.iter() {
+            in_range("origin", *c, &(-MAX_ORIGIN_M..=MAX_ORIGIN_M), "m")?;
         }
-        if !(self.spacing.is_finite() && self.spacing > 0.0) {
-            return Err(Problem::NotPositive {
-                key: "spacing",
-                value: self.spacing,
-                unit: "m",
-            });
-        }
+        in_range("spacing", self.spacing, &SPACING_RANGE, "m")?;
         for &n in &self.dims {
             if !DIM_RANGE.contains(&(n as i64)) {
                 return Err(Problem::Dims { value: n as i64 });
@@ -170,11 +167,31 @@ impl MassGrid {
             });
         }
         for (vertex, &value) in self.masses.iter().enumerate() {
-            if !(value.is_finite() && value > 0.0) {
+            // A magnitude, then the sign: apparent masses are positive today.
+            if !(value.is_finite() && value.abs() <= MAX_MASS_KG && value > 0.0) {
                 return Err(Problem::Mass { vertex, value });
             }
         }
         Ok(())
+    }
+}
+
+fn in_range(
+    key: &'static str,
+    value: f64,
+    range: &RangeInclusive<f64>,
+    unit: &'static str,
+) -> Result<(), Problem> {
+    if range.contains(&value) {
+        Ok(())
+    } else {
+        Err(Problem::OutOfRange {
+            key,
+            value,
+            min: *range.start(),
+            max: *range.end(),
+            unit,
+        })
     }
 }
 
@@ -250,5 +267,38 @@ pub(super) mod tests {
         let inside = Vector3::new(0.04, 0.01, -0.02);
         let outside = Vector3::new(0.09, 0.01, -0.02);
         assert!((g.mass_at(&inside) - g.mass_at(&outside)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn numbers_outside_their_physical_range_are_named() {
+        assert_eq!(sample().check(), Ok(()));
+        let out_of_range = |key, value| move |p: Problem| matches!(p, Problem::OutOfRange { key: k, value: v, .. } if k == key && v.to_bits() == f64::to_bits(value));
+        let mut g = sample();
+        g.g = 1e308;
+        assert!(out_of_range("g", 1e308)(g.check().unwrap_err()));
+        g.g = 1.62; // the Moon's
+        assert!(out_of_range("g", 1.62)(g.check().unwrap_err()));
+        let mut g = sample();
+        g.spacing = 1e-4;
+        assert!(out_of_range("spacing", 1e-4)(g.check().unwrap_err()));
+        g.spacing = 2.0;
+        assert!(out_of_range("spacing", 2.0)(g.check().unwrap_err()));
+        let mut g = sample();
+        g.origin.y = -1e9;
+        assert!(out_of_range("origin", -1e9)(g.check().unwrap_err()));
+        for bad in [1e300, f64::INFINITY, f64::NAN, -0.05, 0.0] {
+            let mut g = sample();
+            g.masses[4] = bad;
+            assert!(
+                matches!(g.check(), Err(Problem::Mass { vertex: 4, .. })),
+                "{bad}"
+            );
+        }
+        // Today's rule for the sign stays: any positive mass up to the magnitude bound passes,
+        // however small.
+        let mut g = sample();
+        g.masses[4] = 1e-9;
+        g.masses[5] = MAX_MASS_KG;
+        assert_eq!(g.check(), Ok(()));
     }
 }

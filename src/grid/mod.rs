@@ -2,7 +2,7 @@
 //! knows the file's keys:
 //! - `lattice`: [`MassGrid`], the vertices and the trilinear interpolation the servo path uses;
 //! - `file`: [`GridFile`], the file format: the lattice plus typed provenance and per-vertex
-//!   records, parsed with serde and checked;
+//!   records, parsed with serde and checked against physical ranges;
 //! - `store`: where grids live and how they are read and written: only regular files, bounded,
 //!   never blocking; atomic replace with a backup that needs no data space; a room check.
 
@@ -17,7 +17,7 @@ use thiserror::Error;
 use lattice::{DIM_RANGE, MAX_VERTICES};
 
 pub use file::{CalibrationRecord, DeviceRecord, GridFile, VertexRecords, GRID_FORMAT};
-pub use lattice::{CellWeights, MassGrid};
+pub use lattice::{CellWeights, MassGrid, G_RANGE, MAX_MASS_KG, SPACING_RANGE};
 pub use store::{check_room, grid_path, MAX_FILE_BYTES};
 
 /// Why a grid could not be loaded, built or saved.
@@ -91,14 +91,14 @@ pub enum Problem {
         at: Option<(usize, String)>,
         message: String,
     },
-    #[error("`{key}` must be a positive number of {unit}, got {value:?}")]
-    NotPositive {
+    #[error("`{key}` is {value:?} {unit}, expected {min:?} to {max:?} {unit}")]
+    OutOfRange {
         key: &'static str,
         value: f64,
+        min: f64,
+        max: f64,
         unit: &'static str,
     },
-    #[error("`origin` must be finite")]
-    OriginNotFinite,
     #[error("`gravity_direction` must be a unit vector, its norm is {norm:?}")]
     NotUnit { norm: f64 },
     #[error(
@@ -115,7 +115,9 @@ pub enum Problem {
         dims: [usize; 3],
         need: u64,
     },
-    #[error("mass at vertex {vertex} must be a positive number of kg, got {value:?}")]
+    #[error(
+        "mass at vertex {vertex} must be a positive number of kg up to {MAX_MASS_KG:?}, got {value:?}"
+    )]
     Mass { vertex: usize, value: f64 },
     #[error("`[vertices] {key}` has {len} entries but the grid has {need} vertices")]
     PerVertexCount {
@@ -124,9 +126,14 @@ pub enum Problem {
         need: usize,
     },
     #[error(
-        "`[vertices] force_vectors` at vertex {vertex} is {value:?} N, expected finite components"
+        "`[vertices] force_vectors` at vertex {vertex} is {value:?} N, expected finite components \
+         and a norm up to {max:?} N"
     )]
-    ForceVector { vertex: usize, value: [f64; 3] },
+    ForceVector {
+        vertex: usize,
+        value: [f64; 3],
+        max: f64,
+    },
     #[error(
         "`[vertices] final_error_mm` at vertex {vertex} must be a finite distance ≥ 0 mm, got \
          {value:?}"
