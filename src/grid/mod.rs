@@ -7,6 +7,8 @@
 //!   never blocking; atomic replace with a backup that needs no data space; a room check.
 
 mod file;
+#[cfg(test)]
+mod fuzz;
 mod lattice;
 mod store;
 
