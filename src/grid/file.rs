@@ -209,9 +209,9 @@ impl GridFile {
         Ok(file)
     }
 
-    /// Load and check the grid file at `path` (a regular file of at most
-    /// [`MAX_FILE_BYTES`](super::MAX_FILE_BYTES)). Errors: [`GridError::Missing`] when nothing
-    /// exists at `path`, and every other variant a read or a parse gives.
+    /// Load and check the grid file at `path` (a regular file of at most 64 MiB). Errors:
+    /// [`GridError::Missing`] when nothing exists at `path`, and every other variant a read or a
+    /// parse gives.
     pub fn load(path: &Path) -> Result<Self, GridError> {
         Self::from_toml_str(&store::read_regular(path)?, path)
     }

@@ -20,7 +20,7 @@ use lattice::{DIM_RANGE, MAX_VERTICES};
 
 pub use file::{CalibrationRecord, DeviceRecord, GridFile, VertexRecords, GRID_FORMAT};
 pub use lattice::{CellWeights, MassGrid, G_RANGE, MAX_MASS_KG, SPACING_RANGE};
-pub use store::{check_room, grid_path, MAX_FILE_BYTES};
+pub use store::{check_room, grid_path};
 
 /// Why a grid could not be loaded, built or saved.
 #[derive(Debug, Error)]
