@@ -87,7 +87,7 @@ fn bench_tick(c: &mut Criterion) {
     // The daemon's controller: compensation (Eq. 15) with its mailbox and state publishing.
     let (commands_tx, offsets_tx, servo_mailbox, mut hub_mailbox) = mailbox();
     let model = GravityModel::new(
-        hold().field,
+        hold().field.into(),
         CompensationMode::Scalar,
         OutsideGrid::HoldNearest,
     )

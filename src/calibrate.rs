@@ -1,9 +1,9 @@
 //! `hgcd calibrate`: run Algorithm 1 on a device inside the servo loop and persist the grid.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-use std::time::{Instant, SystemTime};
+use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use tracing::{info, warn};
@@ -12,7 +12,8 @@ use crate::config::{Config, DeviceSpec};
 use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
 };
-use crate::grid::MassGrid;
+use crate::control::calibration_grid::{check_room, grid_file};
+use crate::grid::{grid_path, GridFile};
 use crate::servo::{self, ExitReason, ServoOptions, TimingStats};
 use crate::transport::{self, Pacing};
 
@@ -32,158 +33,19 @@ impl CalibrateRequest {
     pub fn output_path(&self) -> PathBuf {
         self.output
             .clone()
-            .unwrap_or_else(|| grid_path(&self.state_dir, &self.device))
+            .unwrap_or_else(|| grid_path(&self.state_dir, &self.device.device_id()))
     }
-}
-
-/// Where the grid of `device` lives in `state_dir`.
-pub fn grid_path(state_dir: &Path, device: &DeviceSpec) -> PathBuf {
-    state_dir.join(format!("{}.toml", device.device_id()))
 }
 
 /// A finished, saved calibration.
 #[derive(Clone, Debug)]
 pub struct CalibrationRun {
     pub result: CalibrationResult,
-    pub grid: MassGrid,
+    pub grid: GridFile,
     pub path: PathBuf,
     pub stats: TimingStats,
     /// Wall-clock duration, s.
     pub wall_time: f64,
-}
-
-/// Check before calibrating that the output directory exists (creating it) and takes a file,
-/// so a long calibration does not end in an unwritable directory.
-pub fn check_writable(path: &Path) -> Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&dir).with_context(|| {
-        format!(
-            "cannot create the state directory {} (use --state-dir or --output)",
-            dir.display()
-        )
-    })?;
-    let probe = dir.join(format!(".hgcd-probe-{}", std::process::id()));
-    let written = std::fs::write(&probe, b"probe");
-    let _ = std::fs::remove_file(&probe);
-    written.with_context(|| {
-        format!(
-            "cannot write to {} (read-only, full or no permission; use --state-dir or --output)",
-            dir.display()
-        )
-    })
-}
-
-/// The grid a calibration produced, with its provenance and per-vertex quality as extra keys.
-pub fn grid_from_result(
-    result: &CalibrationResult,
-    config: &Config,
-    device: &DeviceSpec,
-) -> MassGrid {
-    let c = &config.calibration;
-    let mut grid = MassGrid {
-        g: c.g,
-        gravity_direction: result.gravity_direction,
-        origin: result.origin,
-        spacing: c.spacing(),
-        dims: result.dims,
-        masses: result.vertices.iter().map(|v| v.mass).collect(),
-        extra: toml::Table::new(),
-    };
-    let float = toml::Value::Float;
-    let array = |v: Vec<toml::Value>| toml::Value::Array(v);
-    let vec3 = |x: &nalgebra::Vector3<f64>| array(x.iter().map(|c| float(*c)).collect());
-
-    let mut dev = toml::Table::new();
-    dev.insert("id".into(), device.device_id().into());
-    dev.insert("spec".into(), device.to_string().into());
-    grid.extra.insert("device".into(), toml::Value::Table(dev));
-
-    let mut cal = toml::Table::new();
-    let created = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
-    cal.insert(
-        "created".into(),
-        created
-            .parse::<toml::value::Datetime>()
-            .map(toml::Value::Datetime)
-            .unwrap_or_else(|_| created.clone().into()),
-    );
-    cal.insert("hgcd_version".into(), env!("CARGO_PKG_VERSION").into());
-    cal.insert("spacing_mm".into(), float(c.spacing_mm));
-    cal.insert("half_size".into(), i64::from(c.half_size).into());
-    cal.insert(
-        "centre_mm".into(),
-        array(c.centre_mm.iter().map(|v| float(*v)).collect()),
-    );
-    cal.insert("k_init_n_per_mm".into(), float(c.k_init_n_per_mm));
-    cal.insert(
-        "init_damping_n_s_per_m".into(),
-        float(c.init_damping_n_s_per_m),
-    );
-    cal.insert("n_init".into(), (c.n_init as i64).into());
-    cal.insert("eps_init_mm".into(), float(c.eps_init_mm));
-    cal.insert("n_m".into(), (c.n_m as i64).into());
-    cal.insert("eps_m_mm".into(), float(c.eps_m_mm));
-    cal.insert("rise_time_ms".into(), float(c.rise_time_ms));
-    cal.insert("damping_ratio".into(), float(c.damping_ratio));
-    cal.insert("initial_mass_kg".into(), float(result.initial_mass));
-    cal.insert("rest_point_mm".into(), vec3(&(result.rest_point * 1e3)));
-    cal.insert("move_time_ms".into(), float(c.move_time_ms));
-    cal.insert("vertex_timeout_s".into(), float(c.vertex_timeout_s));
-    cal.insert("max_iterations".into(), i64::from(c.max_iterations).into());
-    let mm3 = |v: [f64; 3]| array(v.iter().map(|c| float(*c)).collect());
-    cal.insert(
-        "workspace_min_mm".into(),
-        mm3(config.device.workspace_min_mm),
-    );
-    cal.insert(
-        "workspace_max_mm".into(),
-        mm3(config.device.workspace_max_mm),
-    );
-    cal.insert("duration_s".into(), float(result.duration));
-    cal.insert(
-        "left_out_vertices".into(),
-        array(
-            result
-                .left_out
-                .iter()
-                .map(|v| array(v.index.iter().map(|&k| i64::from(k).into()).collect()))
-                .collect(),
-        ),
-    );
-    grid.extra
-        .insert("calibration".into(), toml::Value::Table(cal));
-
-    let mut vertices = toml::Table::new();
-    vertices.insert(
-        "force_vectors".into(),
-        array(result.vertices.iter().map(|v| vec3(&v.force)).collect()),
-    );
-    vertices.insert(
-        "iterations".into(),
-        array(
-            result
-                .vertices
-                .iter()
-                .map(|v| i64::from(v.iterations).into())
-                .collect(),
-        ),
-    );
-    vertices.insert(
-        "final_error_mm".into(),
-        array(
-            result
-                .vertices
-                .iter()
-                .map(|v| float(v.final_error * 1e3))
-                .collect(),
-        ),
-    );
-    grid.extra
-        .insert("vertices".into(), toml::Value::Table(vertices));
-    grid
 }
 
 /// Run the calibration on the device and save the grid atomically. `progress` sees every event
@@ -204,11 +66,12 @@ pub fn calibrate(
     }
     let request = &request;
     let path = request.output_path();
-    check_writable(&path)?;
     let params = CalibrationParams::from_config(config);
     let (tx, rx) = crossbeam_channel::bounded(4096);
     let calibration = Calibration::new(params, Some(tx))?;
     let plan = calibration.plan();
+    // Fail now rather than after minutes of calibration.
+    check_room(&path, plan, &request.device)?;
     if !plan.left_out.is_empty() {
         let names: Vec<String> = plan.left_out.iter().map(|v| v.to_string()).collect();
         warn!(
@@ -263,7 +126,7 @@ pub fn calibrate(
         }
         (exit, None) => bail!("calibration ended early ({exit:?}); nothing was written"),
     };
-    let grid = grid_from_result(&result, config, &request.device);
+    let grid = grid_file(&result, config, &request.device);
     grid.save_atomic(&path)?;
     info!("grid written to {}", path.display());
     Ok(CalibrationRun {

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use hgcd::client::{Client, Reply, Role};
 use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::MassGrid;
+use hgcd::grid::GridFile;
 use hgcd::servo::ServoReport;
 use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::Pacing;
@@ -31,10 +31,12 @@ struct Running {
 
 impl Running {
     /// `grid`: written to the state dir as the device's grid.
-    fn start(mut config: Config, grid: Option<&MassGrid>) -> Self {
+    fn start(mut config: Config, grid: Option<&GridFile>) -> Self {
         let dir = tempfile::tempdir().unwrap();
         let truth = dir.path().join("truth.toml");
-        truth_field_27().save_atomic(&truth).unwrap();
+        GridFile::from(truth_field_27())
+            .save_atomic(&truth)
+            .unwrap();
         config.sim.mass_grid = Some(truth);
         config.sim.damping_n_s_per_m = 1.0;
         let state = dir.path().join("state");
@@ -337,7 +339,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
     // Gravity compensation plus the offset (or, had the hub dropped the first samples that
     // carried it, the offset already ramping down as stale): never more than the offset.
     let beyond_gravity =
-        nalgebra::Vector3::from(state.force) - grid.gravity_force(&state.position.into());
+        nalgebra::Vector3::from(state.force) - grid.grid.gravity_force(&state.position.into());
     assert!(
         beyond_gravity.xy().norm() < 2e-3 && (-2e-3..0.502).contains(&beyond_gravity.z),
         "force {:?} is gravity + {beyond_gravity}",
@@ -371,7 +373,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
         unreachable!()
     };
     assert!(!status.calibrating);
-    assert!(MassGrid::load(&grid_file).is_ok());
+    assert!(GridFile::load(&grid_file).is_ok());
 
     s.note("B asks for the force while A owns it: B may observe, and is refused what only the owner may do.");
     let mut b = s.connect('B');

@@ -14,7 +14,7 @@ use hgcd::client::{Client, Reply, Role, StateSample};
 use hgcd::config::Config;
 use hgcd::control::compensation::CompensationMode;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::MassGrid;
+use hgcd::grid::{GridFile, MassGrid};
 use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
 use hgcd::servo::ServoReport;
 use hgcd::transport::sim::{SimDevice, SimTransport};
@@ -84,7 +84,7 @@ impl Running {
 fn start(
     config: Config,
     pacing: Pacing,
-    grid: Option<&MassGrid>,
+    grid: Option<&GridFile>,
     duration: Option<f64>,
 ) -> Running {
     launch(config, pacing, grid, &truth_field_27(), duration)
@@ -93,7 +93,7 @@ fn start(
 fn start_with_truth(
     config: Config,
     pacing: Pacing,
-    grid: Option<&MassGrid>,
+    grid: Option<&GridFile>,
     truth: &MassGrid,
 ) -> Running {
     launch(config, pacing, grid, truth, None)
@@ -102,7 +102,7 @@ fn start_with_truth(
 fn launch(
     mut config: Config,
     pacing: Pacing,
-    grid: Option<&MassGrid>,
+    grid: Option<&GridFile>,
     truth_grid: &MassGrid,
     duration: Option<f64>,
 ) -> Running {
@@ -110,7 +110,9 @@ fn launch(
     let state = dir.path().join("state");
     std::fs::create_dir_all(&state).unwrap();
     let truth = dir.path().join("truth.toml");
-    truth_grid.save_atomic(&truth).unwrap();
+    GridFile::from(truth_grid.clone())
+        .save_atomic(&truth)
+        .unwrap();
     config.sim.mass_grid = Some(truth);
     config.paths.state_dir = Some(state.clone());
     let socket = dir.path().join("hgcd.sock");
@@ -258,7 +260,7 @@ fn a_force_offset_appears_in_the_next_output_report() {
         "the offset arrives in one step"
     );
     assert!((sent - Vector3::from(applied.force)).norm() < 1e-5);
-    let gravity = grid.gravity_force(&Vector3::from(applied.position));
+    let gravity = grid.grid.gravity_force(&Vector3::from(applied.position));
     assert!(
         (sent - gravity - offset).norm() < 2e-3,
         "sent {sent}, gravity {gravity} + offset {offset}"
@@ -393,7 +395,7 @@ fn hostile_clients_do_not_disturb_the_loop_or_the_owner() {
             break s;
         }
     };
-    let gravity = grid.gravity_force(&Vector3::from(s.position));
+    let gravity = grid.grid.gravity_force(&Vector3::from(s.position));
     assert!((Vector3::from(s.force) - gravity - offset).norm() < 2e-3);
     drop(owner);
     let report = running.wait().unwrap();
@@ -529,8 +531,9 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     );
     c.subscribe(0.0).unwrap();
     // The grid the daemon made is for this device, and holds the truth (the truth field here).
-    let grid = MassGrid::load(&grid_file).unwrap();
-    assert_eq!(grid.extra["device"]["id"].as_str(), Some("sim-point-mass"));
+    let file = GridFile::load(&grid_file).unwrap();
+    assert_eq!(file.device.unwrap().id, "sim-point-mass");
+    let grid = file.grid;
     for (n, m) in grid.masses.iter().enumerate() {
         let x = grid.vertex_position(n % 3, (n / 3) % 3, n / 9);
         let truth = truth_field_27().mass_at(&x);
@@ -644,7 +647,9 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
     // Calibrate the simulated device (virtual time), then compensate with the grid it produced.
     let dir = tempfile::tempdir().unwrap();
     let truth = dir.path().join("truth.toml");
-    truth_field_27().save_atomic(&truth).unwrap();
+    GridFile::from(truth_field_27())
+        .save_atomic(&truth)
+        .unwrap();
     let mut config = Config::default();
     config.sim.mass_grid = Some(truth);
     config.sim.damping_n_s_per_m = 1.0;

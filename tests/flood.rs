@@ -11,6 +11,7 @@ use nalgebra::Vector3;
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
+use hgcd::grid::GridFile;
 use hgcd::servo::ServoReport;
 use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::Pacing;
@@ -29,7 +30,9 @@ fn run(dir: &Path, seconds: f64, flood: bool) -> (ServoReport, u64) {
         .save_atomic(&state.join("sim-point-mass.toml"))
         .unwrap();
     let truth = dir.join("truth.toml");
-    truth_field_27().save_atomic(&truth).unwrap();
+    GridFile::from(truth_field_27())
+        .save_atomic(&truth)
+        .unwrap();
     config.sim.mass_grid = Some(truth);
     config.sim.damping_n_s_per_m = 1.0;
     config.paths.state_dir = Some(state.clone());

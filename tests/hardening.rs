@@ -13,7 +13,7 @@ use hgcd::config::Config;
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::control::{ControlOutput, Controller, DeviceState};
 use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::MassGrid;
+use hgcd::grid::{GridFile, MassGrid};
 use hgcd::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
 use hgcd::servo::{self, ExitReason, ServoOptions};
 use hgcd::transport::sim::{SimDevice, SimTransport};
@@ -124,7 +124,9 @@ fn published_state_carries_the_force_sent_after_the_safety_layer() {
     let state = dir.path().join("state");
     std::fs::create_dir_all(&state).unwrap();
     let truth = dir.path().join("truth.toml");
-    truth_field_27().save_atomic(&truth).unwrap();
+    GridFile::from(truth_field_27())
+        .save_atomic(&truth)
+        .unwrap();
     with_device_id(truth_field_27(), "sim-point-mass")
         .save_atomic(&state.join("sim-point-mass.toml"))
         .unwrap();

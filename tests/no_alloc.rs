@@ -16,7 +16,7 @@ use hgcd::config::Config;
 use hgcd::control::calibration::{Calibration, CalibrationParams};
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::MassGrid;
+use hgcd::grid::{GridFile, MassGrid};
 use hgcd::protocol::OUTPUT_REPORT_LEN;
 use hgcd::servo::{self, ServoOptions};
 use hgcd::transport::hid::OutputWriter;
@@ -178,7 +178,9 @@ fn a_calibration_on_a_simulated_device() {
     let mut config = config();
     let dir = tempfile::tempdir().unwrap();
     let truth = dir.path().join("truth.toml");
-    truth_field_27().save_atomic(&truth).unwrap();
+    GridFile::from(truth_field_27())
+        .save_atomic(&truth)
+        .unwrap();
     config.sim.mass_grid = Some(truth);
     config.sim.damping_n_s_per_m = 1.0;
     let sim = SimTransport::new(

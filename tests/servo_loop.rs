@@ -11,7 +11,7 @@ use nalgebra::Vector3;
 use hgcd::config::Config;
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
-use hgcd::grid::MassGrid;
+use hgcd::grid::{GridFile, MassGrid};
 use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
 use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions};
 use hgcd::transport::sim::{SimDevice, SimTransport};
@@ -101,7 +101,7 @@ fn pd_hold_with_exact_gravity_stays_within_50_micrometres_for_10_s() {
     let field = truth_field_27();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("truth.toml");
-    field.save_atomic(&path).unwrap();
+    GridFile::from(field.clone()).save_atomic(&path).unwrap();
     let set_point = Vector3::new(0.012, -0.021, 0.017);
     let mut config = Config::default();
     config.sim.mass_grid = Some(path);

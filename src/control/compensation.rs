@@ -11,7 +11,7 @@ use nalgebra::Vector3;
 
 use super::{ControlOutput, Controller, DeviceState};
 pub use crate::config::{CompensationMode, OutsideGrid};
-use crate::grid::MassGrid;
+use crate::grid::{GridFile, MassGrid};
 
 /// The calibrated gravity force field F_G(X).
 #[derive(Clone, Debug, PartialEq)]
@@ -28,24 +28,30 @@ pub struct GravityModel {
 pub enum ModelError {
     #[error(
         "vector mode needs per-vertex force vectors ([vertices] force_vectors) and this grid has \
-         none or a malformed set: recalibrate with this version of hgcd, or use \
-         compensation.mode = \"scalar\""
+         none: recalibrate with this version of hgcd, or use compensation.mode = \"scalar\""
     )]
     NoForceVectors,
 }
 
 impl GravityModel {
+    /// The model of a grid file: its lattice, and in vector mode its per-vertex force vectors.
     pub fn new(
-        grid: MassGrid,
+        file: GridFile,
         mode: CompensationMode,
         outside: OutsideGrid,
     ) -> Result<Self, ModelError> {
-        let forces = match mode {
+        let forces: Vec<Vector3<f64>> = match mode {
             CompensationMode::Scalar => Vec::new(),
-            CompensationMode::Vector => force_vectors(&grid).ok_or(ModelError::NoForceVectors)?,
+            CompensationMode::Vector => {
+                let forces = &file.vertices.force_vectors;
+                if forces.len() != file.grid.vertex_count() {
+                    return Err(ModelError::NoForceVectors);
+                }
+                forces.iter().copied().map(Vector3::from).collect()
+            }
         };
         Ok(Self {
-            grid,
+            grid: file.grid,
             mode,
             outside,
             forces,
@@ -65,25 +71,6 @@ impl GravityModel {
             }
         }
     }
-}
-
-/// The `[vertices] force_vectors` of a calibrated grid, if present and complete.
-fn force_vectors(grid: &MassGrid) -> Option<Vec<Vector3<f64>>> {
-    let list = grid
-        .extra
-        .get("vertices")?
-        .get("force_vectors")?
-        .as_array()?;
-    if list.len() != grid.masses.len() {
-        return None;
-    }
-    list.iter()
-        .map(|v| {
-            let a = v.as_array().filter(|a| a.len() == 3)?;
-            let c = |i: usize| a[i].as_float().filter(|f| f.is_finite());
-            Some(Vector3::new(c(0)?, c(1)?, c(2)?))
-        })
-        .collect()
 }
 
 /// An application force offset Z_E with its staleness handling. An offset's age is judged on both
@@ -185,7 +172,7 @@ mod tests {
     fn scalar_mode_is_mass_times_g_along_v_g() {
         let g = grid();
         let model = GravityModel::new(
-            g.clone(),
+            GridFile::from(g.clone()),
             CompensationMode::Scalar,
             OutsideGrid::HoldNearest,
         )
@@ -198,21 +185,12 @@ mod tests {
 
     #[test]
     fn vector_mode_interpolates_the_measured_forces() {
-        let mut g = grid();
-        let forces: Vec<toml::Value> = (0..27)
-            .map(|n| {
-                toml::Value::Array(vec![
-                    toml::Value::Float(0.01 * n as f64),
-                    toml::Value::Float(0.0),
-                    toml::Value::Float(1.0 + 0.02 * n as f64),
-                ])
-            })
+        let g = grid();
+        let mut file = GridFile::from(g.clone());
+        file.vertices.force_vectors = (0..27)
+            .map(|n| [0.01 * n as f64, 0.0, 1.0 + 0.02 * n as f64])
             .collect();
-        let mut t = toml::Table::new();
-        t.insert("force_vectors".into(), toml::Value::Array(forces));
-        g.extra.insert("vertices".into(), toml::Value::Table(t));
-        let model =
-            GravityModel::new(g.clone(), CompensationMode::Vector, OutsideGrid::Zero).unwrap();
+        let model = GravityModel::new(file, CompensationMode::Vector, OutsideGrid::Zero).unwrap();
         // At a vertex: exactly its vector. The field is affine in n, hence in position.
         let v = g.vertex_position(1, 2, 0);
         let n = g.index(1, 2, 0) as f64;
@@ -221,7 +199,11 @@ mod tests {
         assert_eq!(model.force(&Vector3::new(0.0, 0.0, 0.2)), Vector3::zeros());
         // Without force vectors the vector mode is refused.
         assert_eq!(
-            GravityModel::new(grid(), CompensationMode::Vector, OutsideGrid::Zero),
+            GravityModel::new(
+                GridFile::from(grid()),
+                CompensationMode::Vector,
+                OutsideGrid::Zero
+            ),
             Err(ModelError::NoForceVectors)
         );
     }

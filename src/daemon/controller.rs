@@ -209,8 +209,12 @@ mod tests {
             0.08,
             [2, 2, 2],
         );
-        let model = GravityModel::new(grid, CompensationMode::Scalar, OutsideGrid::HoldNearest)
-            .expect("scalar model");
+        let model = GravityModel::new(
+            grid.into(),
+            CompensationMode::Scalar,
+            OutsideGrid::HoldNearest,
+        )
+        .expect("scalar model");
         Arbiter::new(Compensation::new(
             Some(Box::new(model)),
             ForceOffset::new(0.05, 0.05),

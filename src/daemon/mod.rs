@@ -13,17 +13,17 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use crossbeam_channel::Receiver;
 use tracing::{error, info, warn};
 
 use crate::app::protocol::{Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
-use crate::calibrate::{grid_from_result, grid_path};
 use crate::config::{Config, DeviceSpec};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
+use crate::control::calibration_grid::{self, grid_file};
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
-use crate::grid::MassGrid;
+use crate::grid::{grid_path, GridError, GridFile};
 use crate::mailbox::{
     mailbox, CommandSender, HubMailbox, PublishedState, ServoCommand, ServoReturn,
 };
@@ -51,45 +51,37 @@ pub struct Signals {
     pub reload: Arc<AtomicBool>,
 }
 
-/// The grid file of `device` and the model built from it, if any.
+/// The grid file of `device` and the model built from it, if any. A missing grid (nothing at
+/// `path`) runs uncompensated with a warning; any other grid error, a grid made for another
+/// device or one the compensation mode cannot use is refused unless
+/// `compensation.allow_uncompensated` is set.
 pub fn load_model(
     config: &Config,
     device: &DeviceSpec,
     path: &Path,
 ) -> Result<Option<Box<GravityModel>>> {
-    if !path.exists() {
-        warn!(
-            "no calibration grid at {}: running WITHOUT gravity compensation; calibrate with \
-             `hgcd calibrate --via-daemon`",
-            path.display()
-        );
-        return Ok(None);
-    }
-    let built = MassGrid::load(path)
-        .map_err(anyhow::Error::from)
-        .and_then(|grid| {
-            let id = grid
-                .extra
-                .get("device")
-                .and_then(|d| d.get("id"))
-                .and_then(|v| v.as_str())
-                .map(str::to_string);
-            match id {
-                Some(id) if id != device.device_id() => bail!(
-                    "grid {} was made for device `{id}`, not `{}`",
-                    path.display(),
-                    device.device_id()
-                ),
-                None => warn!(
+    let built = match GridFile::load_for(path, &device.device_id()) {
+        Err(GridError::Missing { .. }) => {
+            warn!(
+                "no calibration grid at {}: running WITHOUT gravity compensation; calibrate with \
+                 `hgcd calibrate --via-daemon`",
+                path.display()
+            );
+            return Ok(None);
+        }
+        Err(e) => Err(anyhow::Error::from(e)),
+        Ok(file) => {
+            if file.device.is_none() {
+                warn!(
                     "grid {} names no device ([device] id); using it for {}",
                     path.display(),
                     device.device_id()
-                ),
-                _ => {}
+                );
             }
             let c = &config.compensation;
-            Ok(GravityModel::new(grid, c.mode, c.outside_grid)?)
-        });
+            GravityModel::new(file, c.mode, c.outside_grid).map_err(anyhow::Error::from)
+        }
+    };
     match built {
         Ok(model) => {
             info!(
@@ -202,14 +194,18 @@ impl Hub {
                     );
                     return;
                 }
-                // Fail now rather than after minutes of calibration.
-                if let Err(e) = crate::calibrate::check_writable(&self.grid_path) {
-                    self.reply(client, self.calibration_reply("failed", format!("{e:#}")));
-                    return;
-                }
                 let (tx, rx) = crossbeam_channel::bounded(4096);
                 match Calibration::new(CalibrationParams::from_config(&self.config), Some(tx)) {
                     Ok(calibration) => {
+                        // Fail now rather than after minutes of calibration.
+                        let plan = calibration.plan();
+                        let room =
+                            calibration_grid::check_room(&self.grid_path, plan, &self.device);
+                        if let Err(e) = room {
+                            let message = format!("{:#}", anyhow::Error::from(e));
+                            self.reply(client, self.calibration_reply("failed", message));
+                            return;
+                        }
                         let start = ServoCommand::StartCalibration(Box::new(calibration));
                         if self.command(start) {
                             info!("calibration requested by application client {client}");
@@ -283,12 +279,12 @@ impl Hub {
                 self.abort_sent = false;
                 let outcome = match calibration.outcome() {
                     Some(Ok(result)) => {
-                        let grid = grid_from_result(&result, &self.config, &self.device);
-                        grid.save_atomic(&self.grid_path)
+                        let file = grid_file(&result, &self.config, &self.device);
+                        file.save_atomic(&self.grid_path)
                             .map_err(anyhow::Error::from)
                             .and_then(|_| {
                                 let c = &self.config.compensation;
-                                Ok(GravityModel::new(grid, c.mode, c.outside_grid)?)
+                                Ok(GravityModel::new(file, c.mode, c.outside_grid)?)
                             })
                     }
                     Some(Err(failure)) => Err(anyhow::anyhow!("{failure}")),
@@ -387,7 +383,7 @@ impl Daemon {
             self.device = spec;
         }
         let config = &self.config;
-        let grid_path = grid_path(&config.state_dir(), &self.device);
+        let grid_path = grid_path(&config.state_dir(), &self.device.device_id());
         if let Err(e) = std::fs::create_dir_all(config.state_dir()) {
             warn!(
                 "state directory {} is not usable ({e}); calibrations will fail to save",

@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
 use crate::config::SimConfig;
-use crate::grid::{GridError, MassGrid};
+use crate::grid::{GridError, GridFile, MassGrid};
 
 /// The physics of a simulated device.
 pub trait Plant: Send {
@@ -62,7 +62,7 @@ impl PointMass {
     pub fn from_config(sim: &SimConfig) -> Result<Self, GridError> {
         let (lo, hi) = sim.workspace();
         let field = match &sim.mass_grid {
-            Some(path) => MassGrid::load(path)?,
+            Some(path) => GridFile::load(path)?.grid,
             None => MassGrid::uniform(
                 sim.mass_kg,
                 sim.g,

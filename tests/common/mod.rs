@@ -8,7 +8,7 @@ use std::sync::{Mutex, MutexGuard};
 
 use nalgebra::Vector3;
 
-use hgcd::grid::MassGrid;
+use hgcd::grid::{DeviceRecord, GridFile, MassGrid};
 
 /// Gravity tilted about 3.3° away from −z (v_G = normalised (0.05, −0.03, 1)).
 pub fn tilted_v_g() -> Vector3<f64> {
@@ -65,12 +65,14 @@ pub fn truth_field_125() -> MassGrid {
     g
 }
 
-/// `grid` tagged as made for device `id` (`[device] id`).
-pub fn with_device_id(mut grid: MassGrid, id: &str) -> MassGrid {
-    let mut dev = toml::Table::new();
-    dev.insert("id".into(), id.into());
-    grid.extra.insert("device".into(), toml::Value::Table(dev));
-    grid
+/// A grid file of `grid` made for the device with id `id`.
+pub fn with_device_id(grid: MassGrid, id: &str) -> GridFile {
+    let mut file = GridFile::from(grid);
+    file.device = Some(DeviceRecord {
+        id: id.into(),
+        spec: None,
+    });
+    file
 }
 
 /// The `hgcd` binary, run from the temporary directory so no installed config is picked up.

@@ -1,0 +1,655 @@
+//! The `hgcd-grid/1` file format (`docs/grid-format.md`): the lattice's keys at the root, then the
+//! typed records calibration adds (`[device]`, `[calibration]`, `[vertices]`), then any root keys
+//! this version does not know, kept as read.
+
+use std::path::Path;
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use super::lattice::{MassGrid, DIM_RANGE, G_RANGE, MAX_MASS_KG};
+use super::{store, GridError, Problem};
+
+/// Format tag of version 1 grid files.
+pub const GRID_FORMAT: &str = "hgcd-grid/1";
+
+/// `[device]`: the device a grid was made for.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DeviceRecord {
+    /// Device id, as in the file name (`DeviceSpec::device_id`: `sim-point-mass`, `hid-1234-abcd-SN_7`).
+    pub id: String,
+    /// The spec the device was opened with (`hid:1234:abcd:SN 7`).
+    pub spec: Option<String>,
+}
+
+/// `[calibration]`: how the grid was made. Parameters are in the units of their configuration keys
+/// (`docs/calibration.md` §8.2). Every key may be missing: files of older versions have fewer.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationRecord {
+    /// UTC time of the run.
+    pub created: Option<toml::value::Datetime>,
+    pub hgcd_version: Option<String>,
+    pub spacing_mm: Option<f64>,
+    pub half_size: Option<u32>,
+    pub centre_mm: Option<[f64; 3]>,
+    pub k_init_n_per_mm: Option<f64>,
+    pub init_damping_n_s_per_m: Option<f64>,
+    pub n_init: Option<usize>,
+    pub eps_init_mm: Option<f64>,
+    pub n_m: Option<usize>,
+    pub eps_m_mm: Option<f64>,
+    pub rise_time_ms: Option<f64>,
+    pub damping_ratio: Option<f64>,
+    pub move_time_ms: Option<f64>,
+    pub vertex_timeout_s: Option<f64>,
+    pub max_iterations: Option<u32>,
+    /// The workspace box used (`device.workspace_*_mm`), mm.
+    pub workspace_min_mm: Option<[f64; 3]>,
+    pub workspace_max_mm: Option<[f64; 3]>,
+    /// M̂₀ (Eq. 8), kg.
+    pub initial_mass_kg: Option<f64>,
+    /// X_C, the centre of the initialisation spring, mm.
+    pub rest_point_mm: Option<[f64; 3]>,
+    /// Device time of the whole run, s.
+    pub duration_s: Option<f64>,
+    /// Paper indices [n, m, p] of the vertices left out (outside the workspace).
+    pub left_out_vertices: Option<Vec<[i32; 3]>>,
+}
+
+/// `[vertices]`: what calibration measured at each vertex, in grid order. Each list is either
+/// empty (absent from the file) or has one entry per vertex.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct VertexRecords {
+    /// Holding force at the vertex's last steady state, N (what the vector mode interpolates).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub force_vectors: Vec<[f64; 3]>,
+    /// Mass updates made.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub iterations: Vec<u32>,
+    /// Distance from the vertex at the last steady state, mm.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub final_error_mm: Vec<f64>,
+}
+
+impl VertexRecords {
+    /// True when no list has entries (the file then has no `[vertices]` table).
+    pub fn is_empty(&self) -> bool {
+        self.force_vectors.is_empty()
+            && self.iterations.is_empty()
+            && self.final_error_mm.is_empty()
+    }
+
+    fn check(&self, vertices: usize) -> Result<(), Problem> {
+        let lengths = [
+            ("force_vectors", self.force_vectors.len()),
+            ("iterations", self.iterations.len()),
+            ("final_error_mm", self.final_error_mm.len()),
+        ];
+        for (key, len) in lengths {
+            if len != 0 && len != vertices {
+                return Err(Problem::PerVertexCount {
+                    key,
+                    len,
+                    need: vertices,
+                });
+            }
+        }
+        // The largest weight the mass and g ranges allow.
+        let max = MAX_MASS_KG * G_RANGE.end();
+        for (vertex, &value) in self.force_vectors.iter().enumerate() {
+            if !(value.iter().all(|c| c.is_finite()) && Vector3::from(value).norm() <= max) {
+                return Err(Problem::ForceVector { vertex, value, max });
+            }
+        }
+        for (vertex, &value) in self.final_error_mm.iter().enumerate() {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(Problem::FinalError { vertex, value });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// An `hgcd-grid/1` file: the lattice and what was recorded with it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GridFile {
+    pub grid: MassGrid,
+    pub device: Option<DeviceRecord>,
+    pub calibration: Option<CalibrationRecord>,
+    pub vertices: VertexRecords,
+    /// Root keys this version does not know: kept as read and written back (format §4).
+    extra: toml::Table,
+}
+
+impl From<MassGrid> for GridFile {
+    /// A file holding the lattice alone.
+    fn from(grid: MassGrid) -> Self {
+        Self {
+            grid,
+            device: None,
+            calibration: None,
+            vertices: VertexRecords::default(),
+            extra: toml::Table::new(),
+        }
+    }
+}
+
+/// The file as serde reads it.
+#[derive(Deserialize)]
+struct Raw {
+    format: String,
+    g: f64,
+    gravity_direction: [f64; 3],
+    origin: [f64; 3],
+    spacing: f64,
+    dims: [i64; 3],
+    masses: Vec<f64>,
+    device: Option<DeviceRecord>,
+    calibration: Option<CalibrationRecord>,
+    #[serde(default)]
+    vertices: VertexRecords,
+    #[serde(flatten)]
+    extra: toml::Table,
+}
+
+/// Everything after the lattice, as serde writes it.
+#[derive(Serialize)]
+struct Records<'a> {
+    device: &'a Option<DeviceRecord>,
+    calibration: &'a Option<CalibrationRecord>,
+    #[serde(skip_serializing_if = "VertexRecords::is_empty")]
+    vertices: &'a VertexRecords,
+    #[serde(flatten)]
+    extra: &'a toml::Table,
+}
+
+impl GridFile {
+    /// Check every value against the format's rules (`docs/grid-format.md` §3).
+    pub fn check(&self) -> Result<(), Problem> {
+        self.grid.check()?;
+        self.vertices.check(self.grid.vertex_count())
+    }
+
+    /// Parse and check a grid from TOML text; `path` names the source in messages. Errors:
+    /// [`GridError::Syntax`], [`GridError::Invalid`].
+    pub fn from_toml_str(text: &str, path: &Path) -> Result<Self, GridError> {
+        let invalid = |problem| GridError::Invalid {
+            path: path.to_path_buf(),
+            problem,
+        };
+        let raw: Raw = toml::from_str(text).map_err(|e| diagnose(text, &e, path))?;
+        if raw.format != GRID_FORMAT {
+            return Err(invalid(Problem::Format {
+                found: format!("{:?}", raw.format),
+            }));
+        }
+        let mut dims = [0usize; 3];
+        for (d, &n) in dims.iter_mut().zip(&raw.dims) {
+            if !DIM_RANGE.contains(&n) {
+                return Err(invalid(Problem::Dims { value: n }));
+            }
+            *d = n as usize;
+        }
+        let mut file = Self {
+            grid: MassGrid {
+                g: raw.g,
+                gravity_direction: Vector3::from(raw.gravity_direction),
+                origin: Vector3::from(raw.origin),
+                spacing: raw.spacing,
+                dims,
+                masses: raw.masses,
+            },
+            device: raw.device,
+            calibration: raw.calibration,
+            vertices: raw.vertices,
+            extra: raw.extra,
+        };
+        file.check().map_err(invalid)?;
+        file.grid.gravity_direction.normalize_mut();
+        Ok(file)
+    }
+
+    /// Load and check the grid file at `path` (a regular file of at most 64 MiB). Errors:
+    /// [`GridError::Missing`] when nothing exists at `path`, and every other variant a read or a
+    /// parse gives.
+    pub fn load(path: &Path) -> Result<Self, GridError> {
+        Self::from_toml_str(&store::read_regular(path)?, path)
+    }
+
+    /// [`load`](Self::load), and refuse a grid whose `[device] id` names another device than
+    /// `device_id` ([`GridError::OtherDevice`]). A grid that names no device is returned; its
+    /// `device` is `None`.
+    pub fn load_for(path: &Path, device_id: &str) -> Result<Self, GridError> {
+        let file = Self::load(path)?;
+        match &file.device {
+            Some(d) if d.id != device_id => Err(GridError::OtherDevice {
+                path: path.to_path_buf(),
+                made_for: d.id.clone(),
+                device: device_id.to_string(),
+            }),
+            _ => Ok(file),
+        }
+    }
+
+    /// Render as `hgcd-grid/1` TOML: the lattice's keys in the order of format §2 (`masses` one
+    /// row of nx values per line), then the records, then the unknown keys kept.
+    pub fn to_toml_string(&self) -> String {
+        let g = &self.grid;
+        let vec3 = |v: &Vector3<f64>| format!("[{:?}, {:?}, {:?}]", v.x, v.y, v.z);
+        let mut out = format!(
+            "format = \"{GRID_FORMAT}\"\ng = {:?}\ngravity_direction = {}\norigin = {}\n\
+             spacing = {:?}\ndims = [{}, {}, {}]\nmasses = [\n",
+            g.g,
+            vec3(&g.gravity_direction),
+            vec3(&g.origin),
+            g.spacing,
+            g.dims[0],
+            g.dims[1],
+            g.dims[2]
+        );
+        for chunk in g.masses.chunks(g.dims[0].max(1)) {
+            let row: Vec<String> = chunk.iter().map(|m| format!("{m:?}")).collect();
+            out.push_str(&format!("  {},\n", row.join(", ")));
+        }
+        out.push_str("]\n");
+        let records = Records {
+            device: &self.device,
+            calibration: &self.calibration,
+            vertices: &self.vertices,
+            extra: &self.extra,
+        };
+        // Plain structs of numbers, strings, arrays and tables always serialise; the fallback
+        // only keeps the type honest.
+        let tail = toml::to_string(&records)
+            .unwrap_or_else(|e| format!("# records could not be written: {e}\n"));
+        if !tail.is_empty() {
+            out.push('\n');
+            out.push_str(&tail);
+        }
+        out
+    }
+
+    /// Check, then write atomically to `path`, keeping the file there as `<name>.bak`
+    /// (`docs/grid-format.md` §7). A grid that would not load is not written
+    /// ([`GridError::Invalid`]); on a write error ([`GridError::Write`]) `path` and its backup
+    /// are unchanged and no partial file is left.
+    pub fn save_atomic(&self, path: &Path) -> Result<(), GridError> {
+        self.check().map_err(|problem| GridError::Invalid {
+            path: path.to_path_buf(),
+            problem,
+        })?;
+        store::replace_atomically(path, self.to_toml_string().as_bytes())
+    }
+
+    /// An upper bound on the size, in bytes, of the file a calibration of `vertices` vertices
+    /// (those left out included) writes for a device spec of `spec_len` bytes.
+    pub fn size_bound(vertices: usize, spec_len: usize) -> u64 {
+        // Lattice keys and the calibration record: under 2 KiB. Per vertex: a mass, a force
+        // vector, an iteration count and an error, each number at most 24 characters, with
+        // separators, about 160 bytes; a left-out vertex's indices take less.
+        4096 + 2 * spec_len as u64 + 256 * vertices as u64
+    }
+}
+
+/// Why `text` did not deserialise: a TOML syntax error, a wrong `format` (reported first, since a
+/// newer version's keys need not match), or a missing key or a wrongly typed value.
+fn diagnose(text: &str, error: &toml::de::Error, path: &Path) -> GridError {
+    let message = in_our_words(error.message());
+    match text.parse::<toml::Table>() {
+        Err(syntax) => GridError::Syntax {
+            path: path.to_path_buf(),
+            message: match syntax.span() {
+                Some(span) => format!(
+                    "line {}: {}",
+                    line_of(text, span.start).0,
+                    one_line(syntax.message())
+                ),
+                None => one_line(syntax.message()),
+            },
+        },
+        Ok(table) => {
+            let problem = match table.get("format") {
+                Some(found) if found.as_str() != Some(GRID_FORMAT) => Problem::Format {
+                    found: clip(&found.to_string(), 60),
+                },
+                _ => Problem::Schema {
+                    at: error.span().and_then(|span| {
+                        let (line, line_text) = line_of(text, span.start);
+                        // A span over several lines is a table: name it by its header. The root
+                        // table has no header worth showing.
+                        let multi_line = line_text.len() < span.end - span.start;
+                        (!multi_line || line_text.starts_with('['))
+                            .then(|| (line, clip(line_text.trim(), 60)))
+                    }),
+                    message,
+                },
+            };
+            GridError::Invalid {
+                path: path.to_path_buf(),
+                problem,
+            }
+        }
+    }
+}
+
+/// The 1-based line number of byte `at` in `text`, and that line.
+fn line_of(text: &str, at: usize) -> (usize, &str) {
+    let at = at.min(text.len());
+    let start = text[..at].rfind('\n').map_or(0, |n| n + 1);
+    let end = text[at..].find('\n').map_or(text.len(), |n| at + n);
+    (text[..at].matches('\n').count() + 1, &text[start..end])
+}
+
+fn one_line(message: &str) -> String {
+    clip(&message.trim().replace('\n', "; "), 200)
+}
+
+/// A deserialisation message in the format's words: keys, numbers and integers.
+fn in_our_words(message: &str) -> String {
+    one_line(message)
+        .replace("missing field", "missing required key")
+        .replace("expected f64", "expected a number")
+        .replace("expected i64", "expected an integer")
+        .replace("expected i32", "expected an integer")
+        .replace("expected u32", "expected an integer ≥ 0")
+        .replace("expected usize", "expected an integer ≥ 0")
+}
+
+/// `s`, cut to at most `max` characters.
+fn clip(s: &str, max: usize) -> String {
+    match s.char_indices().nth(max) {
+        Some((cut, _)) => format!("{}…", &s[..cut]),
+        None => s.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::lattice::tests::sample;
+
+    fn calibrated() -> GridFile {
+        let mut file = GridFile::from(sample());
+        file.device = Some(DeviceRecord {
+            id: "sim-point-mass".into(),
+            spec: Some("sim:point-mass".into()),
+        });
+        file.calibration = Some(CalibrationRecord {
+            created: Some("2026-11-21T23:29:02Z".parse().unwrap()),
+            hgcd_version: Some("0.1.0".into()),
+            spacing_mm: Some(40.0),
+            half_size: Some(1),
+            rest_point_mm: Some([0.0, -0.005, 0.0]),
+            duration_s: Some(26.195),
+            left_out_vertices: Some(vec![[-2, -2, -2]]),
+            ..CalibrationRecord::default()
+        });
+        let n = file.grid.vertex_count();
+        file.vertices = VertexRecords {
+            force_vectors: (0..n).map(|i| [1e-6 * i as f64, 0.0, 1.2]).collect(),
+            iterations: vec![2; n],
+            final_error_mm: vec![0.0071278015934572074; n],
+        };
+        file
+    }
+
+    fn parse(text: &str) -> Result<GridFile, GridError> {
+        GridFile::from_toml_str(text, Path::new("t.toml"))
+    }
+
+    fn problem(text: &str) -> Problem {
+        match parse(text) {
+            Err(GridError::Invalid { problem, .. }) => problem,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn round_trip_keeps_records_and_unknown_keys() {
+        let mut file = calibrated();
+        file.extra
+            .insert("note".into(), toml::Value::String("hand-made".into()));
+        let mut later = toml::Table::new();
+        later.insert(
+            "when".into(),
+            toml::Value::Datetime("1979-05-27".parse().unwrap()),
+        );
+        file.extra
+            .insert("future".into(), toml::Value::Table(later));
+        let text = file.to_toml_string();
+        assert_eq!(parse(&text).unwrap(), file);
+        // The lattice comes first, one row of masses per line.
+        assert!(
+            text.starts_with("format = \"hgcd-grid/1\"\ng = 9.81\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("masses = [\n  0.05, 0.060000000000000005, 0.07,\n"),
+            "{text}"
+        );
+        // A bare lattice has nothing after `masses`.
+        assert!(GridFile::from(sample()).to_toml_string().ends_with("]\n"));
+    }
+
+    #[test]
+    fn files_written_by_earlier_versions_load() {
+        // The first release wrote `rest_point_m` and fewer parameters; its tables still read.
+        let text = format!(
+            "{}\n[calibration]\ncreated = 2025-01-02T03:04:05Z\nhgcd_version = \"0.0.1\"\n\
+             spacing_mm = 40.0\nhalf_size = 1\nrest_point_m = [0.0, 0.0, 0.0]\nduration_s = 30.5\n\n\
+             [device]\nid = \"sim-point-mass\"\nspec = \"sim:point-mass\"\n\n[vertices]\n\
+             final_error_mm = [{errors}]\nforce_vectors = [{forces}]\niterations = [{iterations}]\n",
+            GridFile::from(sample()).to_toml_string(),
+            errors = vec!["0.01"; 27].join(", "),
+            forces = vec!["[0.0, 0.0, 1.0]"; 27].join(", "),
+            iterations = vec!["3"; 27].join(", "),
+        );
+        let file = parse(&text).unwrap();
+        let c = file.calibration.unwrap();
+        assert_eq!(c.duration_s, Some(30.5));
+        assert_eq!(c.rest_point_mm, None);
+        assert_eq!(file.device.unwrap().id, "sim-point-mass");
+        assert_eq!(file.vertices.iterations, vec![3; 27]);
+    }
+
+    #[test]
+    fn the_example_of_the_format_document_loads() {
+        let doc = include_str!("../../docs/grid-format.md");
+        let example = doc
+            .split("```toml\n")
+            .nth(1)
+            .and_then(|rest| rest.split("```").next())
+            .unwrap();
+        let file = parse(example).unwrap();
+        // §8: M = 0.1294375 kg at (0.010, −0.030, 0.020) m.
+        let m = file.grid.mass_at(&Vector3::new(0.010, -0.030, 0.020));
+        assert!((m - 0.1294375).abs() < 1e-12, "{m}");
+    }
+
+    #[test]
+    fn bad_files_are_refused_with_what_is_wrong() {
+        let good = calibrated().to_toml_string();
+        assert!(matches!(
+            problem(&good.replace("hgcd-grid/1", "hgcd-grid/9")),
+            Problem::Format { found } if found == "\"hgcd-grid/9\""
+        ));
+        // A newer version's keys need not match ours: the format is what is reported.
+        assert!(matches!(
+            problem("format = \"hgcd-grid/2\"\nlattice = 1\n"),
+            Problem::Format { .. }
+        ));
+        assert!(matches!(
+            problem(&good.replace("dims = [3, 3, 3]", "dims = [3, 3, 4]")),
+            Problem::MassCount {
+                len: 27,
+                need: 36,
+                ..
+            }
+        ));
+        assert!(matches!(
+            problem(&good.replace("dims = [3, 3, 3]", "dims = [3, 0, 3]")),
+            Problem::Dims { value: 0 }
+        ));
+        assert!(matches!(
+            problem(&good.replace("[0.0, 0.0, 1.0]", "[0.0, 0.0, 2.0]")),
+            Problem::NotUnit { .. }
+        ));
+        for bad in ["-0.05", "nan", "inf", "1e9"] {
+            assert!(
+                matches!(
+                    problem(&good.replacen("0.05, ", &format!("{bad}, "), 1)),
+                    Problem::Mass { vertex: 0, .. }
+                ),
+                "{bad}"
+            );
+        }
+        // Item 7 of issue 7: a grid with g = 1e308 loaded.
+        assert!(matches!(
+            problem(&good.replace("g = 9.81", "g = 1e308")),
+            Problem::OutOfRange { key: "g", .. }
+        ));
+        assert!(matches!(
+            problem(&good.replace("spacing = 0.04", "spacing = 40.0")),
+            Problem::OutOfRange { key: "spacing", .. }
+        ));
+        match problem(&good.replace("spacing = 0.04\n", "")) {
+            Problem::Schema { message, .. } => {
+                assert_eq!(message, "missing required key `spacing`")
+            }
+            other => panic!("{other:?}"),
+        }
+        match problem(&good.replace("g = 9.81", "g = \"9.81\"")) {
+            Problem::Schema {
+                at: Some((2, line)),
+                message,
+            } => {
+                assert_eq!(line, "g = \"9.81\"");
+                assert_eq!(message, "invalid type: string \"9.81\", expected a number");
+            }
+            other => panic!("{other:?}"),
+        }
+        match problem(&good.replace("id = \"sim-point-mass\"", "name = \"x\"")) {
+            Problem::Schema {
+                at: Some((_, line)),
+                message,
+            } => {
+                assert_eq!(line, "[device]");
+                assert!(message.contains("`id`"), "{message}");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(
+            problem(&good.replace("iterations = [2, 2, ", "iterations = [2, ")),
+            Problem::PerVertexCount {
+                key: "iterations",
+                len: 26,
+                need: 27
+            }
+        ));
+        for bad in ["nan]", "1e300]"] {
+            assert!(matches!(
+                problem(&good.replacen("1.2]", bad, 1)),
+                Problem::ForceVector { vertex: 0, .. }
+            ));
+        }
+        assert!(matches!(
+            parse("format = "),
+            Err(GridError::Syntax { message, .. }) if message.starts_with("line 1: ")
+        ));
+    }
+
+    #[test]
+    fn a_grid_for_another_device_is_refused_by_load_for() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dev.toml");
+        calibrated().save_atomic(&path).unwrap();
+        assert!(GridFile::load_for(&path, "sim-point-mass").is_ok());
+        match GridFile::load_for(&path, "hid-1234-5678") {
+            Err(GridError::OtherDevice {
+                made_for, device, ..
+            }) => assert_eq!(
+                (made_for.as_str(), device.as_str()),
+                ("sim-point-mass", "hid-1234-5678")
+            ),
+            other => panic!("{other:?}"),
+        }
+        // A grid that names no device is anybody's.
+        GridFile::from(sample()).save_atomic(&path).unwrap();
+        assert_eq!(
+            GridFile::load_for(&path, "hid-1234-5678").unwrap().device,
+            None
+        );
+    }
+
+    #[test]
+    fn a_grid_that_would_not_load_is_not_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dev.toml");
+        let mut file = calibrated();
+        file.grid.masses[3] = f64::NAN;
+        assert!(matches!(
+            file.save_atomic(&path),
+            Err(GridError::Invalid {
+                problem: Problem::Mass { vertex: 3, .. },
+                ..
+            })
+        ));
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn the_size_bound_holds_for_the_longest_numbers() {
+        let longest = -1.2345678901234567e-300;
+        for dims in [[1, 1, 1], [3, 3, 3], [1, 1, 40], [40, 1, 1], [7, 5, 3]] {
+            let n: usize = dims.iter().product();
+            let mut grid = MassGrid::uniform(
+                longest,
+                longest,
+                Vector3::z(),
+                Vector3::zeros(),
+                longest,
+                dims,
+            );
+            grid.origin = Vector3::repeat(longest);
+            let spec = format!("socket:/{}", "d".repeat(200));
+            let mut file = GridFile::from(grid);
+            file.device = Some(DeviceRecord {
+                id: spec.clone(),
+                spec: Some(spec.clone()),
+            });
+            file.calibration = Some(CalibrationRecord {
+                created: Some("2026-11-21T23:29:02.123456789Z".parse().unwrap()),
+                hgcd_version: Some("100.100.100-alpha.1".into()),
+                spacing_mm: Some(longest),
+                half_size: Some(u32::MAX),
+                centre_mm: Some([longest; 3]),
+                k_init_n_per_mm: Some(longest),
+                init_damping_n_s_per_m: Some(longest),
+                n_init: Some(usize::MAX),
+                eps_init_mm: Some(longest),
+                n_m: Some(usize::MAX),
+                eps_m_mm: Some(longest),
+                rise_time_ms: Some(longest),
+                damping_ratio: Some(longest),
+                move_time_ms: Some(longest),
+                vertex_timeout_s: Some(longest),
+                max_iterations: Some(u32::MAX),
+                workspace_min_mm: Some([longest; 3]),
+                workspace_max_mm: Some([longest; 3]),
+                initial_mass_kg: Some(longest),
+                rest_point_mm: Some([longest; 3]),
+                duration_s: Some(longest),
+                left_out_vertices: Some(vec![[i32::MIN; 3]; n]),
+            });
+            file.vertices = VertexRecords {
+                force_vectors: vec![[longest; 3]; n],
+                iterations: vec![u32::MAX; n],
+                final_error_mm: vec![longest; n],
+            };
+            // Kept and left-out vertices counted together: here as many of each.
+            let size = file.to_toml_string().len() as u64;
+            let bound = GridFile::size_bound(2 * n, spec.len());
+            assert!(size <= bound, "{dims:?}: {size} > {bound}");
+        }
+    }
+}
