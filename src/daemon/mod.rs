@@ -9,12 +9,13 @@
 pub mod controller;
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use crossbeam_channel::Receiver;
+use crossbeam_channel::{Receiver, Sender};
 use tracing::{error, info, warn};
 
 use crate::app::protocol::{Reply, StateSample, Status};
@@ -25,7 +26,7 @@ use crate::control::calibration_grid::{self, grid_file};
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
 use crate::grid::{grid_path, GridError, GridFile};
 use crate::mailbox::{
-    mailbox, CommandSender, HubMailbox, PublishedState, ServoCommand, ServoReturn,
+    mailbox, CommandSender, HubMailbox, OffsetSender, PublishedState, ServoCommand, ServoReturn,
 };
 use crate::servo::thread::EventLog;
 use crate::servo::{self, ServoEvent, ServoOptions, ServoReport};
@@ -122,6 +123,7 @@ struct Hub {
     calibration: Option<(u64, Receiver<CalibrationEvent>)>,
     abort_sent: bool,
     log: EventLog,
+    last_housekeeping: Instant,
 }
 
 impl Hub {
@@ -338,6 +340,35 @@ impl Hub {
         }
     }
 
+    /// One turn of the hub's loop: what the servo thread sent, at most a millisecond's wait for a
+    /// client request, and every 50 ms the housekeeping (calibration events, orphaned
+    /// calibrations, log summaries, SIGHUP, systemd's watchdog).
+    fn turn(
+        &mut self,
+        mailbox: &mut HubMailbox,
+        events: &Receiver<ServoEvent>,
+        requests: &Receiver<HubRequest>,
+        signals: &Signals,
+        systemd: &mut SystemdWatchdog,
+    ) {
+        // Channels fed by the servo thread are polled, never waited on (see servo::thread::POLL);
+        // the hub waits on its client requests instead, at most a millisecond.
+        self.take_from_servo(mailbox, events);
+        if let Ok(r) = requests.recv_timeout(Duration::from_millis(1)) {
+            self.handle_request(r);
+        }
+        if self.last_housekeeping.elapsed() >= Duration::from_millis(50) {
+            self.last_housekeeping = Instant::now();
+            self.forward_calibration_events();
+            self.abort_orphaned_calibration();
+            self.log.flush();
+            if signals.reload.swap(false, Ordering::SeqCst) {
+                self.reload();
+            }
+            systemd.pet_if_turning();
+        }
+    }
+
     fn reload(&mut self) {
         info!("SIGHUP: reloading {}", self.grid_path.display());
         match load_model(&self.config, &self.device, &self.grid_path) {
@@ -395,41 +426,18 @@ impl Daemon {
         let offset = ForceOffset::new(config.app.stale_offset(), config.app.stale_ramp());
         let compensation = Compensation::new(model, offset);
 
-        let (commands_tx, offsets_tx, servo_mailbox, mut hub_mailbox) = mailbox();
-        let (events_tx, events_rx) = crossbeam_channel::bounded(1024);
-        let (hub_tx, hub_rx) = crossbeam_channel::bounded(256);
-        let controller = DaemonController::new(compensation, servo_mailbox);
-
-        let registry = SharedRegistry::default();
-        let listener = server::bind(&self.socket, config.socket_mode()?).with_context(|| {
-            format!(
-                "cannot listen on {} (set app.socket or check /run/hgcd permissions)",
-                self.socket.display()
-            )
-        })?;
-        let ctx = Arc::new(ServerContext {
-            registry: registry.clone(),
-            commands: commands_tx.clone(),
-            offsets: offsets_tx,
-            hub: hub_tx,
-            device: self.device.to_string(),
-            device_id: self.device.device_id(),
-            rate_hz: config.servo.rate_hz,
-            max_force: config.safety.max_force_n,
-            max_clients: config.app.max_clients,
-            hello_timeout: config.app.hello_timeout(),
-        });
-        let server_stop = Arc::new(AtomicBool::new(false));
-        let listener_thread =
-            server::spawn_listener(listener, self.socket.clone(), ctx, server_stop.clone())?;
+        let (commands, offsets, servo_mailbox, mut hub_mailbox) = mailbox();
+        let (events_tx, events) = crossbeam_channel::bounded(1024);
+        let (hub_tx, requests) = crossbeam_channel::bounded(256);
+        let server = self.serve_applications(commands.clone(), offsets, hub_tx)?;
 
         let mut options = ServoOptions::from_config(config);
         options.duration = self.duration;
-        let heartbeat = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let heartbeat = Arc::new(AtomicU64::new(0));
         options.heartbeat = Some(heartbeat.clone());
         let servo = servo::thread::spawn(
             transport,
-            controller,
+            DaemonController::new(compensation, servo_mailbox),
             options,
             config.servo.clone(),
             signals.stop.clone(),
@@ -455,58 +463,115 @@ impl Daemon {
             config: self.config.clone(),
             device: self.device.clone(),
             grid_path,
-            registry,
-            commands: commands_tx,
+            registry: server.registry.clone(),
+            commands,
             started: Instant::now(),
             calibration: None,
             abort_sent: false,
             log: EventLog::new(),
+            last_housekeeping: Instant::now(),
         };
-        let mut watchdog_usec = 0u64;
-        let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
-        let mut last_pet = Instant::now();
-        let mut last_beat = 0u64;
-        let mut last_housekeeping = Instant::now();
+        let mut systemd = SystemdWatchdog::new(heartbeat);
         while !servo.is_finished() {
-            // Channels fed by the servo thread are polled, never waited on (see servo::thread::POLL);
-            // the hub waits on its client requests instead, at most a millisecond.
-            hub.take_from_servo(&mut hub_mailbox, &events_rx);
-            if let Ok(r) = hub_rx.recv_timeout(Duration::from_millis(1)) {
-                hub.handle_request(r);
-            }
-            if last_housekeeping.elapsed() >= Duration::from_millis(50) {
-                last_housekeeping = Instant::now();
-                hub.forward_calibration_events();
-                hub.abort_orphaned_calibration();
-                hub.log.flush();
-                if signals.reload.swap(false, Ordering::SeqCst) {
-                    hub.reload();
-                }
-                // Pet systemd's watchdog only while the servo loop is turning.
-                let beat = heartbeat.load(Ordering::Relaxed);
-                if watchdog
-                    && beat != last_beat
-                    && last_pet.elapsed() >= Duration::from_micros(watchdog_usec / 2)
-                {
-                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
-                    last_pet = Instant::now();
-                    last_beat = beat;
-                }
-            }
+            hub.turn(&mut hub_mailbox, &events, &requests, &signals, &mut systemd);
         }
+
         let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
-        server_stop.store(true, Ordering::SeqCst);
-        let _ = listener_thread.join();
+        server.stop();
         let (result, _) = servo
             .join()
             .map_err(|_| anyhow::anyhow!("the servo thread panicked"))?;
-        for e in events_rx.try_iter() {
+        for e in events.try_iter() {
             hub.log.log(&e);
         }
         hub.log.flush();
         let report = result.context("servo loop")?;
         info!("servo loop ended: {:?}", report.exit);
         Ok(report)
+    }
+
+    /// Listen on the application socket; client threads reach the servo thread through
+    /// `commands` and `offsets` and the hub through `hub`.
+    fn serve_applications(
+        &self,
+        commands: CommandSender,
+        offsets: OffsetSender,
+        hub: Sender<HubRequest>,
+    ) -> Result<AppServer> {
+        let config = &self.config;
+        let listener = server::bind(&self.socket, config.socket_mode()?).with_context(|| {
+            format!(
+                "cannot listen on {} (set app.socket or check /run/hgcd permissions)",
+                self.socket.display()
+            )
+        })?;
+        let registry = SharedRegistry::default();
+        let ctx = Arc::new(ServerContext {
+            registry: registry.clone(),
+            commands,
+            offsets,
+            hub,
+            device: self.device.to_string(),
+            device_id: self.device.device_id(),
+            rate_hz: config.servo.rate_hz,
+            max_force: config.safety.max_force_n,
+            max_clients: config.app.max_clients,
+            hello_timeout: config.app.hello_timeout(),
+        });
+        let stop = Arc::new(AtomicBool::new(false));
+        let listener = server::spawn_listener(listener, self.socket.clone(), ctx, stop.clone())?;
+        Ok(AppServer {
+            registry,
+            stop,
+            listener,
+        })
+    }
+}
+
+/// The running application server.
+struct AppServer {
+    registry: SharedRegistry,
+    stop: Arc<AtomicBool>,
+    listener: JoinHandle<()>,
+}
+
+impl AppServer {
+    /// Close every connection, remove the socket and wait for the listener.
+    fn stop(self) {
+        self.stop.store(true, Ordering::SeqCst);
+        let _ = self.listener.join();
+    }
+}
+
+/// systemd's watchdog (`WatchdogSec=`), petted only while the servo loop is turning.
+struct SystemdWatchdog {
+    enabled: bool,
+    interval: Duration,
+    heartbeat: Arc<AtomicU64>,
+    last_beat: u64,
+    last_pet: Instant,
+}
+
+impl SystemdWatchdog {
+    fn new(heartbeat: Arc<AtomicU64>) -> Self {
+        let mut usec = 0u64;
+        let enabled = sd_notify::watchdog_enabled(false, &mut usec);
+        Self {
+            enabled,
+            interval: Duration::from_micros(usec / 2),
+            heartbeat,
+            last_beat: 0,
+            last_pet: Instant::now(),
+        }
+    }
+
+    fn pet_if_turning(&mut self) {
+        let beat = self.heartbeat.load(Ordering::Relaxed);
+        if self.enabled && beat != self.last_beat && self.last_pet.elapsed() >= self.interval {
+            let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+            self.last_pet = Instant::now();
+            self.last_beat = beat;
+        }
     }
 }
 
