@@ -9,10 +9,10 @@ use anyhow::{bail, Context, Result};
 use tracing::{info, warn};
 
 use crate::config::{Config, DeviceSpec};
+use crate::control::calibration::persist::{check_room, grid_file};
 use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
 };
-use crate::control::calibration_grid::{check_room, grid_file};
 use crate::grid::{grid_path, GridFile};
 use crate::servo::{self, ExitReason, ServoOptions, TimingStats};
 use crate::transport::{self, Pacing};

@@ -2,7 +2,6 @@
 //! controllers too, so each is unit-testable without threads or devices.
 
 pub mod calibration;
-pub mod calibration_grid;
 pub mod compensation;
 pub mod pd;
 

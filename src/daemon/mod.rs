@@ -21,8 +21,8 @@ use tracing::{error, info, warn};
 use crate::app::protocol::{Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::config::{Config, DeviceSpec};
+use crate::control::calibration::persist::{self, grid_file};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
-use crate::control::calibration_grid::{self, grid_file};
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
 use crate::grid::{grid_path, GridError, GridFile};
 use crate::mailbox::{
@@ -201,8 +201,7 @@ impl Hub {
                     Ok(calibration) => {
                         // Fail now rather than after minutes of calibration.
                         let plan = calibration.plan();
-                        let room =
-                            calibration_grid::check_room(&self.grid_path, plan, &self.device);
+                        let room = persist::check_room(&self.grid_path, plan, &self.device);
                         if let Err(e) = room {
                             let message = format!("{:#}", anyhow::Error::from(e));
                             self.reply(client, self.calibration_reply("failed", message));

@@ -22,6 +22,7 @@
 
 mod machine;
 mod outcome;
+pub mod persist;
 mod plan;
 mod steady;
 

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::time::SystemTime;
 
-use super::calibration::{CalibrationResult, GridPlan};
+use super::{CalibrationResult, GridPlan};
 use crate::config::{Config, DeviceSpec};
 use crate::grid::{
     self, CalibrationRecord, DeviceRecord, GridError, GridFile, MassGrid, VertexRecords,
