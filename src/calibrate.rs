@@ -5,17 +5,52 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use thiserror::Error;
 use tracing::{info, warn};
 
-use crate::config::{Config, DeviceSpec};
+use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{check_room, grid_file};
 use crate::control::calibration::{
-    Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
+    Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
+    PlanError,
 };
-use crate::grid::{grid_path, GridFile};
-use crate::servo::{self, ExitReason, ServoOptions, TimingStats};
-use crate::transport::{self, Pacing};
+use crate::grid::{grid_path, GridError, GridFile};
+use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
+use crate::transport::{self, Pacing, TransportError};
+
+/// Why `hgcd calibrate` wrote nothing.
+#[derive(Debug, Error)]
+pub enum CalibrateError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("opening {spec}")]
+    Open {
+        spec: String,
+        #[source]
+        source: TransportError,
+    },
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    /// The output directory is unusable or has no room for the grid (checked before starting).
+    #[error(transparent)]
+    NoRoom(GridError),
+    #[error("starting the servo thread")]
+    Spawn(#[source] std::io::Error),
+    #[error("the servo thread panicked")]
+    ServoPanicked,
+    #[error("calibration stopped; nothing was written")]
+    Servo(#[source] ServoError),
+    #[error("calibration failed: {0}; nothing was written")]
+    Failed(CalibrationFailure),
+    #[error("calibration aborted; nothing was written")]
+    Aborted,
+    #[error("calibration stopped by a fault: {0}; nothing was written")]
+    Fault(Fault),
+    #[error("calibration ended early ({0:?}); nothing was written")]
+    EndedEarly(ExitReason),
+    #[error(transparent)]
+    Save(GridError),
+}
 
 /// What `hgcd calibrate` was asked to do.
 #[derive(Clone, Debug)]
@@ -49,16 +84,21 @@ pub struct CalibrationRun {
 }
 
 /// Run the calibration on the device and save the grid atomically. `progress` sees every event
-/// (on the calling thread). Nothing is written unless the calibration finishes.
+/// (on the calling thread). Nothing is written unless the calibration finishes; every
+/// [`CalibrateError`] means nothing was.
 pub fn calibrate(
     config: &Config,
     request: &CalibrateRequest,
     stop: Arc<AtomicBool>,
     progress: &mut dyn FnMut(&CalibrationEvent),
-) -> Result<CalibrationRun> {
+) -> Result<CalibrationRun, CalibrateError> {
     config.validate()?;
-    let transport = transport::open(&request.device, config, request.pacing)
-        .with_context(|| format!("opening {}", request.device))?;
+    let transport = transport::open(&request.device, config, request.pacing).map_err(|source| {
+        CalibrateError::Open {
+            spec: request.device.to_string(),
+            source,
+        }
+    })?;
     // Name the grid after the device actually opened (a HID serial number the spec left out).
     let mut request = request.clone();
     if let Some(spec) = transport.resolved_spec() {
@@ -71,7 +111,7 @@ pub fn calibrate(
     let calibration = Calibration::new(params, Some(tx))?;
     let plan = calibration.plan();
     // Fail now rather than after minutes of calibration.
-    check_room(&path, plan, &request.device)?;
+    check_room(&path, plan, &request.device).map_err(CalibrateError::NoRoom)?;
     if !plan.left_out.is_empty() {
         let names: Vec<String> = plan.left_out.iter().map(|v| v.to_string()).collect();
         warn!(
@@ -101,7 +141,7 @@ pub fn calibrate(
     }
     let started = Instant::now();
     let handle = servo::thread::spawn(transport, calibration, options, servo_config, stop, None)
-        .context("starting the servo thread")?;
+        .map_err(CalibrateError::Spawn)?;
     // The controller (holding the sender) comes back through the join handle, so watch the thread
     // rather than wait for the channel to close.
     while !handle.is_finished() {
@@ -110,24 +150,20 @@ pub fn calibrate(
         }
         std::thread::sleep(servo::thread::POLL);
     }
-    let (result, calibration) = handle
-        .join()
-        .map_err(|_| anyhow::anyhow!("the servo thread panicked"))?;
+    let (result, calibration) = handle.join().map_err(|_| CalibrateError::ServoPanicked)?;
     for event in rx.try_iter() {
         progress(&event);
     }
-    let report = result.context("calibration stopped; nothing was written")?;
-    let result = match (&report.exit, calibration.outcome()) {
+    let report = result.map_err(CalibrateError::Servo)?;
+    let result = match (report.exit, calibration.outcome()) {
         (_, Some(Ok(result))) => result,
-        (_, Some(Err(failure))) => bail!("calibration failed: {failure}; nothing was written"),
-        (ExitReason::Stopped, None) => bail!("calibration aborted; nothing was written"),
-        (ExitReason::Fault(why), None) => {
-            bail!("calibration stopped by a fault: {why}; nothing was written")
-        }
-        (exit, None) => bail!("calibration ended early ({exit:?}); nothing was written"),
+        (_, Some(Err(failure))) => return Err(CalibrateError::Failed(failure)),
+        (ExitReason::Stopped, None) => return Err(CalibrateError::Aborted),
+        (ExitReason::Fault(fault), None) => return Err(CalibrateError::Fault(fault)),
+        (exit, None) => return Err(CalibrateError::EndedEarly(exit)),
     };
     let grid = grid_file(&result, config, &request.device);
-    grid.save_atomic(&path)?;
+    grid.save_atomic(&path).map_err(CalibrateError::Save)?;
     info!("grid written to {}", path.display());
     Ok(CalibrationRun {
         result,

@@ -8,9 +8,9 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 
-use hgcd::calibrate::{calibrate, CalibrateRequest};
+use hgcd::calibrate::{calibrate, CalibrateError, CalibrateRequest};
 use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH};
-use hgcd::daemon::{self, RunRequest, Signals};
+use hgcd::daemon::{self, RunError, RunRequest, Signals};
 
 mod ctl;
 mod progress;
@@ -320,16 +320,30 @@ fn confirm_start() -> Result<()> {
 /// on it: udev starts the instance again when the device is plugged back in).
 const EXIT_DEVICE_GONE: u8 = 3;
 
-fn device_gone(e: &anyhow::Error) -> bool {
-    e.chain().any(|c| {
+/// The exit status for an error: the device family gets its own, everything else 1.
+fn exit_status(e: &anyhow::Error) -> u8 {
+    let gone = |t: &TransportError| {
         matches!(
-            c.downcast_ref::<TransportError>(),
-            Some(TransportError::Open { .. } | TransportError::Disconnected(_))
-        ) || matches!(
-            c.downcast_ref::<ServoError>(),
-            Some(ServoError::Transport(TransportError::Disconnected(_)))
+            t,
+            TransportError::Open { .. } | TransportError::Disconnected(_)
         )
-    })
+    };
+    let servo_gone = |s: &ServoError| matches!(s, ServoError::Transport(t) if gone(t));
+    let device_gone = match (
+        e.downcast_ref::<RunError>(),
+        e.downcast_ref::<CalibrateError>(),
+    ) {
+        (Some(RunError::Open { source, .. }), _) => gone(source),
+        (Some(RunError::Servo(s)), _) => servo_gone(s),
+        (_, Some(CalibrateError::Open { source, .. })) => gone(source),
+        (_, Some(CalibrateError::Servo(s))) => servo_gone(s),
+        _ => false,
+    };
+    if device_gone {
+        EXIT_DEVICE_GONE
+    } else {
+        1
+    }
 }
 
 fn main() -> ExitCode {
@@ -338,11 +352,7 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("hgcd: {e:#}");
-            if device_gone(&e) {
-                ExitCode::from(EXIT_DEVICE_GONE)
-            } else {
-                ExitCode::FAILURE
-            }
+            ExitCode::from(exit_status(&e))
         }
     }
 }

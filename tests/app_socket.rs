@@ -26,7 +26,7 @@ struct Running {
     dir: tempfile::TempDir,
     socket: PathBuf,
     signals: Signals,
-    handle: JoinHandle<anyhow::Result<ServoReport>>,
+    handle: JoinHandle<Result<ServoReport, hgcd::daemon::RunError>>,
 }
 
 impl Running {

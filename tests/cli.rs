@@ -295,3 +295,47 @@ fn out_of_range_config_values_stop_run_and_calibrate_with_one_line() {
     }
     assert!(!dir.path().join("grid.toml").exists());
 }
+
+/// One exit status per error family: 3 when the device cannot be opened or goes away (the
+/// systemd unit does not restart on it; udev starts it again on plug-in), 1 for everything else.
+#[test]
+fn exit_status_says_whether_the_device_is_gone() {
+    let cfg = empty_config();
+    let dir = tempfile::tempdir().unwrap();
+    let status = |args: &[&str]| {
+        hgcd()
+            .args(["--config", cfg.path().to_str().unwrap()])
+            .args(["--state-dir", dir.path().to_str().unwrap()])
+            .args(args)
+            .output()
+            .unwrap()
+            .status
+            .code()
+    };
+    // Cannot be opened: a HID device that is not plugged in, a socket nobody serves.
+    let gone = dir.path().join("nobody.sock");
+    let gone = format!("socket:{}", gone.display());
+    assert_eq!(
+        status(&["calibrate", "--yes", "--device", "hid:dead:beef"]),
+        Some(3)
+    );
+    assert_eq!(
+        status(&["run", "--duration", "1", "--device", &gone]),
+        Some(3)
+    );
+    // Goes away while running: the device side accepts, then hangs up.
+    let path = dir.path().join("dev.sock");
+    let listener = std::os::unix::net::UnixListener::bind(&path).unwrap();
+    let device = std::thread::spawn(move || drop(listener.accept()));
+    let spec = format!("socket:{}", path.display());
+    assert_eq!(
+        status(&["run", "--duration", "30", "--device", &spec]),
+        Some(3)
+    );
+    device.join().unwrap();
+    // Anything else: a bad device spec, a bad value on the command line; a malformed command
+    // line is clap's usage error, 2.
+    assert_eq!(status(&["run", "--device", "usb:1:2"]), Some(1));
+    assert_eq!(status(&["run", "--duration", "0"]), Some(1));
+    assert_eq!(status(&["run", "--duration", "-1"]), Some(2));
+}

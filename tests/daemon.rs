@@ -53,7 +53,7 @@ struct Running {
     dir: tempfile::TempDir,
     socket: PathBuf,
     signals: Signals,
-    handle: JoinHandle<anyhow::Result<ServoReport>>,
+    handle: JoinHandle<Result<ServoReport, hgcd::daemon::RunError>>,
     writes: Receiver<OutputReport>,
 }
 
@@ -64,13 +64,13 @@ impl Running {
         c
     }
     /// Wait for a daemon started with a duration to end by itself.
-    fn wait(self) -> anyhow::Result<ServoReport> {
+    fn wait(self) -> Result<ServoReport, hgcd::daemon::RunError> {
         self.handle.join().unwrap()
     }
     fn stop(
         self,
     ) -> (
-        anyhow::Result<ServoReport>,
+        Result<ServoReport, hgcd::daemon::RunError>,
         tempfile::TempDir,
         Receiver<OutputReport>,
     ) {

@@ -14,23 +14,23 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result};
 use crossbeam_channel::{Receiver, Sender};
+use thiserror::Error;
 use tracing::{error, info, warn};
 
 use crate::app::protocol::{Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
-use crate::config::{Config, DeviceSpec};
+use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{self, grid_file};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
-use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
+use crate::control::compensation::{Compensation, ForceOffset, GravityModel, ModelError};
 use crate::grid::{grid_path, GridError, GridFile};
 use crate::mailbox::{
     mailbox, CommandSender, HubMailbox, OffsetSender, PublishedState, ServoCommand, ServoReturn,
 };
 use crate::servo::thread::EventLog;
-use crate::servo::{self, ServoEvent, ServoOptions, ServoReport};
-use crate::transport::{self, Pacing, Transport};
+use crate::servo::{self, ServoError, ServoEvent, ServoOptions, ServoReport};
+use crate::transport::{self, Pacing, Transport, TransportError};
 use controller::DaemonController;
 
 /// What `hgcd run` was asked to do.
@@ -52,6 +52,58 @@ pub struct Signals {
     pub reload: Arc<AtomicBool>,
 }
 
+/// Why the daemon could not start, or why it stopped other than by a signal or its duration.
+#[derive(Debug, Error)]
+pub enum RunError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("opening {spec}")]
+    Open {
+        spec: String,
+        #[source]
+        source: TransportError,
+    },
+    #[error(
+        "{}: refusing to run with this grid (recalibrate, remove the file, or set \
+         compensation.allow_uncompensated = true)",
+        chain(.0)
+    )]
+    Grid(UnusableGrid),
+    #[error("cannot listen on {} (set app.socket or --socket, or check /run/hgcd permissions)", path.display())]
+    Listen {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("starting a daemon thread")]
+    Spawn(#[source] std::io::Error),
+    #[error("the servo thread panicked")]
+    ServoPanicked,
+    #[error("servo loop")]
+    Servo(#[source] ServoError),
+}
+
+/// Why a grid file cannot serve as the gravity model.
+#[derive(Debug, Error)]
+pub enum UnusableGrid {
+    #[error(transparent)]
+    File(#[from] GridError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+}
+
+/// `e` and its sources on one line, as `anyhow` prints `{:#}`.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut line = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        line.push_str(": ");
+        line.push_str(&s.to_string());
+        source = s.source();
+    }
+    line
+}
+
 /// The grid file of `device` and the model built from it, if any. A missing grid (nothing at
 /// `path`) runs uncompensated with a warning; any other grid error, a grid made for another
 /// device or one the compensation mode cannot use is refused unless
@@ -60,29 +112,30 @@ pub fn load_model(
     config: &Config,
     device: &DeviceSpec,
     path: &Path,
-) -> Result<Option<Box<GravityModel>>> {
-    let built = match GridFile::load_for(path, &device.device_id()) {
-        Err(GridError::Missing { .. }) => {
-            warn!(
+) -> Result<Option<Box<GravityModel>>, RunError> {
+    let built: Result<GravityModel, UnusableGrid> =
+        match GridFile::load_for(path, &device.device_id()) {
+            Err(GridError::Missing { .. }) => {
+                warn!(
                 "no calibration grid at {}: running WITHOUT gravity compensation; calibrate with \
                  `hgcd calibrate --via-daemon`",
                 path.display()
             );
-            return Ok(None);
-        }
-        Err(e) => Err(anyhow::Error::from(e)),
-        Ok(file) => {
-            if file.device.is_none() {
-                warn!(
-                    "grid {} names no device ([device] id); using it for {}",
-                    path.display(),
-                    device.device_id()
-                );
+                return Ok(None);
             }
-            let c = &config.compensation;
-            GravityModel::new(file, c.mode, c.outside_grid).map_err(anyhow::Error::from)
-        }
-    };
+            Err(e) => Err(e.into()),
+            Ok(file) => {
+                if file.device.is_none() {
+                    warn!(
+                        "grid {} names no device ([device] id); using it for {}",
+                        path.display(),
+                        device.device_id()
+                    );
+                }
+                let c = &config.compensation;
+                GravityModel::new(file, c.mode, c.outside_grid).map_err(UnusableGrid::from)
+            }
+        };
     match built {
         Ok(model) => {
             info!(
@@ -93,13 +146,13 @@ pub fn load_model(
             Ok(Some(Box::new(model)))
         }
         Err(e) if config.compensation.allow_uncompensated => {
-            warn!("{e:#}; running WITHOUT gravity compensation (compensation.allow_uncompensated)");
+            warn!(
+                "{}; running WITHOUT gravity compensation (compensation.allow_uncompensated)",
+                chain(&e)
+            );
             Ok(None)
         }
-        Err(e) => Err(e.context(
-            "refusing to run with this grid (recalibrate, remove the file, or set \
-             compensation.allow_uncompensated = true)",
-        )),
+        Err(e) => Err(RunError::Grid(e)),
     }
 }
 
@@ -203,7 +256,7 @@ impl Hub {
                         let plan = calibration.plan();
                         let room = persist::check_room(&self.grid_path, plan, &self.device);
                         if let Err(e) = room {
-                            let message = format!("{:#}", anyhow::Error::from(e));
+                            let message = chain(&e);
                             self.reply(client, self.calibration_reply("failed", message));
                             return;
                         }
@@ -281,17 +334,19 @@ impl Hub {
                 let outcome = match calibration.outcome() {
                     Some(Ok(result)) => {
                         let file = grid_file(&result, &self.config, &self.device);
+                        let c = &self.config.compensation;
                         file.save_atomic(&self.grid_path)
-                            .map_err(anyhow::Error::from)
+                            .map_err(|e| chain(&e))
                             .and_then(|_| {
-                                let c = &self.config.compensation;
-                                Ok(GravityModel::new(file, c.mode, c.outside_grid)?)
+                                GravityModel::new(file, c.mode, c.outside_grid)
+                                    .map_err(|e| chain(&e))
                             })
                     }
-                    Some(Err(failure)) => Err(anyhow::anyhow!("{failure}")),
-                    None => Err(anyhow::anyhow!(
+                    Some(Err(failure)) => Err(failure.to_string()),
+                    None => Err(
                         "calibration aborted (its requester disconnected); nothing was written"
-                    )),
+                            .to_string(),
+                    ),
                 };
                 match outcome {
                     Ok(model) => {
@@ -312,9 +367,9 @@ impl Hub {
                     }
                     Err(e) => {
                         self.command(ServoCommand::ReleaseHold);
-                        error!("calibration failed: {e:#}; the previous grid stays in use");
+                        error!("calibration failed: {e}; the previous grid stays in use");
                         if let Some(c) = client {
-                            self.reply(c, self.calibration_reply("failed", format!("{e:#}")));
+                            self.reply(c, self.calibration_reply("failed", e));
                         }
                     }
                 }
@@ -407,7 +462,7 @@ impl Daemon {
         transport: Box<dyn Transport>,
         signals: Signals,
         ready: &mut dyn FnMut(&Path),
-    ) -> Result<ServoReport> {
+    ) -> Result<ServoReport, RunError> {
         self.config.validate()?;
         if let Some(spec) = transport.resolved_spec() {
             self.device = spec;
@@ -442,7 +497,7 @@ impl Daemon {
             signals.stop.clone(),
             Some(events_tx),
         )
-        .context("starting the servo thread")?;
+        .map_err(RunError::Spawn)?;
         info!(
             "hgcd running on {} ({}), compensation: {mode}, socket {}",
             self.device,
@@ -477,14 +532,12 @@ impl Daemon {
 
         let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
         server.stop();
-        let (result, _) = servo
-            .join()
-            .map_err(|_| anyhow::anyhow!("the servo thread panicked"))?;
+        let (result, _) = servo.join().map_err(|_| RunError::ServoPanicked)?;
         for e in events.try_iter() {
             hub.log.log(&e);
         }
         hub.log.flush();
-        let report = result.context("servo loop")?;
+        let report = result.map_err(RunError::Servo)?;
         info!("servo loop ended: {:?}", report.exit);
         Ok(report)
     }
@@ -496,13 +549,13 @@ impl Daemon {
         commands: CommandSender,
         offsets: OffsetSender,
         hub: Sender<HubRequest>,
-    ) -> Result<AppServer> {
+    ) -> Result<AppServer, RunError> {
         let config = &self.config;
-        let listener = server::bind(&self.socket, config.socket_mode()?).with_context(|| {
-            format!(
-                "cannot listen on {} (set app.socket or check /run/hgcd permissions)",
-                self.socket.display()
-            )
+        let listener = server::bind(&self.socket, config.socket_mode()?).map_err(|source| {
+            RunError::Listen {
+                path: self.socket.clone(),
+                source,
+            }
         })?;
         let registry = SharedRegistry::default();
         let ctx = Arc::new(ServerContext {
@@ -518,7 +571,8 @@ impl Daemon {
             hello_timeout: config.app.hello_timeout(),
         });
         let stop = Arc::new(AtomicBool::new(false));
-        let listener = server::spawn_listener(listener, self.socket.clone(), ctx, stop.clone())?;
+        let listener = server::spawn_listener(listener, self.socket.clone(), ctx, stop.clone())
+            .map_err(RunError::Spawn)?;
         Ok(AppServer {
             registry,
             stop,
@@ -575,9 +629,17 @@ impl SystemdWatchdog {
 }
 
 /// `hgcd run`: open the device and run the daemon.
-pub fn run(config: &Config, request: &RunRequest, signals: Signals) -> Result<ServoReport> {
-    let transport = transport::open(&request.device, config, request.pacing)
-        .with_context(|| format!("opening {}", request.device))?;
+pub fn run(
+    config: &Config,
+    request: &RunRequest,
+    signals: Signals,
+) -> Result<ServoReport, RunError> {
+    let transport = transport::open(&request.device, config, request.pacing).map_err(|source| {
+        RunError::Open {
+            spec: request.device.to_string(),
+            source,
+        }
+    })?;
     Daemon::new(config.clone(), request).run(transport, signals, &mut |_| {
         let _ = sd_notify::notify(
             false,
