@@ -613,7 +613,7 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
 
 /// Mean penetration of a virtual horizontal surface at the start height, rendered by a client
 /// that answers every state before the next tick, over the last 0.5 s of `duration` s (the
-/// paper's experiment, §5).
+/// paper's experiment, §5). The probe settles on the surface here within about 0.1 s.
 fn wall_penalty(running: &Running, k: f64, damping: f64, duration: f64) -> f64 {
     let mut client = running.client(Role::Control, "wall");
     client.subscribe(1000.0).unwrap();
@@ -654,7 +654,7 @@ fn paper_experiment_penalty_is_probe_weight_over_stiffness_with_compensation() {
         config.sim.probe_mass_kg = m_p;
         config.sim.start_position_mm = p;
         let running = start_with_truth(config, Some(&grid), &truth);
-        let penalty = wall_penalty(&running, k, 10.0, 2.0);
+        let penalty = wall_penalty(&running, k, 10.0, 1.0);
         running.stop().unwrap();
         let expected = m_p * g / k; // 0.294 mm
         assert!(
@@ -670,7 +670,7 @@ fn paper_experiment_penalty_is_probe_weight_over_stiffness_with_compensation() {
     config.sim.probe_mass_kg = m_p;
     config.sim.start_position_mm = p;
     let running = start_with_truth(config, None, &truth);
-    let penalty = wall_penalty(&running, k, 10.0, 2.0);
+    let penalty = wall_penalty(&running, k, 10.0, 1.0);
     running.stop().unwrap();
     let x = Vector3::from(p) * 1e-3;
     let expected = (truth.mass_at(&x) + m_p) * g / k;
