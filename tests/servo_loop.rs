@@ -248,8 +248,11 @@ fn a_device_silent_for_a_while_is_a_fault_until_its_reports_resume() {
         .faults(|_, t| (t > 1.0 && t <= 1.1 + 1e-9).then_some(Fault::Silence));
     let (tx, rx) = crossbeam_channel::bounded(64);
     let stop = AtomicBool::new(false);
-    let mut hold = pushing_hold();
-    let set_point = hold.set_point;
+    let mut hold = Recorder {
+        inner: pushing_hold(),
+        states: Vec::with_capacity(2100),
+    };
+    let set_point = hold.inner.set_point;
     let report = servo::run(
         &mut transport,
         &mut hold,
@@ -289,7 +292,13 @@ fn a_device_silent_for_a_while_is_a_fault_until_its_reports_resume() {
         *t_zero - 1.0 <= deadline + 1e-3 + 1e-9,
         "zeroed at {t_zero} s"
     );
-    // The handle dropped while the force was off; the hold brought it back.
+    // The handle fell while the force was off (some 5 cm in 0.1 s); the hold brought it back.
+    let back = hold.states.iter().find(|s| s.time > 1.1).unwrap();
+    assert!(
+        back.position.z < set_point.z - 0.03,
+        "at {:?} when the reports resumed",
+        back.position
+    );
     let last = report.last_state.unwrap();
     assert!(
         (last.position - set_point).norm() < 2e-4,
