@@ -117,8 +117,9 @@ fn an_offset_flood_does_not_delay_the_servo_loop() {
         return;
     }
     // Before the servo side was made wait-free, floods gave ticks of 28.7 and 59.7 ms. A quiet
-    // run on a busy VM shows a few ms at worst; allow that much again on top.
-    let allowed = (2.0 * worst(&quiet)).max(worst(&quiet) + 5.0);
+    // run on a busy VM shows a few ms at worst, and up to 12 ms with two busy loops beside it
+    // (either run, flooded or not, at random): allow twice that, or 15 ms more.
+    let allowed = (2.0 * worst(&quiet)).max(worst(&quiet) + 15.0);
     assert!(
         worst(&flooded) <= allowed,
         "flooded worst period {:.2} ms, quiet {:.2} ms",

@@ -57,8 +57,10 @@ fn a_burst_whose_newest_report_is_garbled_still_drives_the_loop() {
     let device_config = config.clone();
     let device = std::thread::spawn(move || {
         let (mut stream, _) = listener.accept().unwrap();
+        // As long as the host's watchdog: on a loaded machine the host may take tens of ms to
+        // answer, and a device that sent its next burst meanwhile would no longer be in step.
         stream
-            .set_read_timeout(Some(Duration::from_millis(50)))
+            .set_read_timeout(Some(Duration::from_secs(5)))
             .unwrap();
         let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
         let mut outputs = 0u64;
@@ -78,7 +80,7 @@ fn a_burst_whose_newest_report_is_garbled_still_drives_the_loop() {
             if stream.write_all(&frames).is_err() {
                 break;
             }
-            // Lock-step: wait (briefly) for the host's answer before the next burst.
+            // Lock-step: wait for the host's answer before the next burst.
             let mut frame = [0u8; OUTPUT_REPORT_LEN + 1];
             match stream.read_exact(&mut frame) {
                 Ok(()) => {
@@ -89,6 +91,9 @@ fn a_burst_whose_newest_report_is_garbled_still_drives_the_loop() {
                 Err(_) => break,
             }
         }
+        // Stay connected until the host hangs up: its last report (zero force, motors off)
+        // must not find the device gone.
+        let _ = std::io::copy(&mut stream, &mut std::io::sink());
         outputs
     });
     let mut transport = SocketTransport::connect(&path).unwrap();

@@ -1,6 +1,7 @@
 //! The servo thread never allocates once its loop runs: a counting global allocator counts every
-//! allocation per thread, and a tap transport (which runs on the servo thread) checks that count
-//! at every report after a short warm-up, through each transport and each servo-side controller.
+//! allocation per thread, and a hook on the tap transport (which runs on the servo thread) checks
+//! that count at every report after a short warm-up, through each transport and each servo-side
+//! controller.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -22,9 +23,10 @@ use hgcd::servo::{self, ServoOptions};
 use hgcd::transport::hid::OutputWriter;
 use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::socket::{self, SocketTransport};
-use hgcd::transport::{Pacing, Transport, TransportError, MAX_REPORT_LEN};
+use hgcd::transport::{Pacing, Transport};
 
 mod common;
+use common::tap::Tap;
 use common::{truth_field_27, with_device_id};
 
 struct Counting;
@@ -76,54 +78,22 @@ struct Seen {
     allocations: AtomicU64,
 }
 
-/// Passes everything through; counts the servo thread's allocations after the warm-up.
-struct Tap<T> {
-    inner: T,
-    seen: Arc<Seen>,
-    baseline: Option<u64>,
-}
-
-impl<T> Tap<T> {
-    fn new(inner: T) -> (Self, Arc<Seen>) {
-        let seen = Arc::new(Seen::default());
-        (
-            Self {
-                inner,
-                seen: seen.clone(),
-                baseline: None,
-            },
-            seen,
-        )
-    }
-}
-
-impl<T: Transport> Transport for Tap<T> {
-    fn read_input(
-        &mut self,
-        buf: &mut [u8; MAX_REPORT_LEN],
-        timeout: Duration,
-    ) -> Result<Option<usize>, TransportError> {
-        let reads = self.seen.reads.fetch_add(1, Ordering::Relaxed) + 1;
+/// A tap on `inner` that counts reads and, after the warm-up, the allocations of the thread that
+/// reads (the servo thread).
+fn counting<T: Transport>(inner: T) -> (Tap<T>, Arc<Seen>) {
+    let seen = Arc::new(Seen::default());
+    let counts = seen.clone();
+    let mut baseline = None;
+    let tap = Tap::new(inner).on_read(move || {
+        let reads = counts.reads.fetch_add(1, Ordering::Relaxed) + 1;
         let now = allocations_here();
-        match self.baseline {
-            None if reads >= WARM_UP => self.baseline = Some(now),
-            Some(base) => self.seen.allocations.store(now - base, Ordering::Relaxed),
+        match baseline {
+            None if reads >= WARM_UP => baseline = Some(now),
+            Some(base) => counts.allocations.store(now - base, Ordering::Relaxed),
             None => {}
         }
-        self.inner.read_input(buf, timeout)
-    }
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
-        self.inner.write_output(report)
-    }
-    fn now(&self) -> f64 {
-        self.inner.now()
-    }
-    fn take_garbled_skipped(&mut self) -> u64 {
-        self.inner.take_garbled_skipped()
-    }
-    fn describe(&self) -> String {
-        "tap".into()
-    }
+    });
+    (tap, seen)
 }
 
 fn config() -> Config {
@@ -158,7 +128,7 @@ fn a_simulated_device_in_virtual_time_with_a_pd_hold() {
         SimDevice::from_config("point-mass", &config).unwrap(),
         Pacing::Virtual,
     );
-    let (mut tap, seen) = Tap::new(sim);
+    let (mut tap, seen) = counting(sim);
     let mut options = ServoOptions::from_config(&config);
     options.duration = Some(2.0);
     let (events, _rx) = crossbeam_channel::bounded(16);
@@ -187,7 +157,7 @@ fn a_calibration_on_a_simulated_device() {
         SimDevice::from_config("point-mass", &config).unwrap(),
         Pacing::Virtual,
     );
-    let (mut tap, seen) = Tap::new(sim);
+    let (mut tap, seen) = counting(sim);
     let (tx, _rx) = crossbeam_channel::bounded(4096);
     let mut calibration =
         Calibration::new(CalibrationParams::from_config(&config), Some(tx)).unwrap();
@@ -221,7 +191,7 @@ fn a_device_behind_the_socket_transport() {
         let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
         socket::serve(&listener, &mut device, true, &flag).unwrap();
     });
-    let (mut tap, seen) = Tap::new(SocketTransport::connect(&path).unwrap());
+    let (mut tap, seen) = counting(SocketTransport::connect(&path).unwrap());
     let mut options = ServoOptions::from_config(&config);
     options.watchdog = 5.0; // wall clock in lock-step: generous on a loaded machine
     struct Ticks(PdHold, u64);
@@ -265,7 +235,7 @@ fn the_daemon_with_a_client_sending_offsets_and_reading_states() {
         SimDevice::from_config("point-mass", &config).unwrap(),
         Pacing::Virtual,
     );
-    let (tap, seen) = Tap::new(sim);
+    let (tap, seen) = counting(sim);
     let request = RunRequest {
         device: "sim:point-mass".parse().unwrap(),
         duration: None,

@@ -4,7 +4,6 @@
 use std::os::unix::net::UnixListener;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
 
 use nalgebra::Vector3;
 
@@ -12,13 +11,14 @@ use hgcd::config::Config;
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
 use hgcd::grid::{GridFile, MassGrid};
-use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
+use hgcd::protocol::OutputReport;
 use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions};
 use hgcd::transport::sim::{SimDevice, SimTransport};
 use hgcd::transport::socket::{self, SocketTransport};
-use hgcd::transport::{Pacing, Transport, TransportError, MAX_REPORT_LEN};
+use hgcd::transport::Pacing;
 
 mod common;
+use common::tap::{Fault, Tap};
 use common::truth_field_27;
 
 fn sim_transport(config: &Config) -> SimTransport {
@@ -139,49 +139,6 @@ fn pd_hold_with_exact_gravity_stays_within_50_micrometres_for_10_s() {
     assert!((truth - set_point).norm() < 5e-5);
 }
 
-/// Records every output report with the device time it was written at; can garble every input
-/// report after `babble_after` s (a device that only sends garbage).
-struct Recorded {
-    inner: SimTransport,
-    writes: Vec<(f64, OutputReport)>,
-    babble_after: Option<f64>,
-}
-
-impl Recorded {
-    fn new(inner: SimTransport) -> Self {
-        Self {
-            inner,
-            writes: Vec::with_capacity(4096),
-            babble_after: None,
-        }
-    }
-}
-
-impl Transport for Recorded {
-    fn read_input(
-        &mut self,
-        buf: &mut [u8; MAX_REPORT_LEN],
-        timeout: Duration,
-    ) -> Result<Option<usize>, TransportError> {
-        let r = self.inner.read_input(buf, timeout)?;
-        if self.babble_after.is_some_and(|t| self.inner.now() > t) {
-            buf[1] = 0x7f; // unknown protocol version
-        }
-        Ok(r)
-    }
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
-        self.writes
-            .push((self.inner.now(), OutputReport::decode(report).unwrap()));
-        self.inner.write_output(report)
-    }
-    fn now(&self) -> f64 {
-        self.inner.now()
-    }
-    fn describe(&self) -> String {
-        "recorded".into()
-    }
-}
-
 fn pushing_hold() -> PdHold {
     PdHold {
         set_point: Vector3::new(0.0, 0.0, 0.01),
@@ -217,7 +174,7 @@ fn assert_zeroed_at_the_fault(writes: &[(f64, OutputReport)], fault_at: f64, dea
 fn silent_device_trips_the_watchdog_and_force_is_zeroed_at_the_fault() {
     let mut config = Config::default();
     config.sim.stop_reporting_after_s = Some(1.0);
-    let mut transport = Recorded::new(sim_transport(&config));
+    let mut transport = Tap::new(sim_transport(&config)).recording();
     let (tx, rx) = crossbeam_channel::bounded(64);
     let stop = AtomicBool::new(false);
     let report = servo::run(
@@ -242,7 +199,7 @@ fn silent_device_trips_the_watchdog_and_force_is_zeroed_at_the_fault() {
         silent_for >= deadline && silent_for <= deadline + 1e-3 + 1e-9,
         "detected after {silent_for} s, deadline {deadline} s"
     );
-    assert_zeroed_at_the_fault(&transport.writes, 1.0, deadline);
+    assert_zeroed_at_the_fault(&transport.writes().all(), 1.0, deadline);
 
     // With stop_on_fault the run ends at the fault instead.
     let mut transport = sim_transport(&config);
@@ -260,8 +217,10 @@ fn silent_device_trips_the_watchdog_and_force_is_zeroed_at_the_fault() {
 #[test]
 fn a_device_that_only_babbles_trips_the_watchdog_too() {
     let config = Config::default();
-    let mut transport = Recorded::new(sim_transport(&config));
-    transport.babble_after = Some(1.0);
+    // After 1 s the device only sends reports of an unknown version.
+    let mut transport = Tap::new(sim_transport(&config))
+        .recording()
+        .faults(|_, t| (t > 1.0).then_some(Fault::BadVersion));
     let stop = AtomicBool::new(false);
     let report = servo::run(
         &mut transport,
@@ -273,7 +232,79 @@ fn a_device_that_only_babbles_trips_the_watchdog_too() {
     .unwrap();
     assert_eq!(report.stats.watchdog_faults, 1);
     assert!(report.stats.garbled > 400);
-    assert_zeroed_at_the_fault(&transport.writes, 1.0, config.servo.watchdog_ms * 1e-3);
+    assert_zeroed_at_the_fault(
+        &transport.writes().all(),
+        1.0,
+        config.servo.watchdog_ms * 1e-3,
+    );
+}
+
+#[test]
+fn a_device_silent_for_a_while_is_a_fault_until_its_reports_resume() {
+    let config = Config::default();
+    // The device says nothing from 1.0 s to 1.1 s, then reports again.
+    let mut transport = Tap::new(sim_transport(&config))
+        .recording()
+        .faults(|_, t| (t > 1.0 && t <= 1.1 + 1e-9).then_some(Fault::Silence));
+    let (tx, rx) = crossbeam_channel::bounded(64);
+    let stop = AtomicBool::new(false);
+    let mut hold = Recorder {
+        inner: pushing_hold(),
+        states: Vec::with_capacity(2100),
+    };
+    let set_point = hold.inner.set_point;
+    let report = servo::run(
+        &mut transport,
+        &mut hold,
+        &options(&config, 2.0),
+        &stop,
+        Some(&tx),
+    )
+    .unwrap();
+    assert_eq!(report.stats.watchdog_faults, 1);
+    let deadline = config.servo.watchdog_ms * 1e-3;
+    let events: Vec<_> = rx.try_iter().collect();
+    let silent_for = events.iter().find_map(|e| match e {
+        ServoEvent::WatchdogFault { silent_for } => Some(*silent_for),
+        _ => None,
+    });
+    let resumed_after = events.iter().find_map(|e| match e {
+        ServoEvent::ReportsResumed { after } => Some(*after),
+        _ => None,
+    });
+    let silent_for = silent_for.expect("a watchdog event");
+    assert!(
+        silent_for >= deadline && silent_for <= deadline + 1e-3 + 1e-9,
+        "detected after {silent_for} s, deadline {deadline} s"
+    );
+    let after = resumed_after.expect("reports resumed");
+    assert!((after - 0.101).abs() < 1e-6, "resumed after {after} s");
+    // While the device was silent the loop wrote once: the fault's zero, at the deadline.
+    let writes = transport.writes().all();
+    let during: Vec<_> = writes
+        .iter()
+        .filter(|(t, _)| *t > 1.0 + 1e-9 && *t <= 1.1 + 1e-9)
+        .collect();
+    assert_eq!(during.len(), 1, "{during:?}");
+    let (t_zero, zero) = during[0];
+    assert!(zero.enable && zero.force == Vector3::zeros());
+    assert!(
+        *t_zero - 1.0 <= deadline + 1e-3 + 1e-9,
+        "zeroed at {t_zero} s"
+    );
+    // The handle fell while the force was off (some 5 cm in 0.1 s); the hold brought it back.
+    let back = hold.states.iter().find(|s| s.time > 1.1).unwrap();
+    assert!(
+        back.position.z < set_point.z - 0.03,
+        "at {:?} when the reports resumed",
+        back.position
+    );
+    let last = report.last_state.unwrap();
+    assert!(
+        (last.position - set_point).norm() < 2e-4,
+        "at {:?}, set point {set_point:?}",
+        last.position
+    );
 }
 
 /// Panics at a given tick while pushing (a controller bug).
@@ -339,49 +370,15 @@ fn stop_request_writes_zero_force_last() {
     );
 }
 
-/// A transport that corrupts every seventh input report.
-struct Garbling {
-    inner: SimTransport,
-    count: u64,
-}
-
-impl Transport for Garbling {
-    fn read_input(
-        &mut self,
-        buf: &mut [u8; MAX_REPORT_LEN],
-        timeout: Duration,
-    ) -> Result<Option<usize>, TransportError> {
-        let r = self.inner.read_input(buf, timeout)?;
-        self.count += 1;
-        Ok(r.map(|n| {
-            if self.count % 7 == 0 {
-                buf[1] = 0xee; // unknown protocol version
-                n
-            } else if self.count % 7 == 3 {
-                n - 5 // short report
-            } else {
-                n
-            }
-        }))
-    }
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
-        self.inner.write_output(report)
-    }
-    fn now(&self) -> f64 {
-        self.inner.now()
-    }
-    fn describe(&self) -> String {
-        "garbling".into()
-    }
-}
-
 #[test]
 fn garbled_reports_are_counted_and_skipped() {
     let config = Config::default();
-    let mut transport = Garbling {
-        inner: sim_transport(&config),
-        count: 0,
-    };
+    // Every seventh input report has an unknown version, the third after it is short.
+    let mut transport = Tap::new(sim_transport(&config)).faults(|n, _| match n % 7 {
+        0 => Some(Fault::BadVersion),
+        3 => Some(Fault::Short),
+        _ => None,
+    });
     let stop = AtomicBool::new(false);
     let report = servo::run(
         &mut transport,

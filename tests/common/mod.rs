@@ -1,10 +1,13 @@
 //! Helpers shared by the integration tests: known truth fields for the simulator, the binary
-//! under test, file listings.
+//! under test, file listings, bounded waits, and the tap transport ([`tap`]).
 #![allow(dead_code)]
+
+pub mod tap;
 
 use std::path::Path;
 use std::process::Command;
 use std::sync::{Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 
@@ -90,6 +93,22 @@ pub fn file_names(dir: &Path) -> Vec<String> {
         .collect();
     names.sort();
     names
+}
+
+/// How long [`wait_for`] polls before it fails the test.
+pub const WAIT: Duration = Duration::from_secs(30);
+
+/// Poll `poll` until it gives a value; fail the test, naming `what` was awaited, after [`WAIT`].
+/// For conditions another thread brings about in its own time (a disconnect noticed, a file
+/// reloaded), each poll a round trip that blocks by itself.
+pub fn wait_for<T>(what: &str, mut poll: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        if let Some(value) = poll() {
+            return value;
+        }
+        assert!(Instant::now() < deadline, "waited {WAIT:?} for {what}");
+    }
 }
 
 static SERIAL: Mutex<()> = Mutex::new(());
