@@ -364,6 +364,7 @@ pub fn run(
     events: Option<&Sender<ServoEvent>>,
 ) -> Result<ServoReport, ServoError> {
     let mut core = ServoCore::new(options)?;
+    core.stats.clock_drift = transport.clock_drift();
     let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         run_loop(
             &mut *transport,

@@ -87,14 +87,16 @@ pub struct TimingStats {
     pub device_fault_ticks: u64,
     /// Ticks whose controller force was not finite.
     pub non_finite_forces: u64,
+    /// How fast the device clock may run slow against the host's, as a fraction: the floor of
+    /// the clock difference rises at this rate, so lateness that lasts is absorbed into it no
+    /// faster (0.2 ms per second at the default, [`CLOCK_DRIFT`]).
+    pub clock_drift: f64,
     /// Smallest (host − device) clock difference, s, allowing for drift; None before a report.
     clock_floor: Option<f64>,
     last_device_time: f64,
 }
 
-/// How fast the device clock may run slow against the host's before lateness is overstated: the
-/// floor of the clock difference rises at this rate (1000 ppm, ten times a USB crystal's).
-const CLOCK_DRIFT: f64 = 1e-3;
+use crate::transport::CLOCK_DRIFT;
 
 impl TimingStats {
     pub fn new(nominal_period: f64) -> Self {
@@ -112,6 +114,7 @@ impl TimingStats {
             watchdog_faults: 0,
             device_fault_ticks: 0,
             non_finite_forces: 0,
+            clock_drift: CLOCK_DRIFT,
             clock_floor: None,
             last_device_time: 0.0,
         }
@@ -119,14 +122,14 @@ impl TimingStats {
 
     /// Record a report received at host time `received` (s) with device time `device` (s). The
     /// difference of the two clocks is an unknown constant plus the report's lateness; the
-    /// constant is the smallest difference seen, let rise by [`CLOCK_DRIFT`] so a slow device
+    /// constant is the smallest difference seen, let rise by `clock_drift` so a slow device
     /// clock is not mistaken for growing lateness. Allocation-free.
     pub fn record_lateness(&mut self, received: f64, device: f64) {
         let difference = received - device;
         let floor = match self.clock_floor {
             Some(floor) => {
                 let elapsed = (device - self.last_device_time).max(0.0);
-                (floor + CLOCK_DRIFT * elapsed).min(difference)
+                (floor + self.clock_drift * elapsed).min(difference)
             }
             None => difference,
         };

@@ -16,6 +16,10 @@ use crate::protocol::{InputReport, OUTPUT_REPORT_LEN};
 /// Largest report a transport hands up; longer ones are cut and then rejected by the decoder.
 pub const MAX_REPORT_LEN: usize = 64;
 
+/// How fast a device clock may run slow against the host's unless its transport says otherwise
+/// ([`Transport::clock_drift`]): 200 ppm, twice a crystal's usual tolerance.
+pub const CLOCK_DRIFT: f64 = 2e-4;
+
 /// Why a transport failed.
 #[derive(Debug, Error)]
 pub enum TransportError {
@@ -49,6 +53,13 @@ pub trait Transport: Send {
     /// returned). Transports that deliver one report per read have none.
     fn take_garbled_skipped(&mut self) -> u64 {
         0
+    }
+
+    /// How far this device's clock may run slow against the host's, as a fraction; the loop's
+    /// lateness statistics allow for it. A simulated device times its reports by the host's
+    /// clock and drifts not at all.
+    fn clock_drift(&self) -> f64 {
+        CLOCK_DRIFT
     }
 
     /// Human-readable description for logs.

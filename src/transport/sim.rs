@@ -283,6 +283,10 @@ impl Transport for SimTransport {
         }
     }
 
+    fn clock_drift(&self) -> f64 {
+        0.0
+    }
+
     fn describe(&self) -> String {
         let mode = match self.pacing {
             Pacing::Virtual => "virtual time",

@@ -142,6 +142,9 @@ impl<T: Transport> Transport for Tap<T> {
         self.inner.now()
     }
 
+    fn clock_drift(&self) -> f64 {
+        self.inner.clock_drift()
+    }
     fn take_garbled_skipped(&mut self) -> u64 {
         self.inner.take_garbled_skipped()
     }
