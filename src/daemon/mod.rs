@@ -380,7 +380,12 @@ impl Hub {
     /// Everything the servo thread sent since the last call: states to fan out, events to log,
     /// returns to deal with. Polled, never waited on (see [`servo::thread::POLL`]).
     fn take_from_servo(&mut self, mailbox: &mut HubMailbox, events: &Receiver<ServoEvent>) {
-        while let Ok(published) = mailbox.states.pop() {
+        // Only what is there now: a servo thread in virtual time may publish faster than the
+        // hub fans out, and the hub must still get to its requests.
+        for _ in 0..mailbox.states.slots() {
+            let Ok(published) = mailbox.states.pop() else {
+                break;
+            };
             self.fan_out(&published);
         }
         for e in events.try_iter() {

@@ -169,15 +169,19 @@ struct DeviceClock {
 }
 
 impl DeviceClock {
-    fn seconds(&mut self, raw: u32) -> f64 {
+    /// Seconds since the first report, and whether the clock just jumped back (a device reset).
+    fn seconds(&mut self, raw: u32) -> (f64, bool) {
+        let mut jumped_back = false;
         if let Some(last) = self.last {
             let step = raw.wrapping_sub(last);
             if step < u32::MAX / 2 {
                 self.elapsed_us += u64::from(step);
+            } else {
+                jumped_back = true;
             }
         }
         self.last = Some(raw);
-        self.elapsed_us as f64 * 1e-6
+        (self.elapsed_us as f64 * 1e-6, jumped_back)
     }
 }
 
@@ -277,6 +281,8 @@ impl ServoCore {
     /// The device went silent and is back: the velocity filter restarts at the next report.
     pub fn resume_after_silence(&mut self) {
         self.resync = true;
+        // The device may have reset meanwhile: its clock and the host's are compared afresh.
+        self.stats.restart_lateness();
     }
 
     /// Handle one input report that arrived at `arrived` (transport clock, s).
@@ -324,7 +330,11 @@ impl ServoCore {
             self.foaw.reset();
             self.resync = false;
         }
-        let time = self.clock.seconds(report.timestamp_us);
+        let (time, jumped_back) = self.clock.seconds(report.timestamp_us);
+        if jumped_back {
+            // A device reset: the time it lost is not lateness.
+            self.stats.restart_lateness();
+        }
         self.stats.record_lateness(arrived, time);
         let state = DeviceState {
             time,
@@ -478,12 +488,13 @@ mod tests {
     #[test]
     fn device_clock_unwraps() {
         let mut c = DeviceClock::default();
-        assert_eq!(c.seconds(u32::MAX - 999), 0.0);
-        assert!((c.seconds(u32::MAX) - 999e-6).abs() < 1e-12);
-        assert!((c.seconds(1000) - 2000e-6).abs() < 1e-12);
-        // A reset clock does not make time run backwards.
-        assert!((c.seconds(10) - 2000e-6).abs() < 1e-12);
-        assert!((c.seconds(20) - 2010e-6).abs() < 1e-12);
+        assert_eq!(c.seconds(u32::MAX - 999), (0.0, false));
+        assert!((c.seconds(u32::MAX).0 - 999e-6).abs() < 1e-12);
+        assert!((c.seconds(1000).0 - 2000e-6).abs() < 1e-12);
+        // A reset clock does not make time run backwards, and says it jumped.
+        let (t, jumped) = c.seconds(10);
+        assert!((t - 2000e-6).abs() < 1e-12 && jumped);
+        assert_eq!(c.seconds(20), (2010e-6, false));
     }
 
     /// Asks for a large force and remembers what `after_tick` says was sent.

@@ -120,6 +120,12 @@ impl TimingStats {
         }
     }
 
+    /// Compare the two clocks afresh from the next report (after a silence or a device reset,
+    /// when their offset may have changed).
+    pub fn restart_lateness(&mut self) {
+        self.clock_floor = None;
+    }
+
     /// Record a report received at host time `received` (s) with device time `device` (s). The
     /// difference of the two clocks is an unknown constant plus the report's lateness; the
     /// constant is the smallest difference seen, let rise by `clock_drift` so a slow device
@@ -227,6 +233,19 @@ mod tests {
         assert_eq!(s.lateness.quantile_us(0.5), Some(1.0));
         assert!((s.lateness.max_us() - 1480.0).abs() < 2.0);
         assert_eq!(s.late_wakeups, 1);
+    }
+
+    #[test]
+    fn a_restart_compares_the_clocks_afresh() {
+        let mut s = TimingStats::new(1e-3);
+        s.record_lateness(0.0, 0.0);
+        // The device reset during a 2 s silence: its clock starts again near zero.
+        s.restart_lateness();
+        for k in 0..100 {
+            s.record_lateness(2.0 + k as f64 * 1e-3, k as f64 * 1e-3);
+        }
+        assert_eq!(s.late_wakeups, 0);
+        assert!(s.lateness.max_us() < 1.0);
     }
 
     #[test]
