@@ -10,10 +10,8 @@ use nalgebra::Vector3;
 
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
-use hgcd::control::pd::{LinearisedGains, PdHold};
-use hgcd::control::{ControlOutput, Controller, DeviceState};
 use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::{GridFile, MassGrid};
+use hgcd::grid::GridFile;
 use hgcd::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
 use hgcd::servo::{self, ExitReason, ServoOptions};
 use hgcd::transport::sim::{SimDevice, SimTransport};
@@ -21,29 +19,7 @@ use hgcd::transport::socket::SocketTransport;
 use hgcd::transport::Pacing;
 
 mod common;
-use common::{truth_field_27, with_device_id};
-
-/// Ends the run after `n` ticks of a PD hold.
-struct Ticks(PdHold, u64);
-
-impl Controller for Ticks {
-    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
-        let out = self.0.tick(s);
-        if s.tick + 1 >= self.1 {
-            ControlOutput::done(out.force)
-        } else {
-            out
-        }
-    }
-}
-
-fn hold() -> PdHold {
-    PdHold {
-        set_point: Vector3::new(0.0, 0.0, 0.005),
-        gains: LinearisedGains::from_rise_time(0.1, 1.0),
-        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
-    }
-}
+use common::{pd_hold, truth_field_27, with_device_id, Ticks};
 
 /// A device that sends its reports in bursts of ten per exchange, nine valid and the newest
 /// garbled (a flaky line or firmware), must still drive the loop from the newest valid report.
@@ -101,7 +77,7 @@ fn a_burst_whose_newest_report_is_garbled_still_drives_the_loop() {
     options.watchdog = 5.0; // wall clock: generous on a loaded machine
     let report = servo::run(
         &mut transport,
-        &mut Ticks(hold(), BURSTS),
+        &mut Ticks(pd_hold(), BURSTS),
         &options,
         &AtomicBool::new(false),
         None,

@@ -15,9 +15,8 @@ use nalgebra::Vector3;
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
 use hgcd::control::calibration::{Calibration, CalibrationParams};
-use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::{GridFile, MassGrid};
+use hgcd::grid::GridFile;
 use hgcd::protocol::OUTPUT_REPORT_LEN;
 use hgcd::servo::{self, ServoOptions};
 use hgcd::transport::hid::OutputWriter;
@@ -27,7 +26,7 @@ use hgcd::transport::{Pacing, Transport};
 
 mod common;
 use common::tap::Tap;
-use common::{truth_field_27, with_device_id};
+use common::{pd_hold, truth_field_27, with_device_id, Ticks};
 
 struct Counting;
 
@@ -103,14 +102,6 @@ fn config() -> Config {
     config
 }
 
-fn hold() -> PdHold {
-    PdHold {
-        set_point: Vector3::new(0.0, 0.0, 0.005),
-        gains: LinearisedGains::from_rise_time(0.1, 1.0),
-        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
-    }
-}
-
 fn assert_quiet(what: &str, seen: &Seen, at_least: u64) {
     let reads = seen.reads.load(Ordering::Relaxed);
     assert!(reads >= at_least, "{what}: only {reads} reports");
@@ -134,7 +125,7 @@ fn a_simulated_device_in_virtual_time_with_a_pd_hold() {
     let (events, _rx) = crossbeam_channel::bounded(16);
     servo::run(
         &mut tap,
-        &mut hold(),
+        &mut pd_hold(),
         &options,
         &AtomicBool::new(false),
         Some(&events),
@@ -194,20 +185,9 @@ fn a_device_behind_the_socket_transport() {
     let (mut tap, seen) = counting(SocketTransport::connect(&path).unwrap());
     let mut options = ServoOptions::from_config(&config);
     options.watchdog = 5.0; // wall clock in lock-step: generous on a loaded machine
-    struct Ticks(PdHold, u64);
-    impl hgcd::control::Controller for Ticks {
-        fn tick(&mut self, s: &hgcd::control::DeviceState) -> hgcd::control::ControlOutput {
-            let out = self.0.tick(s);
-            if s.tick + 1 >= self.1 {
-                hgcd::control::ControlOutput::done(out.force)
-            } else {
-                out
-            }
-        }
-    }
     servo::run(
         &mut tap,
-        &mut Ticks(hold(), 1000),
+        &mut Ticks(pd_hold(), 1000),
         &options,
         &AtomicBool::new(false),
         None,

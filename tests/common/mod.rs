@@ -118,3 +118,26 @@ static SERIAL: Mutex<()> = Mutex::new(());
 pub fn serial() -> MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
+
+/// A feedback-linearised PD hold 5 mm above the origin, on a uniform 0.12 kg model.
+pub fn pd_hold() -> hgcd::control::pd::PdHold {
+    hgcd::control::pd::PdHold {
+        set_point: Vector3::new(0.0, 0.0, 0.005),
+        gains: hgcd::control::pd::LinearisedGains::from_rise_time(0.1, 1.0),
+        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
+    }
+}
+
+/// Runs `.0` and ends the run after `.1` ticks.
+pub struct Ticks<C>(pub C, pub u64);
+
+impl<C: hgcd::control::Controller> hgcd::control::Controller for Ticks<C> {
+    fn tick(&mut self, s: &hgcd::control::DeviceState) -> hgcd::control::ControlOutput {
+        let out = self.0.tick(s);
+        if s.tick + 1 >= self.1 {
+            hgcd::control::ControlOutput::done(out.force)
+        } else {
+            out
+        }
+    }
+}
