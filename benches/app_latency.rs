@@ -15,9 +15,11 @@ use rand::{Rng, SeedableRng};
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
+use hgcd::protocol::MAX_REPORT_LEN;
 use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
-use hgcd::transport::sim::{SimDevice, SimTransport};
-use hgcd::transport::{Pacing, Transport, TransportError, MAX_REPORT_LEN};
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
+use hgcd::transport::{Pacing, Transport, TransportError};
 
 /// Time-stamps output reports whose x force changed.
 struct Stamping {

@@ -22,7 +22,7 @@ use hgcd::grid::MassGrid;
 use hgcd::mailbox::{mailbox, OffsetCommand, ServoCommand};
 use hgcd::protocol::INPUT_REPORT_LEN;
 use hgcd::servo::{ServoCore, ServoOptions};
-use hgcd::transport::sim::SimDevice;
+use hgcd::sim::SimDevice;
 
 fn hold() -> PdHold {
     PdHold {

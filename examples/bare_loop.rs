@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use hgcd::config::ServoConfig;
 use hgcd::servo::rt;
 use hgcd::servo::stats::Histogram;
-use hgcd::transport::sim::sleep_until;
+use hgcd::sys::sleep_until;
 
 fn main() {
     let seconds: f64 = std::env::args()

@@ -1,6 +1,6 @@
 //! hgcd: autocalibrated gravity compensation for 3-DoF impedance haptic devices
 //! (Formaglio et al.). The servo loop lives in [`servo`], controllers in [`control`], device
-//! transports in [`transport`], simulated plants in [`sim`].
+//! transports in [`transport`], simulated devices in [`sim`].
 
 pub mod app; //        application socket: wire protocol, server, client library
 pub mod calibrate; //  `hgcd calibrate`: run Algorithm 1 on a device and persist the grid
@@ -13,7 +13,8 @@ pub mod mailbox; //    what the daemon hands the servo thread and gets back, loc
 pub mod newest; //     a slot where the newest value wins, wait-free on both sides
 pub mod protocol; //   HID report layout v1: encode/decode
 pub mod servo; //      the 1 kHz tick loop, safety layer, timing statistics
-pub mod sim; //        simulated plants
-pub mod transport; //  hid, sim (mock-HID firmware) and socket transports
+pub mod sim; //        simulated devices: plants, encoders, firmware, socket server
+pub mod sys; //        ppoll, recv without waiting, absolute sleeps
+pub mod transport; //  hid, in-process sim and socket transports
 
 pub use app::client;

@@ -258,7 +258,7 @@ fn calibrate_here(
 /// `hgcd sim-device`: serve the simulated device on a Unix socket until the host leaves.
 fn sim_device(config: &Config, listen: &Path, lockstep: bool) -> Result<()> {
     let stop = install_stop_handler()?;
-    let mut device = hgcd::transport::sim::SimDevice::from_config("point-mass", config)?;
+    let mut device = hgcd::sim::SimDevice::from_config("point-mass", config)?;
     // Replaces a stale socket, refuses a live one or anything that is not a socket.
     let listener = hgcd::app::server::bind(listen, 0o660)
         .with_context(|| format!("listening on {}", listen.display()))?;
@@ -267,7 +267,7 @@ fn sim_device(config: &Config, listen: &Path, lockstep: bool) -> Result<()> {
         listen.display(),
         if lockstep { "lock-step" } else { "real time" }
     );
-    let served = hgcd::transport::socket::serve(&listener, &mut device, lockstep, &stop);
+    let served = hgcd::sim::socket::serve(&listener, &mut device, lockstep, &stop);
     let _ = std::fs::remove_file(listen);
     served.with_context(|| format!("serving {}", listen.display()))?;
     println!(

@@ -15,6 +15,9 @@ pub const INPUT_REPORT_ID: u8 = 0x01;
 pub const OUTPUT_REPORT_ID: u8 = 0x02;
 /// Length of an input report in bytes, report ID included.
 pub const INPUT_REPORT_LEN: usize = 24;
+
+/// Largest report a transport hands up; longer ones are cut and then rejected by the decoder.
+pub const MAX_REPORT_LEN: usize = 64;
 /// Length of an output report in bytes, report ID included.
 pub const OUTPUT_REPORT_LEN: usize = 20;
 /// Largest position magnitude per axis a report may carry, metres.

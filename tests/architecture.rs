@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 /// Layers, lowest first. A module may use modules of lower layers only.
 const LAYERS: &[&[&str]] = &[
-    &["protocol", "newest", "estimate"],
+    &["protocol", "newest", "estimate", "sys"],
     &["config"],
     &["grid"],
     &["sim", "control"],

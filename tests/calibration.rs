@@ -16,7 +16,8 @@ use hgcd::control::calibration::{
 use hgcd::control::{Controller, DeviceState};
 use hgcd::grid::{GridFile, MassGrid};
 use hgcd::servo::{self, ExitReason, ServoOptions};
-use hgcd::transport::sim::{SimDevice, SimTransport};
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;

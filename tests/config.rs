@@ -6,7 +6,8 @@ use std::sync::Arc;
 use hgcd::calibrate::{calibrate, CalibrateRequest};
 use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::transport::sim::{SimDevice, SimTransport};
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 /// Default config in a directory of its own, with `change` applied.

@@ -20,7 +20,8 @@ use hgcd::control::compensation::CompensationMode;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::{GridFile, MassGrid};
 use hgcd::servo::ServoReport;
-use hgcd::transport::sim::{SimDevice, SimTransport};
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;

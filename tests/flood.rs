@@ -13,7 +13,8 @@ use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::GridFile;
 use hgcd::servo::ServoReport;
-use hgcd::transport::sim::{SimDevice, SimTransport};
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;

@@ -14,7 +14,8 @@ use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::GridFile;
 use hgcd::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
 use hgcd::servo::{self, ExitReason, ServoOptions};
-use hgcd::transport::sim::{SimDevice, SimTransport};
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
 use hgcd::transport::Pacing;
 

@@ -19,9 +19,11 @@ use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::GridFile;
 use hgcd::protocol::OUTPUT_REPORT_LEN;
 use hgcd::servo::{self, ServoOptions};
+use hgcd::sim::socket;
+use hgcd::sim::SimDevice;
 use hgcd::transport::hid::OutputWriter;
-use hgcd::transport::sim::{SimDevice, SimTransport};
-use hgcd::transport::socket::{self, SocketTransport};
+use hgcd::transport::sim::SimTransport;
+use hgcd::transport::socket::SocketTransport;
 use hgcd::transport::{Pacing, Transport};
 
 mod common;

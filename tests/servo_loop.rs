@@ -13,8 +13,10 @@ use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
 use hgcd::grid::{GridFile, MassGrid};
 use hgcd::protocol::OutputReport;
 use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions};
-use hgcd::transport::sim::{SimDevice, SimTransport};
-use hgcd::transport::socket::{self, SocketTransport};
+use hgcd::sim::socket;
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
+use hgcd::transport::socket::SocketTransport;
 use hgcd::transport::Pacing;
 
 mod common;

@@ -20,8 +20,9 @@ use thiserror::Error;
 use crate::config::{Config, EstimateConfig, SafetyConfig};
 use crate::control::{Controller, DeviceState};
 use crate::estimate::{Foaw, FoawError};
+use crate::protocol::MAX_REPORT_LEN;
 use crate::protocol::{InputReport, OutputReport, ProtocolError, Status, OUTPUT_REPORT_LEN};
-use crate::transport::{Transport, TransportError, MAX_REPORT_LEN};
+use crate::transport::{Transport, TransportError};
 use safety::SafetyLayer;
 pub use stats::TimingStats;
 

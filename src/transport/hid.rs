@@ -14,9 +14,10 @@ use std::time::{Duration, Instant};
 
 use hidapi::{HidApi, HidDevice};
 
-use super::{Burst, Transport, TransportError, MAX_REPORT_LEN};
+use super::{Burst, Transport, TransportError};
 use crate::config::DeviceSpec;
 use crate::newest::{newest, NewestWriter};
+use crate::protocol::MAX_REPORT_LEN;
 use crate::protocol::OUTPUT_REPORT_LEN;
 
 /// A HID device the system shows, as `hgcd devices` lists it.

@@ -1,6 +1,6 @@
 //! Transports carry HID reports between hgcd and a device: real hardware through hidapi
-//! ([`hid`]), the mock-HID firmware around a simulated plant ([`sim`]), or a Unix stream socket to an
-//! external simulator or bridge ([`socket`]). The servo loop sees only the [`Transport`] trait.
+//! ([`hid`]), an in-process simulated device ([`sim`], the device itself lives in
+//! [`crate::sim`]), or a Unix stream socket to an external simulator or bridge ([`socket`]). The servo loop sees only the [`Transport`] trait.
 
 pub mod hid;
 pub mod sim;
@@ -11,10 +11,7 @@ use std::time::Duration;
 use thiserror::Error;
 
 use crate::config::{Config, DeviceSpec};
-use crate::protocol::{InputReport, OUTPUT_REPORT_LEN};
-
-/// Largest report a transport hands up; longer ones are cut and then rejected by the decoder.
-pub const MAX_REPORT_LEN: usize = 64;
+use crate::protocol::{InputReport, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
 
 /// How fast a device clock may run slow against the host's unless its transport says otherwise
 /// ([`Transport::clock_drift`]): 200 ppm, twice a crystal's usual tolerance.
@@ -135,11 +132,12 @@ pub fn open(
             serial.as_deref(),
         )?)),
         DeviceSpec::Sim { model } => {
-            let device =
-                sim::SimDevice::from_config(model, config).map_err(|e| TransportError::Open {
+            let device = crate::sim::SimDevice::from_config(model, config).map_err(|e| {
+                TransportError::Open {
                     spec: spec.to_string(),
                     reason: e.to_string(),
-                })?;
+                }
+            })?;
             Ok(Box::new(sim::SimTransport::new(device, pacing)))
         }
         DeviceSpec::Socket { path } => Ok(Box::new(socket::SocketTransport::connect(path)?)),

@@ -4,14 +4,13 @@
 //! report ID first, exactly as over HID (`docs/hid-protocol.md`, "Socket framing").
 
 use std::io::{ErrorKind, Read, Write};
-use std::os::unix::net::{UnixListener, UnixStream};
+use std::os::unix::net::UnixStream;
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use super::sim::SimDevice;
-use super::{Burst, Transport, TransportError, MAX_REPORT_LEN};
-use crate::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
+use super::{Burst, Transport, TransportError};
+use crate::protocol::{MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
+use crate::sys::wait_readable;
 
 /// Host side of the socket transport.
 pub struct SocketTransport {
@@ -164,162 +163,5 @@ impl Transport for SocketTransport {
 
     fn describe(&self) -> String {
         format!("socket {}", self.path)
-    }
-}
-
-/// Wait until `stream` is readable or `timeout` passes (ppoll: nanosecond timeout, no tick
-/// rounding). EINTR counts as a wake-up; the caller re-checks.
-fn wait_readable(fd: &impl std::os::unix::io::AsRawFd, timeout: Duration) -> std::io::Result<()> {
-    let mut fds = libc::pollfd {
-        fd: fd.as_raw_fd(),
-        events: libc::POLLIN,
-        revents: 0,
-    };
-    let ts = libc::timespec {
-        tv_sec: timeout.as_secs() as libc::time_t,
-        tv_nsec: libc::c_long::from(timeout.subsec_nanos() as i32),
-    };
-    // SAFETY: one pollfd and one timespec we own, no signal mask.
-    let r = unsafe { libc::ppoll(&mut fds, 1, &ts, std::ptr::null()) };
-    if r < 0 {
-        let e = std::io::Error::last_os_error();
-        if e.kind() != ErrorKind::Interrupted {
-            return Err(e);
-        }
-    }
-    Ok(())
-}
-
-/// Device side: serve `device` to one host connected to `listener`. In lock-step mode each input
-/// report waits for the host's output report (deterministic, as fast as both sides allow); otherwise
-/// reports go out in real time, one per period. Returns when the host disconnects or `stop` is set.
-pub fn serve(
-    listener: &UnixListener,
-    device: &mut SimDevice,
-    lockstep: bool,
-    stop: &AtomicBool,
-) -> std::io::Result<()> {
-    listener.set_nonblocking(true)?;
-    let mut stream = loop {
-        match listener.accept() {
-            Ok((stream, _)) => break stream,
-            Err(e) if e.kind() == ErrorKind::WouldBlock => {
-                if stop.load(Ordering::Relaxed) {
-                    return Ok(());
-                }
-                // Wake at once when the host connects (its watchdog starts with its loop).
-                wait_readable(listener, Duration::from_millis(50))?;
-            }
-            Err(e) => return Err(e),
-        }
-    };
-    // Blocking writes; reads only what has arrived (recv with MSG_DONTWAIT after ppoll).
-    stream.set_nonblocking(false)?;
-    let period = Duration::from_secs_f64(device.period());
-    let mut next = Instant::now();
-    let mut inbuf = Vec::with_capacity(256);
-    let mut first = true;
-    let result = loop {
-        if stop.load(Ordering::Relaxed) {
-            break Ok(());
-        }
-        // The first report shows the power-on state, as over HID.
-        if !first {
-            device.advance();
-        }
-        first = false;
-        if !device.is_silent() {
-            let mut report = [0u8; INPUT_REPORT_LEN];
-            device.input_report(&mut report);
-            let mut frame = vec![INPUT_REPORT_LEN as u8];
-            frame.extend_from_slice(&report);
-            if stream.write_all(&frame).is_err() {
-                break Ok(()); // the host went away
-            }
-        }
-        next += period;
-        // Lock-step: until the host's output report (at most 100 ms). Real time: until the next
-        // period starts.
-        let until = if lockstep {
-            Instant::now() + Duration::from_millis(100)
-        } else {
-            next
-        };
-        let mut got_output = false;
-        let mut host_gone = false;
-        while !(stop.load(Ordering::Relaxed) || lockstep && got_output || host_gone) {
-            let now = Instant::now();
-            if now >= until {
-                break;
-            }
-            wait_readable(&stream, until - now)?;
-            host_gone = receive(&stream, &mut inbuf)?;
-            got_output |= apply_frames(&mut inbuf, device)?;
-        }
-        if host_gone {
-            break Ok(());
-        }
-        if !lockstep && Instant::now() > next + period {
-            // Fell behind (a stall): drop the missed periods rather than burst.
-            next = Instant::now();
-        }
-    };
-    // Whatever the host sent last (its final zero-force report) still reaches the firmware.
-    let _ = receive(&stream, &mut inbuf);
-    let _ = apply_frames(&mut inbuf, device);
-    result
-}
-
-/// Move whatever the host has sent into `inbuf`; true when the host has closed its side.
-fn receive(stream: &UnixStream, inbuf: &mut Vec<u8>) -> std::io::Result<bool> {
-    let mut chunk = [0u8; 256];
-    loop {
-        match read_available(stream, &mut chunk) {
-            Ok(0) => return Ok(true),
-            Ok(n) => inbuf.extend_from_slice(&chunk[..n]),
-            Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(false),
-            Err(e) if e.kind() == ErrorKind::Interrupted => {}
-            Err(_) => return Ok(true),
-        }
-    }
-}
-
-/// Hand every complete output frame in `inbuf` to the firmware; true if there was one.
-fn apply_frames(inbuf: &mut Vec<u8>, device: &mut SimDevice) -> std::io::Result<bool> {
-    let mut any = false;
-    while let Some(&n) = inbuf.first() {
-        let n = n as usize;
-        if n == 0 || n > MAX_REPORT_LEN {
-            return Err(std::io::Error::new(
-                ErrorKind::InvalidData,
-                format!("bad frame length {n} from host"),
-            ));
-        }
-        if inbuf.len() < n + 1 {
-            break;
-        }
-        let _ = device.receive_output(&inbuf[1..=n]);
-        inbuf.drain(..=n);
-        any = true;
-    }
-    Ok(any)
-}
-
-/// Read whatever is queued on `stream` without waiting (EWOULDBLOCK when nothing is).
-fn read_available(stream: &UnixStream, buf: &mut [u8]) -> std::io::Result<usize> {
-    use std::os::unix::io::AsRawFd;
-    // SAFETY: recv into a buffer we own, of its length.
-    let n = unsafe {
-        libc::recv(
-            stream.as_raw_fd(),
-            buf.as_mut_ptr().cast(),
-            buf.len(),
-            libc::MSG_DONTWAIT,
-        )
-    };
-    if n < 0 {
-        Err(std::io::Error::last_os_error())
-    } else {
-        Ok(n as usize)
     }
 }

@@ -6,8 +6,9 @@
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use hgcd::protocol::MAX_REPORT_LEN;
 use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
-use hgcd::transport::{Transport, TransportError, MAX_REPORT_LEN};
+use hgcd::transport::{Transport, TransportError};
 
 /// How long a gated device waits for the test to let a report through, and the test for the
 /// servo loop to take the reports it let through, before the run fails.

@@ -1,0 +1,186 @@
+//! Emulated device firmware around a simulated plant: it decodes output reports and encodes input
+//! reports exactly as a v1 device would, so the whole byte path runs in tests. The firmware clamps forces to its actuator limit, zeroes force when the host goes silent
+//! (device-side watchdog), and can be told to stop reporting (fault injection).
+
+use nalgebra::Vector3;
+
+use super::{Encoder, Plant, PointMass};
+use crate::config::Config;
+use crate::grid::GridError;
+use crate::protocol::{InputReport, OutputReport, ProtocolError, Status, INPUT_REPORT_LEN};
+
+/// Emulated device firmware: one report period at a time.
+pub struct SimDevice {
+    plant: Box<dyn Plant>,
+    encoder: Encoder,
+    /// Report period, s.
+    period: f64,
+    substeps: u32,
+    max_force: f64,
+    device_watchdog: f64,
+    stop_reporting_after: Option<f64>,
+    /// Device clock, µs since power-on.
+    clock_us: u64,
+    sequence: u16,
+    command: Vector3<f64>,
+    enabled: bool,
+    last_command_us: u64,
+    saturated: bool,
+    watchdog_tripped: bool,
+    last_output: Option<OutputReport>,
+    rejected_outputs: u64,
+}
+
+impl SimDevice {
+    /// A device around `plant`, reporting every `period` s and integrating at `substep_hz`.
+    pub fn new(
+        plant: Box<dyn Plant>,
+        encoder: Encoder,
+        period: f64,
+        substep_hz: f64,
+        max_force: f64,
+        device_watchdog: f64,
+    ) -> Self {
+        Self {
+            plant,
+            encoder,
+            period,
+            substeps: (period * substep_hz).ceil().max(1.0) as u32,
+            max_force,
+            device_watchdog,
+            stop_reporting_after: None,
+            clock_us: 0,
+            sequence: 0,
+            command: Vector3::zeros(),
+            enabled: false,
+            last_command_us: 0,
+            saturated: false,
+            watchdog_tripped: false,
+            last_output: None,
+            rejected_outputs: 0,
+        }
+    }
+
+    /// The device a config describes (`[sim]` section, report rate from `[servo]`). `model` has
+    /// been checked by [`crate::config::DeviceSpec`]; `point-mass` is the only model so far.
+    pub fn from_config(model: &str, config: &Config) -> Result<Self, GridError> {
+        debug_assert!(crate::config::SIM_MODELS.contains(&model));
+        let sim = &config.sim;
+        let plant: Box<dyn Plant> = Box::new(PointMass::from_config(sim)?);
+        let mut device = Self::new(
+            plant,
+            Encoder::from_config(sim),
+            config.servo_period(),
+            sim.substep_hz,
+            sim.max_force_n,
+            sim.device_watchdog(),
+        );
+        device.stop_reporting_after = sim.stop_reporting_after_s;
+        Ok(device)
+    }
+
+    /// Fault injection: stop sending input reports once the device clock passes `t` s.
+    pub fn stop_reporting_after(&mut self, t: Option<f64>) {
+        self.stop_reporting_after = t;
+    }
+
+    /// Report period, s.
+    pub fn period(&self) -> f64 {
+        self.period
+    }
+
+    /// Device time, s.
+    pub fn time(&self) -> f64 {
+        self.clock_us as f64 * 1e-6
+    }
+
+    /// The plant (ground truth for tests).
+    pub fn plant(&self) -> &dyn Plant {
+        self.plant.as_ref()
+    }
+
+    /// The last output report the firmware accepted.
+    pub fn last_output(&self) -> Option<OutputReport> {
+        self.last_output
+    }
+
+    /// Output reports the firmware rejected as malformed.
+    pub fn rejected_outputs(&self) -> u64 {
+        self.rejected_outputs
+    }
+
+    /// Whether the device is currently silent (fault injection).
+    pub fn is_silent(&self) -> bool {
+        self.stop_reporting_after.is_some_and(|t| self.time() >= t)
+    }
+
+    /// Firmware receive path: decode an output report and latch its force command.
+    pub fn receive_output(&mut self, bytes: &[u8]) -> Result<(), ProtocolError> {
+        match OutputReport::decode(bytes) {
+            Ok(report) => {
+                self.command = if report.enable {
+                    report.force
+                } else {
+                    Vector3::zeros()
+                };
+                self.enabled = report.enable;
+                self.last_command_us = self.clock_us;
+                self.watchdog_tripped = false;
+                self.last_output = Some(report);
+                Ok(())
+            }
+            Err(e) => {
+                self.rejected_outputs += 1;
+                Err(e)
+            }
+        }
+    }
+
+    /// Integrate one report period under the latched command (clamped; zero after the device
+    /// watchdog trips) and advance the clock and sequence number.
+    pub fn advance(&mut self) {
+        if (self.clock_us - self.last_command_us) as f64 * 1e-6 > self.device_watchdog {
+            self.watchdog_tripped = true;
+            self.command = Vector3::zeros();
+        }
+        let mut force = self.command;
+        self.saturated = false;
+        for axis in 0..3 {
+            if force[axis].abs() > self.max_force {
+                force[axis] = force[axis].signum() * self.max_force;
+                self.saturated = true;
+            }
+        }
+        let dt = self.period / f64::from(self.substeps);
+        for _ in 0..self.substeps {
+            self.plant.step(&force, dt);
+        }
+        self.clock_us += (self.period * 1e6).round() as u64;
+        self.sequence = self.sequence.wrapping_add(1);
+    }
+
+    /// Firmware send path: the input report for the current state.
+    pub fn input_report(&mut self, out: &mut [u8; INPUT_REPORT_LEN]) {
+        let status = Status::default()
+            .with(
+                Status::MOTORS_ENABLED,
+                self.enabled && !self.watchdog_tripped,
+            )
+            .with(Status::FORCE_SATURATED, self.saturated)
+            .with(Status::DEVICE_WATCHDOG, self.watchdog_tripped);
+        let (lo, hi) = self.plant.workspace();
+        let measured = self.encoder.measure(&self.plant.position());
+        let report = InputReport {
+            sequence: self.sequence,
+            timestamp_us: self.clock_us as u32,
+            // Noise may push a reading just past a stop; the encoder cannot read beyond it.
+            position: measured
+                .sup(&(lo.add_scalar(-1e-3)))
+                .inf(&hi.add_scalar(1e-3)),
+            status,
+        };
+        report
+            .encode(out)
+            .expect("simulated workspace lies within the protocol's position range");
+    }
+}
