@@ -27,4 +27,7 @@ pub trait Plant: Send {
     fn velocity(&self) -> Vector3<f64>;
     /// The box the mechanical stops allow, m: (smallest corner, largest corner).
     fn workspace(&self) -> (Vector3<f64>, Vector3<f64>);
+    /// The actuator force that holds the handle still where it is now, payload included, N: the
+    /// plant's own analytic answer to what calibration measures (ground truth for tests).
+    fn holding_force(&self) -> Vector3<f64>;
 }
