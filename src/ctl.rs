@@ -5,7 +5,7 @@ use std::path::Path;
 
 use anyhow::{bail, Result};
 
-use hgcd::client::{Client, Reply, Role};
+use hgcd::client::{CalibrationStage, Client, Reply, Role};
 
 /// Print the daemon's status.
 pub fn status(socket: &Path) -> Result<()> {
@@ -59,24 +59,23 @@ pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
             message,
         } = reply
         {
-            match event.as_str() {
-                "started" => eprintln!("calibration started on {}", client.device),
-                "init_done" => eprintln!(
+            match event {
+                CalibrationStage::Started => eprintln!("calibration started on {}", client.device),
+                CalibrationStage::InitDone => eprintln!(
                     "gravity direction found; rough mass {:.1} g",
                     mass_kg.unwrap_or(0.0) * 1e3
                 ),
-                "vertex_done" => eprintln!(
+                CalibrationStage::VertexDone => eprintln!(
                     "vertex {}/{}: {:.2} g",
                     vertex.unwrap_or(0) + 1,
                     of.unwrap_or(0),
                     mass_kg.unwrap_or(0.0) * 1e3
                 ),
-                "finished" => {
+                CalibrationStage::Finished => {
                     println!("calibration finished; the daemon now uses {message}");
                     return Ok(());
                 }
-                "failed" => bail!("calibration failed: {message}"),
-                _ => {}
+                CalibrationStage::Failed => bail!("calibration failed: {message}"),
             }
         }
     }

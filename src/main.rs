@@ -322,20 +322,15 @@ const EXIT_DEVICE_GONE: u8 = 3;
 
 /// The exit status for an error: the device family gets its own, everything else 1.
 fn exit_status(e: &anyhow::Error) -> u8 {
-    let gone = |t: &TransportError| {
-        matches!(
-            t,
-            TransportError::Open { .. } | TransportError::Disconnected(_)
-        )
-    };
+    let gone = TransportError::device_unavailable;
     let servo_gone = |s: &ServoError| matches!(s, ServoError::Transport(t) if gone(t));
     let device_gone = match (
         e.downcast_ref::<RunError>(),
         e.downcast_ref::<CalibrateError>(),
     ) {
-        (Some(RunError::Open { source, .. }), _) => gone(source),
+        (Some(RunError::Open(t)), _) => gone(t),
         (Some(RunError::Servo(s)), _) => servo_gone(s),
-        (_, Some(CalibrateError::Open { source, .. })) => gone(source),
+        (_, Some(CalibrateError::Open(t))) => gone(t),
         (_, Some(CalibrateError::Servo(s))) => servo_gone(s),
         _ => false,
     };

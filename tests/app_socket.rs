@@ -10,7 +10,7 @@ use std::sync::atomic::Ordering;
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
-use hgcd::client::{Client, Reply, Role};
+use hgcd::client::{CalibrationStage, Client, Compensating, Reply, Role};
 use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::GridFile;
@@ -316,8 +316,8 @@ fn the_scripted_session_matches_its_golden_transcript() {
         unreachable!()
     };
     assert_eq!(
-        (status.mode.as_str(), status.owner.as_deref()),
-        ("scalar", Some("golden"))
+        (status.mode, status.owner.as_deref()),
+        (Compensating::Scalar, Some("golden"))
     );
 
     s.note(
@@ -360,12 +360,12 @@ fn the_scripted_session_matches_its_golden_transcript() {
         let Reply::Calibration { event, message, .. } = reply else {
             unreachable!()
         };
-        match event.as_str() {
-            "finished" => {
+        match event {
+            CalibrationStage::Finished => {
                 assert_eq!(message, "$STATE_DIR/sim-point-mass.toml");
                 break;
             }
-            "failed" => panic!("calibration failed: {message}"),
+            CalibrationStage::Failed => panic!("calibration failed: {message}"),
             _ => {}
         }
     }

@@ -14,7 +14,7 @@ use std::thread::JoinHandle;
 
 use nalgebra::Vector3;
 
-use hgcd::client::{Client, Reply, Role, StateSample, Status};
+use hgcd::client::{CalibrationStage, Client, Compensating, Reply, Role, StateSample, Status};
 use hgcd::config::Config;
 use hgcd::control::compensation::CompensationMode;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
@@ -536,13 +536,13 @@ fn a_grid_for_another_device_is_refused_unless_allowed() {
     let running = start(config, Some(&foreign));
     let mut c = running.client(Role::Observe, "status");
     let status = c.status().unwrap();
-    assert_eq!(status.mode, "none");
+    assert_eq!(status.mode, Compensating::None);
     assert_eq!(status.grid, None);
     drop(c);
     running.stop().unwrap();
 }
 
-fn wait_for_mode(client: &mut Client, mode: &str) -> Status {
+fn wait_for_mode(client: &mut Client, mode: Compensating) -> Status {
     wait_for(&format!("compensation mode {mode}"), || {
         let s = client.status().unwrap();
         (s.mode == mode).then_some(s)
@@ -550,13 +550,13 @@ fn wait_for_mode(client: &mut Client, mode: &str) -> Status {
 }
 
 /// Read `client`'s replies until its calibration `event`; its message.
-fn calibration_event(client: &mut Client, event: &str) -> String {
+fn calibration_event(client: &mut Client, event: CalibrationStage) -> String {
     loop {
         if let Reply::Calibration {
             event: e, message, ..
         } = client.next_reply().unwrap()
         {
-            assert_ne!(e, "failed", "calibration failed: {message}");
+            assert_ne!(e, CalibrationStage::Failed, "calibration failed: {message}");
             if e == event {
                 return message;
             }
@@ -569,18 +569,18 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     let running = start(Config::default(), None);
     let grid_file = running.dir.path().join("state/sim-point-mass.toml");
     let mut c = running.client(Role::Observe, "calibrator");
-    assert_eq!(c.status().unwrap().mode, "none");
+    assert_eq!(c.status().unwrap().mode, Compensating::None);
     c.request_calibration().unwrap();
-    calibration_event(&mut c, "started");
+    calibration_event(&mut c, CalibrationStage::Started);
     // The device runs a batch of ticks at a time until the hub has the new grid in use.
     let mut observer = running.client(Role::Observe, "observer");
     let status = running.run_until("the calibration to end", BATCH, 200_000, || {
         let s = observer.status().unwrap();
         (!s.calibrating).then_some(s)
     });
-    let path = calibration_event(&mut c, "finished");
+    let path = calibration_event(&mut c, CalibrationStage::Finished);
     assert_eq!(Path::new(&path), grid_file);
-    assert_eq!(status.mode, "scalar");
+    assert_eq!(status.mode, Compensating::Scalar);
     assert_eq!(status.grid.as_deref(), Some(path.as_str()));
     // The handle did not drop between the end of the calibration and the swap: it is still near
     // the last vertex of the serpentine, (40, 40, 40) mm, held by the new grid.
@@ -607,7 +607,7 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     // SIGHUP: the grid file is gone, so a reload drops compensation.
     std::fs::remove_file(&grid_file).unwrap();
     running.signals.reload.store(true, Ordering::SeqCst);
-    wait_for_mode(&mut c, "none");
+    wait_for_mode(&mut c, Compensating::None);
     drop(c);
     running.stop().unwrap();
 }
@@ -689,7 +689,7 @@ fn a_calibration_whose_requester_disconnects_is_aborted_and_writes_nothing() {
     let grid_file = running.dir.path().join("state/sim-point-mass.toml");
     let mut requester = running.client(Role::Observe, "calibrator");
     requester.request_calibration().unwrap();
-    calibration_event(&mut requester, "started");
+    calibration_event(&mut requester, CalibrationStage::Started);
     running.gate.advance(BATCH);
     // Ctrl-C on `hgcd calibrate --via-daemon` closes the connection.
     drop(requester);
@@ -704,7 +704,7 @@ fn a_calibration_whose_requester_disconnects_is_aborted_and_writes_nothing() {
         let s = observer.status().unwrap();
         (!s.calibrating).then_some(s)
     });
-    assert_eq!(status.mode, "none");
+    assert_eq!(status.mode, Compensating::None);
     assert!(!grid_file.exists());
     drop(observer);
     running.stop().unwrap();
@@ -750,8 +750,10 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
         config.compensation.mode = mode;
         let running = start(config, Some(&run.grid));
         let mut client = running.client(Role::Control, "e2e");
-        let expected_mode = format!("{mode:?}").to_lowercase();
-        assert_eq!(client.status().unwrap().mode, expected_mode);
+        assert_eq!(
+            client.status().unwrap().mode,
+            Compensating::from(Some(mode))
+        );
         let s = running.state_at(&mut client, 2.0);
         let drift = dist(s.position, Vector3::from(p) * 1e-3);
         // The calibrated masses are within about 0.1 % of the truth on this field (five-fold

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use nalgebra::Vector3;
 
-pub use super::protocol::{Reply, Role, StateSample, Status};
+pub use super::protocol::{CalibrationStage, Compensating, Reply, Role, StateSample, Status};
 use super::protocol::{Request, APP_PROTOCOL_VERSION, MAX_LINE_LEN};
 
 #[derive(Debug, thiserror::Error)]
