@@ -79,11 +79,6 @@ impl SimDevice {
         Ok(device)
     }
 
-    /// Fault injection: stop sending input reports once the device clock passes `t` s.
-    pub fn stop_reporting_after(&mut self, t: Option<f64>) {
-        self.stop_reporting_after = t;
-    }
-
     /// Report period, s.
     pub fn period(&self) -> f64 {
         self.period

@@ -21,7 +21,6 @@ pub struct SocketTransport {
     pending: [u8; 2 * (MAX_REPORT_LEN + 1)],
     filled: usize,
     start: Instant,
-    dropped_writes: u64,
     garbled_skipped: u64,
 }
 
@@ -48,14 +47,8 @@ impl SocketTransport {
             pending: [0; 2 * (MAX_REPORT_LEN + 1)],
             filled: 0,
             start: Instant::now(),
-            dropped_writes: 0,
             garbled_skipped: 0,
         })
-    }
-
-    /// Output reports dropped because the peer was not reading.
-    pub fn dropped_writes(&self) -> u64 {
-        self.dropped_writes
     }
 
     fn disconnected(&self, source: std::io::Error) -> TransportError {
@@ -141,10 +134,7 @@ impl Transport for SocketTransport {
                 Ok(0) => return Err(self.disconnected(peer_closed())),
                 Ok(n) => sent += n,
                 // Nothing sent: drop this report (the next one supersedes it).
-                Err(e) if sent == 0 && e.kind() == ErrorKind::WouldBlock => {
-                    self.dropped_writes += 1;
-                    return Ok(());
-                }
+                Err(e) if sent == 0 && e.kind() == ErrorKind::WouldBlock => return Ok(()),
                 Err(e) if e.kind() == ErrorKind::Interrupted => {}
                 // Half a frame on the wire would desynchronise the stream: give up on the peer.
                 Err(e) => return Err(self.disconnected(e)),
