@@ -7,39 +7,41 @@
 
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::thread::JoinHandle;
 
 use nalgebra::Vector3;
 
 use hgcd::client::{CalibrationStage, Client, Compensating, Reply, Role, StateSample, Status};
 use hgcd::config::Config;
 use hgcd::control::compensation::CompensationMode;
-use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::{GridFile, MassGrid};
 use hgcd::servo::ServoReport;
-use hgcd::sim::SimDevice;
-use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;
+use common::daemon::TestDaemon;
 use common::tap::{Gate, Tap, Writes};
 use common::{truth_field_27, wait_for, with_device_id, WAIT};
 
 /// Ticks a gated device runs between two looks at the daemon's status.
 const BATCH: u64 = 200;
 
+/// A daemon on a gated device (see the module's doc).
 struct Running {
-    dir: tempfile::TempDir,
-    socket: PathBuf,
-    signals: Signals,
+    daemon: common::daemon::Running,
     gate: Arc<Gate>,
     writes: Writes,
     /// Report period of the device, s.
     period: f64,
-    handle: Option<JoinHandle<Result<ServoReport, hgcd::daemon::RunError>>>,
+}
+
+impl std::ops::Deref for Running {
+    type Target = common::daemon::Running;
+    fn deref(&self) -> &Self::Target {
+        &self.daemon
+    }
 }
 
 impl Running {
@@ -100,8 +102,7 @@ impl Running {
     /// Let the device run free and wait for the daemon to end (by itself, or stopped).
     fn join(&mut self) -> Result<ServoReport, hgcd::daemon::RunError> {
         self.gate.open();
-        let handle = self.handle.take().expect("the daemon runs");
-        handle.join().expect("the daemon thread does not panic")
+        self.daemon.join()
     }
 }
 
@@ -157,61 +158,23 @@ fn start(config: Config, grid: Option<&GridFile>) -> Running {
     start_with_truth(config, grid, &truth_field_27())
 }
 
-fn start_with_truth(mut config: Config, grid: Option<&GridFile>, truth_grid: &MassGrid) -> Running {
-    let dir = tempfile::tempdir().unwrap();
-    let state = dir.path().join("state");
-    std::fs::create_dir_all(&state).unwrap();
-    let truth = dir.path().join("truth.toml");
-    GridFile::from(truth_grid.clone())
-        .save_atomic(&truth)
-        .unwrap();
-    config.sim.mass_grid = Some(truth);
-    config.paths.state_dir = Some(state.clone());
-    let socket = dir.path().join("hgcd.sock");
-    config.app.socket = Some(socket.clone());
-    // A frictionless point mass is a double integrator: any bias force, however small, makes it
-    // drift quadratically. Real linkages have viscous friction; 1 N·s/m is typical of desktop
-    // haptic devices. With it a 0.1 % mass error still drifts about 3 mm in 2 s: the drift test
-    // below stays sharp.
-    if config.sim.damping_n_s_per_m == 0.0 {
-        config.sim.damping_n_s_per_m = 1.0;
-    }
-    config.servo.lock_memory = false;
-    if let Some(g) = grid {
-        g.save_atomic(&state.join("sim-point-mass.toml")).unwrap();
-    }
+fn start_with_truth(config: Config, grid: Option<&GridFile>, truth_grid: &MassGrid) -> Running {
     let gate = Gate::new();
-    let tap = Tap::new(SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    ))
-    .recording()
-    .gated(gate.clone());
-    let writes = tap.writes();
     let period = config.servo_period();
-    let request = RunRequest {
-        device: "sim:point-mass".parse().unwrap(),
-        duration: None,
-        pacing: Pacing::Virtual,
-    };
-    let signals = Signals::default();
-    let s2 = signals.clone();
-    let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
-    let handle = std::thread::spawn(move || {
-        Daemon::new(config, &request).run(Box::new(tap), s2, &mut |_| {
-            let _ = ready_tx.send(());
-        })
-    });
-    // Wait for readiness (or for the daemon to fail before it).
-    let _ = ready_rx.recv_timeout(WAIT);
+    let mut writes = None;
+    let daemon = TestDaemon::new(config)
+        .truth(truth_grid)
+        .grid(grid)
+        .start_with(|sim| {
+            let tap = Tap::new(sim).recording().gated(gate.clone());
+            writes = Some(tap.writes());
+            tap
+        });
     Running {
-        dir,
-        socket,
-        signals,
+        daemon,
         gate,
-        writes,
+        writes: writes.expect("the tap was made"),
         period,
-        handle: Some(handle),
     }
 }
 
