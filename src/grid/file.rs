@@ -364,11 +364,12 @@ fn clip(s: &str, max: usize) -> String {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::grid::lattice::tests::sample;
 
-    fn calibrated() -> GridFile {
+    /// A grid file with every record filled in, as a calibration writes it.
+    pub(crate) fn calibrated() -> GridFile {
         let mut file = GridFile::from(sample());
         file.device = Some(DeviceRecord {
             id: "sim-point-mass".into(),
