@@ -753,6 +753,9 @@ impl AppConfig {
 
 impl Config {
     /// Parse and validate TOML text; `origin` names the source in messages.
+    ///
+    /// Errors: [`ConfigError::Parse`] for TOML or type errors and unknown keys, `OutOfRange`,
+    /// `Invalid` or `DeviceSpec` for a value the checks refuse.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
         let config: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: origin.to_path_buf(),
@@ -763,6 +766,9 @@ impl Config {
     }
 
     /// Load a config file.
+    ///
+    /// Errors: [`ConfigError::Read`] when the file cannot be read, then as
+    /// [`Config::from_toml_str`].
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
             path: path.to_path_buf(),
@@ -890,6 +896,8 @@ impl Config {
     }
 
     /// The configured device spec.
+    ///
+    /// Errors: [`ConfigError::DeviceSpec`] when `device.spec` does not parse.
     pub fn device_spec(&self) -> Result<DeviceSpec, ConfigError> {
         self.device.spec.parse()
     }
@@ -900,6 +908,8 @@ impl Config {
     }
 
     /// The socket file's permission bits.
+    ///
+    /// Errors: [`ConfigError::Invalid`] when `app.socket_mode` is not octal up to 0777.
     pub fn socket_mode(&self) -> Result<u32, ConfigError> {
         u32::from_str_radix(self.app.socket_mode.trim_start_matches("0o"), 8)
             .ok()

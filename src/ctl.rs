@@ -8,6 +8,8 @@ use anyhow::{bail, Result};
 use hgcd::client::{CalibrationStage, Client, Reply, Role};
 
 /// Print the daemon's status.
+///
+/// Errors: the client's, when no daemon listens on `socket` or it refuses.
 pub fn status(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd status")?;
     let s = client.status()?;
@@ -43,6 +45,8 @@ pub fn status(socket: &Path) -> Result<()> {
 }
 
 /// Ask the daemon to calibrate and follow its progress until it finishes.
+///
+/// Errors: the client's, a refusal, or the calibration's failure as the daemon reports it.
 pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd calibrate")?;
     client.request_calibration()?;

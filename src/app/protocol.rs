@@ -231,6 +231,9 @@ pub enum RequestError {
 }
 
 /// Parse and validate one request line (without its newline).
+///
+/// Errors: [`RequestError::Malformed`] for text that is not a request; `ForceOutOfRange` or
+/// `RateOutOfRange` for values beyond `max_force` (N per axis) or `max_rate` (Hz).
 pub fn parse_request(line: &str, max_force: f64, max_rate: f64) -> Result<Request, RequestError> {
     let request: Request =
         serde_json::from_str(line).map_err(|e| RequestError::Malformed(e.to_string()))?;

@@ -137,6 +137,8 @@ pub fn bind(path: &Path, mode: u32) -> std::io::Result<UnixListener> {
 }
 
 /// Accept clients until `stop` is set.
+///
+/// Errors: the `io::Error` of a thread that could not be started.
 pub fn spawn_listener(
     listener: UnixListener,
     path: PathBuf,

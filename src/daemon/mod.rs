@@ -468,6 +468,10 @@ impl Daemon {
 
     /// Run until a stop signal, the duration, or the end of the servo loop. `ready` is called
     /// once the socket listens and the servo thread runs (systemd readiness).
+    ///
+    /// Errors: [`RunError::Grid`] or `File`/`Model` for a stored grid it must not use, `Listen`
+    /// when the socket cannot be served, `Spawn` or `ServoPanicked` for the servo thread, `Servo`
+    /// when the device fails under it.
     pub fn run(
         mut self,
         transport: Box<dyn Transport>,
@@ -640,6 +644,9 @@ impl SystemdWatchdog {
 }
 
 /// `hgcd run`: open the device and run the daemon.
+///
+/// Errors: [`RunError::Config`] for an invalid config, [`RunError::Open`] when the device cannot
+/// be opened, then as [`Daemon::run`].
 pub fn run(
     config: &Config,
     request: &RunRequest,

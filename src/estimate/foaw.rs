@@ -105,6 +105,8 @@ impl FoawAxis {
     /// metres), `max_window` the largest window in periods
     /// (`1..=MAX_WINDOW`; 1 degenerates to the finite difference) and `period`
     /// the sample period `T` in seconds.
+    ///
+    /// Errors: [`FoawError`] naming the first parameter out of its range.
     pub fn new(
         variant: FoawVariant,
         noise_bound: f64,
@@ -382,7 +384,7 @@ pub struct Foaw {
 }
 
 impl Foaw {
-    /// See [`FoawAxis::new`].
+    /// See [`FoawAxis::new`], whose errors it returns.
     pub fn new(
         variant: FoawVariant,
         noise_bound: f64,

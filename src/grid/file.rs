@@ -165,6 +165,8 @@ struct Records<'a> {
 
 impl GridFile {
     /// Check every value against the format's rules (`docs/grid-format.md` §3).
+    ///
+    /// Errors: the first [`Problem`] found, in the order of the format's table.
     pub fn check(&self) -> Result<(), Problem> {
         self.grid.check()?;
         self.vertices.check(self.grid.vertex_count())
