@@ -92,7 +92,7 @@ fn access_hint(e: &std::io::Error) -> &'static str {
 /// One device connection, as the servo loop uses it.
 pub trait Transport: Send {
     /// Wait at most `timeout` for the next input report. Returns the newest *valid* report
-    /// available (older queued ones are skipped, as after an overrun; see [`Burst`]), a garbled
+    /// available (older queued ones are skipped, as after an overrun; see `Burst`), a garbled
     /// one only when nothing valid came, `Ok(None)` when nothing came in time.
     fn read_input(
         &mut self,
