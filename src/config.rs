@@ -201,7 +201,7 @@ pub enum DeviceSpec {
 }
 
 /// Simulated plants `sim:MODEL` knows.
-pub const SIM_MODELS: &[&str] = &["point-mass", "phantom"];
+pub const SIM_MODELS: &[&str] = &["point-mass", "phantom", "delta"];
 
 impl FromStr for DeviceSpec {
     type Err = ConfigError;

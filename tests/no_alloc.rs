@@ -163,6 +163,11 @@ fn the_phantom_in_virtual_time_with_a_pd_hold() {
 }
 
 #[test]
+fn the_delta_in_virtual_time_with_a_pd_hold() {
+    quiet_pd_hold_on("delta");
+}
+
+#[test]
 fn a_calibration_on_a_simulated_device() {
     let mut config = config();
     let dir = tempfile::tempdir().unwrap();

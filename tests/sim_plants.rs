@@ -59,8 +59,9 @@ fn quiet(friction_scale: f64) -> Config {
 const K_P: f64 = 300.0;
 const K_D: f64 = 5.0;
 
-#[test]
-fn a_pd_hold_on_the_phantom_settles_where_its_own_gravity_force_puts_it() {
+/// A PD hold without feed-forward on `sim:MODEL` (frictionless) comes to rest where the spring
+/// carries the plant's own gravity force: k_P (X_D − X) = J⁻ᵀ τ_g(X).
+fn a_pd_hold_settles_where_the_gravity_force_puts_it(model: &str) -> Vector3<f64> {
     let config = quiet(0.0);
     let set_point = Vector3::new(0.010, -0.010, 0.010);
     let mut hold = Hold {
@@ -69,35 +70,34 @@ fn a_pd_hold_on_the_phantom_settles_where_its_own_gravity_force_puts_it() {
         k_d: K_D,
         feed_forward: Vector3::zeros(),
     };
-    let transport = run("phantom", &config, &mut hold, 3.0);
+    let transport = run(model, &config, &mut hold, 3.0);
     let plant = transport.device().plant();
     let x = plant.position();
-    // At rest the spring carries the arm's weight: k_P (X_D − X) = J⁻ᵀ τ_g(X). Without friction
-    // the arm keeps a limit cycle of about one encoder count around that point.
+    // Without friction the handle keeps a limit cycle of about one encoder count there.
     let residual = (set_point - x) * K_P - plant.holding_force();
-    // Within what the 0.03 mm encoder steps let the spring see.
+    // Within what the encoder steps (0.03 mm) let the spring see.
     assert!(residual.amax() < K_P * 0.04e-3, "{residual:?} at {x:?}");
-    // The arm is over-counterbalanced: it settles above the set point.
-    assert!(x.z > set_point.z, "{x:?}");
+    x - set_point
 }
 
-#[test]
-fn with_its_holding_force_fed_forward_the_phantom_holds_the_set_point() {
-    let config = quiet(0.0);
+/// With the plant's holding force at the set point fed forward, `sim:MODEL` holds it, whatever
+/// the direction of gravity.
+fn the_holding_force_fed_forward_holds_the_set_point(model: &str, config: &Config) {
     let set_point = Vector3::new(-0.030, 0.020, 0.035);
     let mut hold = Hold {
         set_point,
         k_p: K_P,
         k_d: K_D,
-        feed_forward: holding_force_at("phantom", &config, &set_point),
+        feed_forward: holding_force_at(model, config, &set_point),
     };
-    let transport = run("phantom", &config, &mut hold, 3.0);
+    let transport = run(model, config, &mut hold, 3.0);
     let x = transport.device().plant().position();
     assert!((x - set_point).amax() < 0.04e-3, "{x:?}");
 }
 
-#[test]
-fn joint_friction_leaves_the_phantom_anywhere_within_its_band() {
+/// With published friction the handle sticks anywhere the spring and gravity leave less than the
+/// static band: the residual force is at most the joints' friction seen at the handle.
+fn friction_leaves_the_handle_within_its_band(model: &str, band_n: f64) {
     let config = quiet(1.0);
     let set_point = Vector3::new(0.020, 0.030, -0.020);
     let mut hold = Hold {
@@ -106,13 +106,66 @@ fn joint_friction_leaves_the_phantom_anywhere_within_its_band() {
         k_d: K_D,
         feed_forward: Vector3::zeros(),
     };
-    let transport = run("phantom", &config, &mut hold, 3.0);
+    let transport = run(model, &config, &mut hold, 3.0);
     let plant = transport.device().plant();
-    let x = plant.position();
     assert_eq!(plant.velocity(), Vector3::zeros(), "stuck, not creeping");
+    let residual = (set_point - plant.position()) * K_P - plant.holding_force();
+    assert!(residual.amax() < band_n, "{residual:?}");
+}
+
+#[test]
+fn a_pd_hold_on_the_phantom_settles_above_its_set_point() {
+    // The arm is over-counterbalanced: gravity pushes its handle up.
+    assert!(a_pd_hold_settles_where_the_gravity_force_puts_it("phantom").z > 0.0);
+}
+
+#[test]
+fn a_pd_hold_on_the_delta_settles_below_its_set_point() {
+    assert!(a_pd_hold_settles_where_the_gravity_force_puts_it("delta").z < -0.002);
+}
+
+/// The device stands tilted by 10° about y.
+fn tilted() -> Config {
+    let mut config = quiet(0.0);
+    let tilt = 10f64.to_radians();
+    config.sim.gravity_direction = [tilt.sin(), 0.0, tilt.cos()];
+    config
+}
+
+#[test]
+fn with_its_holding_force_fed_forward_the_phantom_holds_the_set_point() {
+    the_holding_force_fed_forward_holds_the_set_point("phantom", &quiet(0.0));
+    the_holding_force_fed_forward_holds_the_set_point("phantom", &tilted());
+}
+
+#[test]
+fn with_its_holding_force_fed_forward_the_delta_holds_the_set_point() {
+    the_holding_force_fed_forward_holds_the_set_point("delta", &quiet(0.0));
+    the_holding_force_fed_forward_holds_the_set_point("delta", &tilted());
+}
+
+#[test]
+fn a_tilted_device_feels_gravity_turned_with_it() {
+    // At home the delta's holding force lies along the gravity direction, symmetric as it is
+    // only about its axis: tilted, it turns by about the tilt, and stays as strong to a few %.
+    let upright = holding_force_at("delta", &quiet(0.0), &Vector3::zeros());
+    let leaning = holding_force_at("delta", &tilted(), &Vector3::zeros());
+    let angle = upright.angle(&leaning).to_degrees();
+    assert!((5.0..15.0).contains(&angle), "{angle}");
+    assert!((leaning.norm() / upright.norm() - 1.0).abs() < 0.1);
+    assert!(leaning.x > 0.0);
+}
+
+#[test]
+fn joint_friction_leaves_the_phantom_anywhere_within_its_band() {
     // 0.01 N m of static friction per joint is about 0.05 N at the handle per axis.
-    let residual = (set_point - x) * K_P - plant.holding_force();
-    assert!(residual.amax() < 0.1, "{residual:?}");
+    friction_leaves_the_handle_within_its_band("phantom", 0.1);
+}
+
+#[test]
+fn joint_friction_leaves_the_delta_anywhere_within_its_band() {
+    // 0.004 N m per joint: about 0.14 N along the axis at home, through all three arms.
+    friction_leaves_the_handle_within_its_band("delta", 0.2);
 }
 
 #[test]
@@ -132,5 +185,5 @@ fn a_start_position_out_of_reach_is_refused_with_the_key_to_change() {
     };
     assert!(err
         .to_string()
-        .starts_with("unknown simulated model `nope`; known: point-mass, phantom"));
+        .starts_with("unknown simulated model `nope`; known: point-mass, phantom, delta"));
 }

@@ -4,7 +4,7 @@
 
 use nalgebra::Vector3;
 
-use super::{phantom, Encoder, Plant, PointMass, SimError};
+use super::{delta, phantom, Encoder, Plant, PointMass, SimError};
 use crate::config::Config;
 use crate::protocol::{InputReport, OutputReport, ProtocolError, Status, INPUT_REPORT_LEN};
 
@@ -72,6 +72,7 @@ impl SimDevice {
         let plant: Box<dyn Plant> = match model {
             "point-mass" => Box::new(PointMass::from_config(sim)?),
             "phantom" => Box::new(phantom::from_config(sim).map_err(|_| unreachable("phantom"))?),
+            "delta" => Box::new(delta::from_config(sim).map_err(|_| unreachable("delta"))?),
             _ => {
                 return Err(SimError::UnknownModel {
                     model: model.into(),

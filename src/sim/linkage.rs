@@ -34,7 +34,14 @@ pub trait Mechanism: Send + 'static {
     /// out of reach.
     fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>>;
     /// Visit every lumped mass (kg) with its kinematics: the masses carry both weight and inertia.
-    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point));
+    /// `handle` is [`Mechanism::handle`] at the same state, for masses that ride on the handle.
+    fn masses(
+        &self,
+        q: &Vector3<f64>,
+        qd: &Vector3<f64>,
+        handle: &Point,
+        visit: &mut dyn FnMut(f64, &Point),
+    );
     /// What the links' rotation about their own centres of mass adds to the joint-space
     /// dynamics: (inertia, kg m²; velocity-product torques, N m), from the kinetic energy
     /// ½ ωᵀ I ω of each link.
@@ -225,9 +232,11 @@ impl<M: Mechanism> Linkage<M> {
     pub fn potential_energy(&self) -> f64 {
         let g = self.env.gravity;
         let zero = Vector3::zeros();
-        let mut u = -self.env.payload * g.dot(&self.mechanism.handle(&self.q, &zero).position);
-        self.mechanism
-            .masses(&self.q, &zero, &mut |m, p| u -= m * g.dot(&p.position));
+        let handle = self.mechanism.handle(&self.q, &zero);
+        let mut u = -self.env.payload * g.dot(&handle.position);
+        self.mechanism.masses(&self.q, &zero, &handle, &mut |m, p| {
+            u -= m * g.dot(&p.position)
+        });
         u
     }
 
@@ -250,7 +259,8 @@ impl<M: Mechanism> Linkage<M> {
         if self.env.payload > 0.0 {
             add_mass(self.env.payload, handle);
         }
-        self.mechanism.masses(&self.q, &self.qd, &mut add_mass);
+        self.mechanism
+            .masses(&self.q, &self.qd, handle, &mut add_mass);
         d
     }
 

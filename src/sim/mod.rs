@@ -1,5 +1,5 @@
 //! Simulated devices, in one place: the physics ([`Plant`]: [`PointMass`], and the linkages of
-//! [`linkage`]: [`phantom`]), the position measurement ([`Encoder`]), the emulated v1 firmware
+//! [`linkage`]: [`phantom`], [`delta`]), the position measurement ([`Encoder`]), the emulated v1 firmware
 //! around them ([`SimDevice`]) and the device side of the socket transport ([`socket::serve`],
 //! behind `hgcd sim-device`). The host reaches an in-process simulated device through
 //! `transport::sim`, an external one through `transport::socket`.
@@ -8,6 +8,7 @@
 //! its own sensors read ([`Plant::sensed_position`]); [`Encoder`] adds the measurement noise when a
 //! report is made.
 
+pub mod delta;
 mod encoder;
 mod firmware;
 pub mod linkage;

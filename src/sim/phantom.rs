@@ -218,7 +218,13 @@ impl Mechanism for Phantom {
         Some(Vector3::new(theta1, theta2, theta3))
     }
 
-    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
+    fn masses(
+        &self,
+        q: &Vector3<f64>,
+        qd: &Vector3<f64>,
+        _handle: &Point,
+        visit: &mut dyn FnMut(f64, &Point),
+    ) {
         let t = Trig::new(q);
         visit(
             self.m_a,
@@ -375,12 +381,14 @@ mod tests {
         let h = 1e-6;
         for q in poses() {
             // Every lumped mass and the handle go through the same point kinematics.
-            let mut points = vec![arm.handle(&q, &qd)];
-            arm.masses(&q, &qd, &mut |_, p| points.push(*p));
+            let handle = arm.handle(&q, &qd);
+            let mut points = vec![handle];
+            arm.masses(&q, &qd, &handle, &mut |_, p| points.push(*p));
             for (n, p) in points.iter().enumerate() {
                 let at = |q: &Vector3<f64>| {
-                    let mut all = vec![arm.handle(q, &zero)];
-                    arm.masses(q, &zero, &mut |_, p| all.push(*p));
+                    let handle = arm.handle(q, &zero);
+                    let mut all = vec![handle];
+                    arm.masses(q, &zero, &handle, &mut |_, p| all.push(*p));
                     all[n]
                 };
                 for j in 0..3 {
