@@ -461,6 +461,26 @@ mod tests {
     }
 
     #[test]
+    fn rough_handling_anywhere_in_reach_stays_finite_and_inside_the_stops() {
+        // Pushes of up to 9 N in changing directions drive the handle to the edges of its
+        // workspace, against the stops and the stretched legs; the state stays finite.
+        for friction in [0.0, 1.0] {
+            let mut plant = delta_at([0.0; 3], env(friction, 0.03));
+            let (lo, hi) = plant.workspace();
+            let (qlo, qhi) = plant.mechanism().limits;
+            for n in 0..100_000u32 {
+                let k = f64::from(n / 2_000);
+                let push = Vector3::new((1.7 * k).sin(), (2.3 * k).cos(), (0.9 * k).sin()) * 9.0;
+                plant.step(&push, 1e-4);
+                let (x, q) = (plant.position(), plant.joints());
+                assert!(x.iter().chain(q.iter()).all(|c| c.is_finite()), "step {n}");
+                assert!((0..3).all(|a| x[a] >= lo[a] && x[a] <= hi[a]), "{x:?}");
+                assert!(q.min() >= qlo && q.max() <= qhi);
+            }
+        }
+    }
+
+    #[test]
     fn units_differ_by_a_few_percent_and_seed_zero_is_the_nominal_delta() {
         assert_eq!(Delta::unit(&mut UnitVariation::new(0)), Delta::nominal());
         let force = |seed: u64| {

@@ -195,10 +195,6 @@ impl<M: Mechanism> Linkage<M> {
         &self.mechanism
     }
 
-    pub fn drives(&self) -> &Drives {
-        &self.drives
-    }
-
     /// Joint angles, rad.
     pub fn joints(&self) -> Vector3<f64> {
         self.q
@@ -396,6 +392,7 @@ impl<M: Mechanism> Plant for Linkage<M> {
     }
 
     fn holding_force(&self) -> Vector3<f64> {
+        // NaN only at a singular pose, which the joint limits keep the mechanisms away from.
         let handle = self.mechanism.handle(&self.q, &Vector3::zeros());
         let tau = self.dynamics(&handle).gravity;
         handle
