@@ -135,6 +135,7 @@ pub const RANGES: &[(&str, Range)] = &[
     ("sim.noise_mm", Range::new(0.0, 1.0, "mm")),
     ("sim.damping_n_s_per_m", Range::new(0.0, 100.0, "N*s/m")),
     ("sim.probe_mass_kg", Range::new(0.0, 1.0, "kg")),
+    ("sim.friction_scale", Range::new(0.0, 10.0, "")),
     ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
     ("sim.device_watchdog_ms", Range::new(1.0, 1000.0, "ms")),
     ("sim.stop_reporting_after_s", Range::new(0.0, 1e6, "s")),
@@ -200,7 +201,7 @@ pub enum DeviceSpec {
 }
 
 /// Simulated plants `sim:MODEL` knows.
-pub const SIM_MODELS: &[&str] = &["point-mass"];
+pub const SIM_MODELS: &[&str] = &["point-mass", "phantom", "delta"];
 
 impl FromStr for DeviceSpec {
     type Err = ConfigError;
@@ -448,6 +449,11 @@ pub struct SimConfig {
     pub damping_n_s_per_m: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
     pub probe_mass_kg: f64,
+    /// Linkage plants: which unit of the model (0: the nominal published one; any other value a
+    /// unit whose masses, centres of mass and friction differ by a few percent).
+    pub unit_seed: u64,
+    /// Linkage plants: multiplies every joint friction coefficient (0: frictionless).
+    pub friction_scale: f64,
     /// Integration rate, Hz (at least the report rate; 10 kHz or more keeps the physics accurate).
     pub substep_hz: f64,
     /// The device zeroes force when no output report arrives for this long, ms.
@@ -472,6 +478,8 @@ impl Default for SimConfig {
             noise_mm: 0.002,
             damping_n_s_per_m: 0.0,
             probe_mass_kg: 0.0,
+            unit_seed: 0,
+            friction_scale: 1.0,
             substep_hz: 10_000.0,
             device_watchdog_ms: 50.0,
             stop_reporting_after_s: None,
@@ -836,6 +844,7 @@ impl Config {
         in_range("sim.noise_mm", sim.noise_mm)?;
         in_range("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
         in_range("sim.probe_mass_kg", sim.probe_mass_kg)?;
+        in_range("sim.friction_scale", sim.friction_scale)?;
         in_range("sim.substep_hz", sim.substep_hz)?;
         if sim.substep_hz < s.rate_hz {
             return Err(invalid(

@@ -84,6 +84,9 @@ enum Command {
         /// both sides allow) instead of reporting in real time.
         #[arg(long)]
         lockstep: bool,
+        /// The simulated model, as in `sim:MODEL` (docs/simulated-devices.md).
+        #[arg(long, default_value = "point-mass")]
+        model: String,
     },
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
@@ -184,7 +187,11 @@ fn real_main(cli: Cli) -> Result<()> {
             ..
         } => calibrate_here(&config, device.as_deref(), output, real_time, yes),
         Command::Status => ctl::status(&config.socket_path()),
-        Command::SimDevice { listen, lockstep } => sim_device(&config, &listen, lockstep),
+        Command::SimDevice {
+            listen,
+            lockstep,
+            model,
+        } => sim_device(&config, &listen, lockstep, &model),
         Command::Devices => devices(),
     }
 }
@@ -256,9 +263,9 @@ fn calibrate_here(
 }
 
 /// `hgcd sim-device`: serve the simulated device on a Unix socket until the host leaves.
-fn sim_device(config: &Config, listen: &Path, lockstep: bool) -> Result<()> {
+fn sim_device(config: &Config, listen: &Path, lockstep: bool, model: &str) -> Result<()> {
     let stop = install_stop_handler()?;
-    let mut device = hgcd::sim::SimDevice::from_config("point-mass", config)?;
+    let mut device = hgcd::sim::SimDevice::from_config(model, config)?;
     // Replaces a stale socket, refuses a live one or anything that is not a socket.
     let listener = hgcd::app::server::bind(listen, 0o660)
         .with_context(|| format!("listening on {}", listen.display()))?;

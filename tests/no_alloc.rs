@@ -136,6 +136,37 @@ fn a_simulated_device_in_virtual_time_with_a_pd_hold() {
     assert_quiet("sim", &seen, 2000);
 }
 
+/// A PD hold on the simulated device `sim:MODEL` allocates nothing per tick.
+fn quiet_pd_hold_on(model: &str) {
+    let config = config();
+    let sim = SimTransport::new(
+        SimDevice::from_config(model, &config).unwrap(),
+        Pacing::Virtual,
+    );
+    let (mut tap, seen) = counting(sim);
+    let mut options = ServoOptions::from_config(&config);
+    options.duration = Some(2.0);
+    servo::run(
+        &mut tap,
+        &mut pd_hold(),
+        &options,
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
+    assert_quiet(model, &seen, 2000);
+}
+
+#[test]
+fn the_phantom_in_virtual_time_with_a_pd_hold() {
+    quiet_pd_hold_on("phantom");
+}
+
+#[test]
+fn the_delta_in_virtual_time_with_a_pd_hold() {
+    quiet_pd_hold_on("delta");
+}
+
 #[test]
 fn a_calibration_on_a_simulated_device() {
     let mut config = config();

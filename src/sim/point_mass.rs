@@ -16,6 +16,8 @@ pub struct PointMass {
     pub damping: f64,
     /// A probe mass fixed to the end effector, kg (adds to M(X) in inertia and weight).
     pub payload: f64,
+    /// Resolution of its Cartesian encoders, m (0: no quantisation).
+    pub resolution: f64,
     lo: Vector3<f64>,
     hi: Vector3<f64>,
     x: Vector3<f64>,
@@ -34,6 +36,7 @@ impl PointMass {
             field,
             damping,
             payload: 0.0,
+            resolution: 0.0,
             lo,
             hi,
             x: start.sup(&lo).inf(&hi),
@@ -57,6 +60,7 @@ impl PointMass {
         };
         let mut plant = Self::new(field, sim.damping_n_s_per_m, (lo, hi), sim.start_position());
         plant.payload = sim.probe_mass_kg;
+        plant.resolution = sim.encoder_resolution();
         Ok(plant)
     }
 
@@ -96,6 +100,14 @@ impl Plant for PointMass {
     fn holding_force(&self) -> Vector3<f64> {
         self.field.gravity_direction * (self.mass() * self.field.g)
     }
+    fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64> {
+        let x = self.x + noise;
+        if self.resolution > 0.0 {
+            x.map(|c| (c / self.resolution).round() * self.resolution)
+        } else {
+            x
+        }
+    }
 }
 
 #[cfg(test)]
@@ -132,5 +144,18 @@ mod tests {
             p.step(&f, 1e-4);
         }
         assert!(p.position().norm() < 1e-12);
+    }
+
+    #[test]
+    fn cartesian_encoders_quantise_to_their_resolution() {
+        let mut p = PointMass::from_config(&SimConfig::default()).unwrap();
+        p.resolution = 5e-6;
+        p.x = Vector3::new(0.0123456, -0.001, 0.0);
+        let m = p.sensed_position(&Vector3::new(1e-6, 0.0, -4e-6));
+        for axis in 0..3 {
+            let steps = m[axis] / 5e-6;
+            assert!((steps - steps.round()).abs() < 1e-6);
+        }
+        assert!((m - Vector3::new(0.012345, -0.001, -0.000005)).amax() < 1e-12);
     }
 }
