@@ -11,7 +11,7 @@ use std::time::Duration;
 use thiserror::Error;
 
 use crate::config::{Config, DeviceSpec};
-use crate::grid::GridError;
+use crate::sim::SimError;
 use crate::protocol::{InputReport, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
 
 /// How fast a device clock may run slow against the host's unless its transport says otherwise
@@ -51,12 +51,13 @@ pub enum TransportError {
          (the daemon? use `hgcd calibrate --via-daemon`)"
     )]
     Busy { spec: String, node: String },
-    /// The simulated device's configuration cannot be used (its `sim.mass_grid`).
+    /// The simulated device's configuration cannot be used (`[sim]`: its model, start
+    /// position or `sim.mass_grid`).
     #[error("cannot open device {spec}: its simulated plant cannot be built")]
     Simulation {
         spec: String,
         #[source]
-        source: GridError,
+        source: SimError,
     },
     /// The device went away: unplugged, its socket peer closed, or its writer failed.
     #[error("device {spec} disconnected")]
