@@ -11,8 +11,8 @@ use std::time::Duration;
 use thiserror::Error;
 
 use crate::config::{Config, DeviceSpec};
-use crate::sim::SimError;
 use crate::protocol::{InputReport, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
+use crate::sim::SimError;
 
 /// How fast a device clock may run slow against the host's unless its transport says otherwise
 /// ([`Transport::clock_drift`]): 200 ppm, twice a crystal's usual tolerance.
