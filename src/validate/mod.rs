@@ -10,7 +10,7 @@
 //! `report.rs`, the statistics and the table, CSV and JSON; `figure.rs`, Fig. 2 as SVG and PNG.
 //! docs/validation.md describes the experiment for users.
 
-mod controller;
+pub mod controller;
 mod figure;
 pub mod probe;
 mod report;
