@@ -249,3 +249,23 @@ fn a_device_without_a_stored_grid_is_refused_before_anything_moves() {
     // The device side ends when the host leaves.
     assert!(sim.wait().unwrap().success());
 }
+
+#[test]
+fn the_shipped_example_field_is_the_one_tested_here() {
+    // docs/validation.md quotes runs of config/validate-point-mass.toml; this test runs the same
+    // field, so the two must not drift apart.
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let config = Config::load(&root.join("config/validate-point-mass.toml")).unwrap();
+    let field = GridFile::load(config.sim.mass_grid.as_ref().unwrap())
+        .unwrap()
+        .grid;
+    let truth = truth_field_27();
+    assert!((field.gravity_direction - truth.gravity_direction).norm() < 1e-12);
+    assert_eq!(
+        (field.origin, field.spacing, field.dims),
+        (truth.origin, truth.spacing, truth.dims)
+    );
+    for (a, b) in field.masses.iter().zip(&truth.masses) {
+        assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+    }
+}

@@ -179,16 +179,16 @@ impl Report {
             self.stiffness * 1e-3,
             mm(self.ideal)
         );
-        let _ = write!(out, "   n   P_n mm          ");
+        let _ = write!(out, "   n  P_n mm            ");
         for m in &self.modes {
-            let _ = write!(out, "  {:>15}", m.mode.name());
+            let _ = write!(out, "  {:<18}", m.mode.name());
         }
         out.push('\n');
         for (n, p) in self.points.iter().enumerate() {
             let p = p * 1e3;
             let _ = write!(
                 out,
-                "  {:>2}   ({:>4.0}, {:>4.0}, {:>4.0})",
+                "  {:>2}  ({:>4.0}, {:>4.0}, {:>4.0})",
                 n + 1,
                 p.x,
                 p.y,
@@ -196,18 +196,16 @@ impl Report {
             );
             for m in &self.modes {
                 let s = m.points[n];
-                let _ = write!(out, "  {:>7.3} ± {:<5.3}", mm(s.mean), mm(s.std));
+                let cell = format!("{:.3} ± {:.3}", mm(s.mean), mm(s.std));
+                let _ = write!(out, "  {cell:<18}");
             }
             out.push('\n');
         }
         let _ = write!(out, "  mean                  ");
         for m in &self.modes {
-            let _ = write!(
-                out,
-                "  {:>7.3} ({:>+5.1} %)",
-                mm(m.mean),
-                (m.mean / self.ideal - 1.0) * 1e2
-            );
+            let error = (m.mean / self.ideal - 1.0) * 1e2;
+            let cell = format!("{:.3} ({error:+.1} %)", mm(m.mean));
+            let _ = write!(out, "  {cell:<18}");
         }
         out.push('\n');
         for m in self.modes.iter().filter(|m| m.unsettled > 0) {
@@ -218,7 +216,8 @@ impl Report {
                 m.unsettled
             );
         }
-        out
+        // Cells are padded to line up; lines end without the padding.
+        out.lines().map(|l| format!("{}\n", l.trim_end())).collect()
     }
 
     /// Every repetition, one line each (`penalties.csv`).
