@@ -391,11 +391,6 @@ impl Prepared {
         matches!(self.grid, GridSource::Calibrate(_))
     }
 
-    /// Repetitions in the whole experiment.
-    pub fn total(&self) -> usize {
-        self.request.modes.len() * 27 * self.request.repetitions
-    }
-
     /// Calibrate first if needed, run the experiment, write the results. `progress` sees every
     /// event on the calling thread.
     pub fn run(
