@@ -164,6 +164,19 @@ pub const RANGES: &[(&str, Range)] = &[
     ("app.stale_ramp_ms", Range::new(1.0, 1000.0, "ms")),
     ("app.max_clients", Range::new(1.0, 1024.0, "")),
     ("app.hello_timeout_ms", Range::new(10.0, 60_000.0, "ms")),
+    ("validation.point_spacing_mm", Range::new(1.0, 500.0, "mm")),
+    (
+        "validation.hold_stiffness_n_per_mm",
+        Range::new(0.1, 10.0, "N/mm"),
+    ),
+    (
+        "validation.surface_damping_n_s_per_m",
+        Range::new(0.0, 100.0, "N*s/m"),
+    ),
+    ("validation.lift_mm", Range::new(0.5, 100.0, "mm")),
+    ("validation.n_s", Range::new(2.0, 10_000.0, "samples")),
+    ("validation.eps_s_mm", Range::new(0.001, 10.0, "mm")),
+    ("validation.settle_timeout_s", Range::new(0.1, 3600.0, "s")),
 ];
 
 /// `value` checked against the range of `key` (an entry of [`RANGES`]).
@@ -332,6 +345,7 @@ pub struct Config {
     pub compensation: CompensationConfig,
     pub app: AppConfig,
     pub paths: PathsConfig,
+    pub validation: ValidationConfig,
 }
 
 #[derive(Clone, Debug, Deserialize, PartialEq)]
@@ -597,6 +611,63 @@ pub struct PathsConfig {
 impl Default for PathsConfig {
     fn default() -> Self {
         Self { state_dir: None }
+    }
+}
+
+/// The validation experiment's procedure (`hgcd validate`, docs/validation.md); the paper's own
+/// parameters (probe mass, stiffness, repetitions) are command-line options.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ValidationConfig {
+    /// Contact points lie at the grid centre + spacing·(i, j, k), i, j, k in {−1, 0, 1}, mm.
+    pub point_spacing_mm: f64,
+    /// Stiffness of the application's hold (lifting, lowering, and across the surface), N/mm.
+    pub hold_stiffness_n_per_mm: f64,
+    /// Damping of the virtual surface while the handle is in it, N·s/m.
+    pub surface_damping_n_s_per_m: f64,
+    /// Height above the surface the handle is lifted to between repetitions, mm.
+    pub lift_mm: f64,
+    /// Steady state: samples per window, n_s.
+    pub n_s: usize,
+    /// Steady state: radius of the window's sphere, eps_s, mm.
+    pub eps_s_mm: f64,
+    /// A repetition with no steady state after this long is recorded as unsettled, s.
+    pub settle_timeout_s: f64,
+}
+
+impl Default for ValidationConfig {
+    fn default() -> Self {
+        Self {
+            point_spacing_mm: 30.0,
+            hold_stiffness_n_per_mm: 1.0,
+            surface_damping_n_s_per_m: 10.0,
+            lift_mm: 5.0,
+            n_s: 50,
+            eps_s_mm: 0.05,
+            settle_timeout_s: 5.0,
+        }
+    }
+}
+
+impl ValidationConfig {
+    /// Spacing of the contact points, m.
+    pub fn point_spacing(&self) -> f64 {
+        self.point_spacing_mm * 1e-3
+    }
+
+    /// Stiffness of the hold, N/m.
+    pub fn hold_stiffness(&self) -> f64 {
+        self.hold_stiffness_n_per_mm * 1e3
+    }
+
+    /// Lift height, m.
+    pub fn lift(&self) -> f64 {
+        self.lift_mm * 1e-3
+    }
+
+    /// Radius of the steady-state sphere, m.
+    pub fn eps_s(&self) -> f64 {
+        self.eps_s_mm * 1e-3
     }
 }
 
@@ -901,6 +972,21 @@ impl Config {
         in_range("app.stale_ramp_ms", a.stale_ramp_ms)?;
         in_range("app.max_clients", a.max_clients as f64)?;
         in_range("app.hello_timeout_ms", a.hello_timeout_ms)?;
+
+        let v = &self.validation;
+        in_range("validation.point_spacing_mm", v.point_spacing_mm)?;
+        in_range(
+            "validation.hold_stiffness_n_per_mm",
+            v.hold_stiffness_n_per_mm,
+        )?;
+        in_range(
+            "validation.surface_damping_n_s_per_m",
+            v.surface_damping_n_s_per_m,
+        )?;
+        in_range("validation.lift_mm", v.lift_mm)?;
+        in_range("validation.n_s", v.n_s as f64)?;
+        in_range("validation.eps_s_mm", v.eps_s_mm)?;
+        in_range("validation.settle_timeout_s", v.settle_timeout_s)?;
         Ok(())
     }
 

@@ -16,5 +16,6 @@ pub mod servo; //      the 1 kHz tick loop, safety layer, timing statistics
 pub mod sim; //        simulated devices: plants, encoders, firmware, socket server
 pub mod sys; //        ppoll, recv without waiting, absolute sleeps
 pub mod transport; //  hid, in-process sim and socket transports
+pub mod validate; //   `hgcd validate`: the paper's validation experiment (Section 5, Fig. 2)
 
 pub use app::client;

@@ -16,6 +16,7 @@ mod ctl;
 mod progress;
 use hgcd::servo::ServoError;
 use hgcd::transport::{hid, Pacing, TransportError};
+use hgcd::validate::{self, Mode, ValidateError, ValidateRequest};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -71,6 +72,43 @@ enum Command {
         /// Ask the running daemon to calibrate its device (it switches to the new grid after).
         #[arg(long)]
         via_daemon: bool,
+    },
+    /// The paper's validation experiment (Section 5, Fig. 2): a probe mass on a virtual surface
+    /// at 27 points, without and with compensation; writes a table, CSV, summary.json and figure.
+    Validate {
+        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+        #[arg(long, value_name = "SPEC")]
+        device: Option<String>,
+        /// Compensate with this grid (default: the device's stored grid; on a simulated device a
+        /// fresh calibration, written to DIR/grid.toml).
+        #[arg(long, value_name = "FILE")]
+        grid: Option<PathBuf>,
+        /// Directory for the results (created if needed).
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+        /// Probe mass m_p, g (on a simulated device it is added to the plant; on hardware attach it).
+        #[arg(long, value_name = "G", default_value_t = 30.0)]
+        probe_mass_g: f64,
+        /// Stiffness k of the virtual surface, N/mm.
+        #[arg(long, value_name = "K", default_value_t = 1.0)]
+        stiffness_n_per_mm: f64,
+        /// Repetitions per contact point and mode.
+        #[arg(long, value_name = "N", default_value_t = 10)]
+        repetitions: usize,
+        /// Compensation modes to run, in order (comma-separated: none, scalar, vector).
+        #[arg(
+            long,
+            value_name = "MODES",
+            value_delimiter = ',',
+            default_value = "none,scalar,vector"
+        )]
+        modes: Vec<String>,
+        /// Run a simulated device in real time (default for simulated devices: virtual time).
+        #[arg(long)]
+        real_time: bool,
+        /// Do not ask for confirmation before starting on a real device.
+        #[arg(long)]
+        yes: bool,
     },
     /// Show the running daemon's state: device, grid, mode, clients, loop timing.
     Status,
@@ -186,6 +224,40 @@ fn real_main(cli: Cli) -> Result<()> {
             yes,
             ..
         } => calibrate_here(&config, device.as_deref(), output, real_time, yes),
+        Command::Validate {
+            device,
+            grid,
+            out,
+            probe_mass_g,
+            stiffness_n_per_mm,
+            repetitions,
+            modes,
+            real_time,
+            yes,
+        } => {
+            let modes = modes
+                .iter()
+                .map(|m| m.parse::<Mode>())
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| anyhow::anyhow!("--modes: {e}"))?;
+            let device = device_spec(device.as_deref(), &config)?;
+            let simulated = matches!(device, DeviceSpec::Sim { .. });
+            let request = ValidateRequest {
+                device,
+                pacing: if simulated && !real_time {
+                    Pacing::Virtual
+                } else {
+                    Pacing::RealTime
+                },
+                grid,
+                out,
+                probe_mass: probe_mass_g * 1e-3,
+                stiffness: stiffness_n_per_mm * 1e3,
+                repetitions,
+                modes,
+            };
+            validate_here(&config, &request, yes)
+        }
         Command::Status => ctl::status(&config.socket_path()),
         Command::SimDevice {
             listen,
@@ -248,17 +320,71 @@ fn calibrate_here(
         state_dir: config.state_dir(),
     };
     let stop = install_stop_handler()?;
-    let mut display = progress::Display::new(
-        hgcd::control::calibration::GridPlan::new(
-            &hgcd::control::calibration::CalibrationParams::from_config(config),
-        )
-        .map(|p| p.path.len())
-        .unwrap_or(0),
-    );
+    let mut display = progress::Display::new(progress::vertex_count(config));
     let run = calibrate(config, &request, stop, &mut |e| display.show(e));
     display.finish();
     let run = run?;
     print!("{}", progress::summary(&run));
+    Ok(())
+}
+
+/// `hgcd validate` in this process: prepare, confirm on hardware, run; prints the table.
+fn validate_here(config: &Config, request: &ValidateRequest, yes: bool) -> Result<()> {
+    let prepared = validate::prepare(config, request)?;
+    let simulated = matches!(prepared.device(), DeviceSpec::Sim { .. });
+    if !simulated && !yes {
+        confirm_validation(request.probe_mass)?;
+    }
+    if prepared.calibrates_first() {
+        println!(
+            "calibrating {} first (grid to {})",
+            prepared.device(),
+            request.out.join("grid.toml").display()
+        );
+    }
+    let stop = install_stop_handler()?;
+    let mut display = progress::ValidationDisplay::new(config);
+    let run = prepared.run(stop, &mut |e| display.show(e));
+    display.finish();
+    let run = run?;
+    print!("{}", run.report.table());
+    println!(
+        "results in {}: {}, {}, {} and {} ({:.1} s wall time)",
+        request.out.display(),
+        file_name(&run.outputs.csv),
+        file_name(&run.outputs.summary),
+        file_name(&run.outputs.svg),
+        file_name(&run.outputs.png),
+        run.wall_time
+    );
+    Ok(())
+}
+
+fn file_name(path: &Path) -> String {
+    path.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+}
+
+/// On a real device the user attaches the probe mass before any force is applied (paper §5).
+fn confirm_validation(probe_mass: f64) -> Result<()> {
+    use std::io::{BufRead, IsTerminal, Write};
+    let stdin = std::io::stdin();
+    anyhow::ensure!(
+        stdin.is_terminal(),
+        "validating a real device needs confirmation: run it on a terminal or pass --yes once the \
+         probe mass is attached and the handle rests near the centre of the workspace"
+    );
+    eprint!(
+        "Attach the {:.0} g probe mass to the handle, bring the handle near the centre of the \
+         workspace and let go of it; hgcd will carry it to 27 points and lower it onto a virtual \
+         surface at each.\nKeep clear of the handle until the run ends; then it drops.\nPress \
+         Enter to start (Ctrl-C aborts). ",
+        probe_mass * 1e3
+    );
+    std::io::stderr().flush().ok();
+    let mut line = String::new();
+    stdin.lock().read_line(&mut line)?;
     Ok(())
 }
 
@@ -331,14 +457,22 @@ const EXIT_DEVICE_GONE: u8 = 3;
 fn exit_status(e: &anyhow::Error) -> u8 {
     let gone = TransportError::device_unavailable;
     let servo_gone = |s: &ServoError| matches!(s, ServoError::Transport(t) if gone(t));
+    let calibrate_gone = |c: &CalibrateError| match c {
+        CalibrateError::Open(t) => gone(t),
+        CalibrateError::Servo(s) => servo_gone(s),
+        _ => false,
+    };
     let device_gone = match (
         e.downcast_ref::<RunError>(),
         e.downcast_ref::<CalibrateError>(),
+        e.downcast_ref::<ValidateError>(),
     ) {
-        (Some(RunError::Open(t)), _) => gone(t),
-        (Some(RunError::Servo(s)), _) => servo_gone(s),
-        (_, Some(CalibrateError::Open(t))) => gone(t),
-        (_, Some(CalibrateError::Servo(s))) => servo_gone(s),
+        (Some(RunError::Open(t)), _, _) => gone(t),
+        (Some(RunError::Servo(s)), _, _) => servo_gone(s),
+        (_, Some(c), _) => calibrate_gone(c),
+        (_, _, Some(ValidateError::Open(t))) => gone(t),
+        (_, _, Some(ValidateError::Servo(s))) => servo_gone(s),
+        (_, _, Some(ValidateError::Calibration(c))) => calibrate_gone(c),
         _ => false,
     };
     if device_gone {

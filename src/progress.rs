@@ -7,7 +7,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use tracing::info;
 
 use hgcd::calibrate::CalibrationRun;
-use hgcd::control::calibration::CalibrationEvent;
+use hgcd::config::Config;
+use hgcd::control::calibration::{CalibrationEvent, CalibrationParams, GridPlan};
+use hgcd::validate::ValidateEvent;
 
 pub struct Display {
     bar: Option<ProgressBar>,
@@ -98,6 +100,91 @@ impl Display {
             bar.finish_and_clear();
         }
     }
+}
+
+/// Progress of `hgcd validate`: the calibration's display while it calibrates, then a bar over
+/// the repetitions on a terminal, or a log line every tenth of the experiment.
+pub struct ValidationDisplay {
+    /// Made at the first calibration event (there is none with `--grid`).
+    calibration: Option<Display>,
+    vertices: usize,
+    bar: Option<ProgressBar>,
+    terminal: bool,
+}
+
+impl ValidationDisplay {
+    pub fn new(config: &Config) -> Self {
+        Self {
+            calibration: None,
+            vertices: vertex_count(config),
+            bar: None,
+            terminal: std::io::stderr().is_terminal(),
+        }
+    }
+
+    pub fn show(&mut self, event: ValidateEvent) {
+        match event {
+            ValidateEvent::Calibration(e) => {
+                let vertices = self.vertices;
+                self.calibration
+                    .get_or_insert_with(|| Display::new(vertices))
+                    .show(e)
+            }
+            ValidateEvent::Started { of } => {
+                if let Some(mut c) = self.calibration.take() {
+                    c.finish();
+                }
+                if self.terminal {
+                    let bar = ProgressBar::new(of as u64);
+                    bar.set_style(
+                        ProgressStyle::with_template(
+                            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} repetitions  {msg}",
+                        )
+                        .expect("valid template"),
+                    );
+                    self.bar = Some(bar);
+                } else {
+                    info!("experiment: {of} repetitions");
+                }
+            }
+            ValidateEvent::Rest {
+                done,
+                of,
+                mode,
+                penalty,
+            } => match &self.bar {
+                Some(bar) => {
+                    bar.set_position(done as u64);
+                    bar.set_message(format!("{}: ΔX = {:.3} mm", mode.name(), penalty * 1e3));
+                }
+                None => {
+                    if done * 10 / of != (done - 1) * 10 / of {
+                        info!(
+                            "experiment: {done}/{of} repetitions ({}: last ΔX = {:.3} mm)",
+                            mode.name(),
+                            penalty * 1e3
+                        );
+                    }
+                }
+            },
+        }
+    }
+
+    pub fn finish(&mut self) {
+        if let Some(mut c) = self.calibration.take() {
+            c.finish();
+        }
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+/// Vertices a calibration with `config` visits (for the bar's length).
+pub fn vertex_count(config: &Config) -> usize {
+    GridPlan::new(&CalibrationParams::from_config(config))
+        .map(|p| p.path.len())
+        .unwrap_or(0)
 }
 
 /// What `hgcd calibrate` prints when it succeeds.

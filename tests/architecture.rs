@@ -14,6 +14,7 @@ const LAYERS: &[&[&str]] = &[
     &["app"],
     &["calibrate"],
     &["daemon"],
+    &["validate"],
 ];
 
 fn layer(module: &str) -> Option<usize> {

@@ -24,6 +24,8 @@ use hgcd::transport::hid::OutputWriter;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
 use hgcd::transport::{Pacing, Transport};
+use hgcd::validate::controller::ExperimentController;
+use hgcd::validate::probe::{ContactPlan, Probe, ProbeParams};
 
 mod common;
 use common::daemon::TestDaemon;
@@ -200,6 +202,66 @@ fn a_calibration_on_a_simulated_device() {
         "the calibration completes"
     );
     assert_quiet("calibration", &seen, 10_000);
+}
+
+#[test]
+fn the_validation_experiment_with_a_model_swap_between_runs() {
+    use hgcd::control::compensation::{
+        Compensation, CompensationMode, ForceOffset, GravityModel, OutsideGrid,
+    };
+    let mut config = config();
+    let dir = tempfile::tempdir().unwrap();
+    let truth = dir.path().join("truth.toml");
+    GridFile::from(truth_field_27())
+        .save_atomic(&truth)
+        .unwrap();
+    config.sim.mass_grid = Some(truth);
+    config.sim.probe_mass_kg = 0.03;
+    let sim = SimTransport::new(
+        SimDevice::from_config("point-mass", &config).unwrap(),
+        Pacing::Virtual,
+    );
+    let (mut tap, seen) = counting(sim);
+    // Uncompensated, then the scalar model: the second run swaps it in on the servo thread.
+    let model = GravityModel::new(
+        GridFile::from(truth_field_27()),
+        CompensationMode::Scalar,
+        OutsideGrid::HoldNearest,
+    )
+    .unwrap();
+    let grid = truth_field_27();
+    let plan = ContactPlan::paper(Vector3::zeros(), 0.03, grid.gravity_direction, 2, 2);
+    let params = ProbeParams {
+        stiffness: 1000.0,
+        surface_damping: 10.0,
+        hold_stiffness: 1000.0,
+        lift: 0.005,
+        steady_samples: 50,
+        steady_radius: 5e-5,
+        settle_timeout: 5.0,
+        max_force: 8.0,
+    };
+    let (tx, _rx) = crossbeam_channel::bounded(4096);
+    let mut experiment = ExperimentController::new(
+        Compensation::new(None, ForceOffset::new(0.05, 0.05)),
+        vec![None, Some(Box::new(model))],
+        Probe::new(plan, params),
+        Some(tx),
+    );
+    let mut options = ServoOptions::from_config(&config);
+    options.stop_on_fault = true;
+    servo::run(
+        &mut tap,
+        &mut experiment,
+        &options,
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
+    let rests = experiment.into_rests();
+    assert_eq!(rests.len(), 2 * 27 * 2, "the experiment completes");
+    assert!(rests.iter().all(|r| r.settled));
+    assert_quiet("validation experiment", &seen, 10_000);
 }
 
 #[test]

@@ -1,0 +1,519 @@
+//! `hgcd validate`: the paper's validation experiment (§5, Fig. 2) on any device, in process.
+//!
+//! A probe mass m_p rests on a virtual horizontal surface of stiffness k at 27 contact points
+//! around the grid centre; at steady state it sinks by ΔX = ‖P_n − X‖, which is m_p g / k when
+//! the handle's own weight is compensated exactly and (M(X) + m_p) g / k without compensation.
+//! Each point is measured `repetitions` times per compensation mode (none, scalar, vector).
+//!
+//! The parts: `probe.rs`, the application side (the surface and the moves, tick by tick);
+//! `controller.rs`, the probe feeding the daemon's own compensation controller on the servo thread;
+//! `report.rs`, the statistics and the table, CSV and JSON; `figure.rs`, Fig. 2 as SVG and PNG.
+//! docs/validation.md describes the experiment for users.
+
+pub mod controller;
+mod figure;
+pub mod probe;
+mod report;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Instant;
+
+use nalgebra::Vector3;
+use thiserror::Error;
+use tracing::info;
+
+pub use figure::FigureError;
+pub use report::{ModeReport, PointStats, Report, Sample};
+
+use crate::calibrate::{calibrate, CalibrateError, CalibrateRequest, CalibrationRun};
+use crate::config::{CompensationMode, Config, ConfigError, DeviceSpec};
+use crate::control::calibration::CalibrationEvent;
+use crate::control::compensation::{Compensation, ForceOffset, GravityModel, ModelError};
+use crate::grid::{grid_path, GridError, GridFile};
+use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
+use crate::transport::{self, Pacing, Transport, TransportError};
+use controller::ExperimentController;
+use probe::{ContactPlan, Probe, ProbeParams, Rest};
+
+/// Compensation during one run of the experiment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Mode {
+    /// No gravity compensation: the handle's own apparent weight adds to the probe's.
+    None,
+    /// The paper's M(X) g v_G.
+    Scalar,
+    /// The calibrated holding-force vectors, interpolated.
+    Vector,
+}
+
+impl Mode {
+    pub const ALL: [Mode; 3] = [Mode::None, Mode::Scalar, Mode::Vector];
+
+    /// The name used on the command line and in the output files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Mode::None => "none",
+            Mode::Scalar => "scalar",
+            Mode::Vector => "vector",
+        }
+    }
+
+    fn compensation(self) -> Option<CompensationMode> {
+        match self {
+            Mode::None => None,
+            Mode::Scalar => Some(CompensationMode::Scalar),
+            Mode::Vector => Some(CompensationMode::Vector),
+        }
+    }
+}
+
+impl std::str::FromStr for Mode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Mode::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| format!("unknown mode `{s}`; use none, scalar or vector"))
+    }
+}
+
+/// What `hgcd validate` was asked to do. SI units.
+#[derive(Clone, Debug)]
+pub struct ValidateRequest {
+    pub device: DeviceSpec,
+    /// Pacing of simulated devices (virtual time for batch work).
+    pub pacing: Pacing,
+    /// The grid to compensate with; None: the device's stored grid, or on a simulated device a
+    /// fresh calibration written to `out`.
+    pub grid: Option<PathBuf>,
+    /// Directory for the results.
+    pub out: PathBuf,
+    /// m_p, kg.
+    pub probe_mass: f64,
+    /// k, N/m.
+    pub stiffness: f64,
+    pub repetitions: usize,
+    /// Runs, in this order.
+    pub modes: Vec<Mode>,
+}
+
+/// Probe masses the experiment accepts, kg (1 g to 1 kg).
+pub const PROBE_MASS_RANGE: (f64, f64) = (0.001, 1.0);
+/// Surface stiffnesses it accepts, N/m (0.05 to 10 N/mm).
+pub const STIFFNESS_RANGE: (f64, f64) = (50.0, 10_000.0);
+/// Repetitions per point and mode it accepts.
+pub const REPETITIONS_RANGE: (usize, usize) = (1, 1000);
+
+/// Why `hgcd validate` did not produce its results.
+#[derive(Debug, Error)]
+pub enum ValidateError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("--probe-mass-g {} is out of range (1 to 1000 g)", .0 * 1e3)]
+    ProbeMass(f64),
+    #[error("--stiffness-n-per-mm {} is out of range (0.05 to 10 N/mm)", .0 * 1e-3)]
+    Stiffness(f64),
+    #[error("--repetitions {0} is out of range (1 to 1000)")]
+    Repetitions(usize),
+    #[error("--modes names no mode, or one twice; give some of none, scalar, vector once each")]
+    Modes,
+    #[error("cannot write the results in {} (--out)", path.display())]
+    Out {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The device cannot be opened (the error names it).
+    #[error(transparent)]
+    Open(TransportError),
+    #[error(
+        "no calibration grid for {device} at {}: calibrate it first (`hgcd calibrate --device \
+         {device}`) or pass --grid FILE",
+        path.display()
+    )]
+    NoGrid { device: String, path: PathBuf },
+    #[error(transparent)]
+    Grid(GridError),
+    #[error("grid {}: {source}", path.display())]
+    Model {
+        path: PathBuf,
+        #[source]
+        source: ModelError,
+    },
+    #[error(
+        "contact point ({:.1}, {:.1}, {:.1}) mm lies outside the grid {} or outside \
+         device.workspace_*_mm: lower validation.point_spacing_mm or calibrate a larger grid",
+        point.x * 1e3, point.y * 1e3, point.z * 1e3, grid.display()
+    )]
+    PointOutside { point: Vector3<f64>, grid: PathBuf },
+    #[error("the calibration before the experiment failed")]
+    Calibration(#[source] CalibrateError),
+    #[error("starting the servo thread")]
+    Spawn(#[source] std::io::Error),
+    #[error("the servo thread panicked")]
+    ServoPanicked,
+    #[error("the experiment stopped")]
+    Servo(#[source] ServoError),
+    #[error("the experiment was aborted; no results were written")]
+    Aborted,
+    #[error("the experiment stopped by a fault: {0}; no results were written")]
+    Fault(Fault),
+    #[error("the experiment ended early ({0:?}); no results were written")]
+    EndedEarly(ExitReason),
+    #[error("writing {}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Figure(#[from] FigureError),
+}
+
+/// Something to show while the validation runs (on the calling thread).
+#[derive(Clone, Copy, Debug)]
+pub enum ValidateEvent<'a> {
+    /// Progress of the calibration that precedes the experiment on a simulated device.
+    Calibration(&'a CalibrationEvent),
+    /// The experiment started: `of` repetitions in all.
+    Started { of: usize },
+    /// A repetition ended: the `done`-th of `of`, in `mode`, with penalty ΔX, m.
+    Rest {
+        done: usize,
+        of: usize,
+        mode: Mode,
+        penalty: f64,
+    },
+}
+
+/// Where the grid comes from.
+enum GridSource {
+    /// A grid file, loaded.
+    File(Box<GridFile>, PathBuf),
+    /// A fresh calibration of the simulated device, written to this file.
+    Calibrate(PathBuf),
+}
+
+/// A validation ready to run: the output directory checked, the device open, the grid known.
+pub struct Prepared {
+    config: Config,
+    request: ValidateRequest,
+    transport: Box<dyn Transport>,
+    grid: GridSource,
+}
+
+/// The files a validation wrote.
+#[derive(Clone, Debug)]
+pub struct Outputs {
+    pub csv: PathBuf,
+    pub summary: PathBuf,
+    pub svg: PathBuf,
+    pub png: PathBuf,
+}
+
+/// A finished validation.
+#[derive(Debug)]
+pub struct Validation {
+    pub report: Report,
+    pub outputs: Outputs,
+    /// The calibration run first, on a simulated device without `--grid`.
+    pub calibration: Option<CalibrationRun>,
+    pub stats: TimingStats,
+    /// Wall-clock duration of the whole validation (calibration included), s.
+    pub wall_time: f64,
+}
+
+/// Check the request, make sure the results can be written, open the device and find the grid.
+/// Nothing moves yet: on hardware, ask the user to attach the probe mass after this.
+pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, ValidateError> {
+    config.validate()?;
+    check_request(request)?;
+    check_out(&request.out)?;
+    let mut request = request.clone();
+    let simulated = matches!(request.device, DeviceSpec::Sim { .. });
+    // On a simulated device the probe mass is part of the plant; on hardware the user attaches it.
+    let mut device_config = config.clone();
+    device_config.sim.probe_mass_kg = request.probe_mass;
+    let transport = transport::open(&request.device, &device_config, request.pacing)
+        .map_err(ValidateError::Open)?;
+    if let Some(spec) = transport.resolved_spec() {
+        request.device = spec;
+    }
+    let id = request.device.device_id();
+    let grid = match &request.grid {
+        Some(path) => {
+            let file = GridFile::load_for(path, &id).map_err(ValidateError::Grid)?;
+            GridSource::File(Box::new(file), path.clone())
+        }
+        None if simulated => GridSource::Calibrate(request.out.join("grid.toml")),
+        None => {
+            let path = grid_path(&config.state_dir(), &id);
+            match GridFile::load_for(&path, &id) {
+                Ok(file) => GridSource::File(Box::new(file), path),
+                Err(GridError::Missing { .. }) => {
+                    return Err(ValidateError::NoGrid {
+                        device: request.device.to_string(),
+                        path,
+                    })
+                }
+                Err(e) => return Err(ValidateError::Grid(e)),
+            }
+        }
+    };
+    if let GridSource::File(file, path) = &grid {
+        // Refuse now rather than after the device has moved.
+        experiment_setup(config, &request, file, path)?;
+    }
+    Ok(Prepared {
+        config: config.clone(),
+        request,
+        transport,
+        grid,
+    })
+}
+
+fn check_request(r: &ValidateRequest) -> Result<(), ValidateError> {
+    let within = |v: f64, (lo, hi): (f64, f64)| v >= lo && v <= hi;
+    if !within(r.probe_mass, PROBE_MASS_RANGE) {
+        return Err(ValidateError::ProbeMass(r.probe_mass));
+    }
+    if !within(r.stiffness, STIFFNESS_RANGE) {
+        return Err(ValidateError::Stiffness(r.stiffness));
+    }
+    if r.repetitions < REPETITIONS_RANGE.0 || r.repetitions > REPETITIONS_RANGE.1 {
+        return Err(ValidateError::Repetitions(r.repetitions));
+    }
+    let mut modes = r.modes.clone();
+    modes.sort();
+    modes.dedup();
+    if modes.is_empty() || modes.len() != r.modes.len() {
+        return Err(ValidateError::Modes);
+    }
+    Ok(())
+}
+
+/// Create `out` if needed and check a file can be written there.
+fn check_out(out: &Path) -> Result<(), ValidateError> {
+    let err = |source| ValidateError::Out {
+        path: out.to_path_buf(),
+        source,
+    };
+    std::fs::create_dir_all(out).map_err(err)?;
+    let probe = out.join(".hgcd-validate-write-check");
+    std::fs::write(&probe, b"").map_err(err)?;
+    std::fs::remove_file(&probe).map_err(err)
+}
+
+/// What the experiment needs from a grid.
+struct Setup {
+    plan: ContactPlan,
+    params: ProbeParams,
+    /// The gravity model of each run (None: uncompensated).
+    models: Vec<Option<Box<GravityModel>>>,
+}
+
+/// The contact plan, the probe's parameters and the model of each run, for `file`.
+fn experiment_setup(
+    config: &Config,
+    request: &ValidateRequest,
+    file: &GridFile,
+    path: &Path,
+) -> Result<Setup, ValidateError> {
+    let grid = &file.grid;
+    let v = &config.validation;
+    let centre = (grid.origin + grid.far_corner()) / 2.0;
+    let plan = ContactPlan::paper(
+        centre,
+        v.point_spacing(),
+        grid.gravity_direction,
+        request.modes.len(),
+        request.repetitions,
+    );
+    let (lo, hi) = config.device.workspace();
+    for p in &plan.points {
+        let lifted = p + plan.normal * v.lift();
+        let inside = |x: &Vector3<f64>| (0..3).all(|a| x[a] >= lo[a] && x[a] <= hi[a]);
+        if !grid.contains(p) || !inside(p) || !inside(&lifted) {
+            return Err(ValidateError::PointOutside {
+                point: *p,
+                grid: path.to_path_buf(),
+            });
+        }
+    }
+    let params = ProbeParams {
+        stiffness: request.stiffness,
+        surface_damping: v.surface_damping_n_s_per_m,
+        hold_stiffness: v.hold_stiffness(),
+        lift: v.lift(),
+        steady_samples: v.n_s,
+        steady_radius: v.eps_s(),
+        settle_timeout: v.settle_timeout_s,
+        max_force: config.safety.max_force_n,
+    };
+    let models = request
+        .modes
+        .iter()
+        .map(|mode| match mode.compensation() {
+            None => Ok(None),
+            Some(m) => GravityModel::new(file.clone(), m, config.compensation.outside_grid)
+                .map(|model| Some(Box::new(model)))
+                .map_err(|source| ValidateError::Model {
+                    path: path.to_path_buf(),
+                    source,
+                }),
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Setup {
+        plan,
+        params,
+        models,
+    })
+}
+
+impl Prepared {
+    /// The device the validation runs on (with the serial number a HID device reported).
+    pub fn device(&self) -> &DeviceSpec {
+        &self.request.device
+    }
+
+    /// Whether a fresh calibration runs first.
+    pub fn calibrates_first(&self) -> bool {
+        matches!(self.grid, GridSource::Calibrate(_))
+    }
+
+    /// Calibrate first if needed, run the experiment, write the results. `progress` sees every
+    /// event on the calling thread.
+    pub fn run(
+        self,
+        stop: Arc<AtomicBool>,
+        progress: &mut dyn FnMut(ValidateEvent),
+    ) -> Result<Validation, ValidateError> {
+        let started = Instant::now();
+        let Prepared {
+            config,
+            request,
+            transport,
+            grid,
+        } = self;
+        let (file, path, calibration) = match grid {
+            GridSource::File(file, path) => (*file, path, None),
+            GridSource::Calibrate(path) => {
+                let run = calibrate_simulated(&config, &request, &path, stop.clone(), progress)?;
+                (run.grid.clone(), path, Some(run))
+            }
+        };
+        let Setup {
+            plan,
+            params,
+            models,
+        } = experiment_setup(&config, &request, &file, &path)?;
+        let points = plan.points.clone();
+        let total = plan.total();
+        progress(ValidateEvent::Started { of: total });
+        info!(
+            "validating {} with the grid {}: {} points × {} repetitions × {} modes",
+            request.device,
+            path.display(),
+            points.len(),
+            request.repetitions,
+            request.modes.len()
+        );
+
+        let (tx, rx) = crossbeam_channel::bounded(4096);
+        let compensation = Compensation::new(
+            None,
+            ForceOffset::new(config.app.stale_offset(), config.app.stale_ramp()),
+        );
+        let controller =
+            ExperimentController::new(compensation, models, Probe::new(plan, params), Some(tx));
+        let mut options = ServoOptions::from_config(&config);
+        options.stop_on_fault = true;
+        let mut servo_config = config.servo.clone();
+        if request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. }) {
+            // A virtual-time loop runs flat out: never let it take a core at real-time priority.
+            servo_config.realtime_priority = 0;
+        }
+        let handle = servo::thread::spawn(transport, controller, options, servo_config, stop, None)
+            .map_err(ValidateError::Spawn)?;
+        let mut done = 0;
+        let mut show = |rest: Rest, done: &mut usize| {
+            *done += 1;
+            progress(ValidateEvent::Rest {
+                done: *done,
+                of: total,
+                mode: request.modes[rest.run],
+                penalty: (points[rest.point] - rest.position).norm(),
+            });
+        };
+        while !handle.is_finished() {
+            for rest in rx.try_iter() {
+                show(rest, &mut done);
+            }
+            std::thread::sleep(servo::thread::POLL);
+        }
+        let (result, controller) = handle.join().map_err(|_| ValidateError::ServoPanicked)?;
+        for rest in rx.try_iter() {
+            show(rest, &mut done);
+        }
+        let servo_report = result.map_err(ValidateError::Servo)?;
+        match servo_report.exit {
+            ExitReason::ControllerDone => {}
+            ExitReason::Stopped => return Err(ValidateError::Aborted),
+            ExitReason::Fault(fault) => return Err(ValidateError::Fault(fault)),
+            exit => return Err(ValidateError::EndedEarly(exit)),
+        }
+        let report = Report::new(&request, &file, &path, &points, &controller.into_rests());
+        let outputs = write_outputs(&request.out, &report, started.elapsed().as_secs_f64())?;
+        Ok(Validation {
+            report,
+            outputs,
+            calibration,
+            stats: servo_report.stats,
+            wall_time: started.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+/// Calibrate the simulated device (without the probe mass) into `path`.
+fn calibrate_simulated(
+    config: &Config,
+    request: &ValidateRequest,
+    path: &Path,
+    stop: Arc<AtomicBool>,
+    progress: &mut dyn FnMut(ValidateEvent),
+) -> Result<CalibrationRun, ValidateError> {
+    let mut config = config.clone();
+    config.sim.probe_mass_kg = 0.0;
+    let calibrate_request = CalibrateRequest {
+        device: request.device.clone(),
+        pacing: request.pacing,
+        output: Some(path.to_path_buf()),
+        state_dir: config.state_dir(),
+    };
+    calibrate(&config, &calibrate_request, stop, &mut |e| {
+        progress(ValidateEvent::Calibration(e))
+    })
+    .map_err(ValidateError::Calibration)
+}
+
+/// Write the CSV, summary.json and the figure into `out`.
+fn write_outputs(out: &Path, report: &Report, wall_time: f64) -> Result<Outputs, ValidateError> {
+    let outputs = Outputs {
+        csv: out.join("penalties.csv"),
+        summary: out.join("summary.json"),
+        svg: out.join("penalty.svg"),
+        png: out.join("penalty.png"),
+    };
+    let write = |path: &Path, text: String| {
+        std::fs::write(path, text).map_err(|source| ValidateError::Write {
+            path: path.to_path_buf(),
+            source,
+        })
+    };
+    write(&outputs.csv, report.csv())?;
+    write(&outputs.summary, report.summary_json(wall_time))?;
+    figure::draw(report, &outputs.svg, &outputs.png)?;
+    Ok(outputs)
+}

@@ -1,0 +1,528 @@
+//! The application side of the experiment: what a client of the daemon would render, tick by tick,
+//! from the state it is sent. It carries the handle to each contact point, lowers it onto a
+//! horizontal surface, waits for the steady state and records where the handle rests, then lifts
+//! it off and lowers it again (so friction is sampled afresh at every repetition).
+//!
+//! The force it asks for, with n the unit "up" (v_G), N = n nᵀ and T = I − N:
+//!
+//! F = k_h T (R − X) − c_h T V + w [k_h N (R − X) − c_h N V] + s n max(0, k d − c V·n) [d > 0]
+//!
+//! R is a reference point, w ∈ [0, 1] weighs the vertical part of the hold, s ∈ [0, 1] the
+//! surface, d = (P − X)·n the depth below the contact point P. The across-surface part of the hold
+//! (the horizontal hold) is always on; the vertical part is faded out before the steady state, so
+//! the surface alone then carries the weight, and faded in again to lift the handle off.
+
+use nalgebra::Vector3;
+
+use crate::control::DeviceState;
+
+/// Damping of the hold per unit of its stiffness, s (c_h = k_h · this).
+const HOLD_DAMPING_TIME: f64 = 0.01;
+/// Fading the vertical hold out before a steady state (load onto the surface), s.
+const RELEASE_TIME: f64 = 0.1;
+/// Fading the vertical hold in before lifting, and the surface out before a transit, s.
+const GRIP_TIME: f64 = 0.05;
+/// Lowering the reference from the lift height onto the surface, s (minimum jerk).
+const LOWER_TIME: f64 = 0.15;
+/// Raising it back to the lift height, s (minimum jerk).
+const RAISE_TIME: f64 = 0.1;
+/// Transits between contact points: at least this long, s ...
+const TRANSIT_MIN_TIME: f64 = 0.2;
+/// ... and at this mean speed, m/s (minimum jerk, so the peak is 1.875 times this).
+const TRANSIT_SPEED: f64 = 0.15;
+
+/// The experiment's parameters, SI.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ProbeParams {
+    /// Surface stiffness k, N/m.
+    pub stiffness: f64,
+    /// Surface damping c, N·s/m.
+    pub surface_damping: f64,
+    /// Hold stiffness k_h, N/m.
+    pub hold_stiffness: f64,
+    /// Lift height above the surface, m.
+    pub lift: f64,
+    /// Steady state: samples per window.
+    pub steady_samples: usize,
+    /// Steady state: sphere radius, m.
+    pub steady_radius: f64,
+    /// A repetition with no steady state after this long is recorded unsettled, s.
+    pub settle_timeout: f64,
+    /// Largest force per axis an application may ask for, N.
+    pub max_force: f64,
+}
+
+/// Where and how often: the contact points (in their numbered order), the order they are visited
+/// in, the surface normal, and the number of runs (one per compensation mode) and repetitions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ContactPlan {
+    /// Contact points P_n, m; index n − 1 for the point numbered n.
+    pub points: Vec<Vector3<f64>>,
+    /// Indices into `points`, in visiting order.
+    pub order: Vec<usize>,
+    /// Unit "up", the surface normal (v_G).
+    pub normal: Vector3<f64>,
+    pub runs: usize,
+    pub repetitions: usize,
+}
+
+impl ContactPlan {
+    /// The 27 points centre + spacing·(i, j, k), i, j, k ∈ {−1, 0, 1}, numbered with x fastest
+    /// (n = 1 + (i+1) + 3(j+1) + 9(k+1)), visited along a serpentine path.
+    pub fn paper(
+        centre: Vector3<f64>,
+        spacing: f64,
+        normal: Vector3<f64>,
+        runs: usize,
+        repetitions: usize,
+    ) -> Self {
+        let mut points = Vec::with_capacity(27);
+        for k in -1..=1 {
+            for j in -1..=1 {
+                for i in -1..=1 {
+                    points.push(centre + Vector3::new(i as f64, j as f64, k as f64) * spacing);
+                }
+            }
+        }
+        let mut order = Vec::with_capacity(27);
+        for k in 0..3 {
+            for jj in 0..3 {
+                // Reverse every other row and every other layer: neighbours follow each other.
+                let j = if k % 2 == 0 { jj } else { 2 - jj };
+                for ii in 0..3 {
+                    let i = if (jj + k) % 2 == 0 { ii } else { 2 - ii };
+                    order.push(i + 3 * j + 9 * k);
+                }
+            }
+        }
+        Self {
+            points,
+            order,
+            normal: normal.normalize(),
+            runs,
+            repetitions,
+        }
+    }
+
+    /// Repetitions in the whole experiment.
+    pub fn total(&self) -> usize {
+        self.runs * self.points.len() * self.repetitions
+    }
+}
+
+/// One repetition's outcome: where the handle came to rest on the surface.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rest {
+    /// Run (compensation mode), in plan order.
+    pub run: usize,
+    /// Index of the contact point in [`ContactPlan::points`].
+    pub point: usize,
+    pub repetition: usize,
+    /// Mean position over the steady window, m.
+    pub position: Vector3<f64>,
+    /// False when no steady state came within the timeout (`position` is then the newest
+    /// window's mean, or the last sample).
+    pub settled: bool,
+    /// Time from the end of the release to the steady state, s.
+    pub settle_time: f64,
+}
+
+/// The paper's "n consecutive samples within a sphere of radius ε", read as for calibration
+/// (docs/calibration.md): two consecutive windows of n samples, each within ε of its first sample,
+/// whose means agree within ε/10.
+#[derive(Clone, Debug)]
+struct Steady {
+    n: usize,
+    eps: f64,
+    first: Vector3<f64>,
+    sum: Vector3<f64>,
+    count: usize,
+    previous_mean: Option<Vector3<f64>>,
+}
+
+impl Steady {
+    fn new(n: usize, eps: f64) -> Self {
+        Self {
+            n,
+            eps,
+            first: Vector3::zeros(),
+            sum: Vector3::zeros(),
+            count: 0,
+            previous_mean: None,
+        }
+    }
+
+    fn reset(&mut self) {
+        self.count = 0;
+        self.previous_mean = None;
+    }
+
+    /// Add a sample; the newest window's mean once it completes a steady state.
+    fn push(&mut self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
+        if self.count == 0 || (x - self.first).norm() > self.eps {
+            if self.count > 0 {
+                self.previous_mean = None;
+            }
+            self.first = *x;
+            self.sum = Vector3::zeros();
+            self.count = 0;
+        }
+        self.sum += x;
+        self.count += 1;
+        if self.count < self.n {
+            return None;
+        }
+        let mean = self.sum / self.n as f64;
+        self.count = 0;
+        match self.previous_mean.replace(mean) {
+            Some(previous) if (mean - previous).norm() < self.eps / 10.0 => Some(mean),
+            _ => None,
+        }
+    }
+
+    /// The newest complete window's mean, if any.
+    fn last_mean(&self) -> Option<Vector3<f64>> {
+        self.previous_mean
+    }
+}
+
+/// What the application is doing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Phase {
+    /// Nothing yet: the first state sets the reference where the handle is.
+    Start,
+    /// Carrying the handle at lift height to above the next contact point; the surface it leaves
+    /// fades out.
+    Transit {
+        from: Vector3<f64>,
+        to: Vector3<f64>,
+        duration: f64,
+        surface_from: f64,
+    },
+    /// Lowering the reference onto the surface.
+    Lower,
+    /// Fading the vertical hold out.
+    Release,
+    /// Waiting for the steady state.
+    Settle,
+    /// Fading the vertical hold in, then raising the reference to lift height.
+    Lift,
+    /// All repetitions done: holding the handle at lift height.
+    Finished,
+}
+
+/// Which repetition of which point of which run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Cursor {
+    run: usize,
+    /// Index into [`ContactPlan::order`].
+    visit: usize,
+    repetition: usize,
+}
+
+/// One tick's answer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ProbeStep {
+    /// The force offset to send, N.
+    pub force: Vector3<f64>,
+    /// A repetition ended at this state.
+    pub rest: Option<Rest>,
+}
+
+/// The experiment as an application renders it: state in, force offset out.
+#[derive(Clone, Debug)]
+pub struct Probe {
+    plan: ContactPlan,
+    params: ProbeParams,
+    phase: Phase,
+    /// When the phase began, device time, s.
+    since: f64,
+    cursor: Cursor,
+    reference: Vector3<f64>,
+    steady: Steady,
+}
+
+impl Probe {
+    pub fn new(plan: ContactPlan, params: ProbeParams) -> Self {
+        let steady = Steady::new(params.steady_samples, params.steady_radius);
+        Self {
+            plan,
+            params,
+            phase: Phase::Start,
+            since: 0.0,
+            cursor: Cursor {
+                run: 0,
+                visit: 0,
+                repetition: 0,
+            },
+            reference: Vector3::zeros(),
+            steady,
+        }
+    }
+
+    pub fn plan(&self) -> &ContactPlan {
+        &self.plan
+    }
+
+    /// The run (compensation mode) under way: it changes when the transit to the first point of
+    /// the next run begins.
+    pub fn run(&self) -> usize {
+        self.cursor.run
+    }
+
+    /// Every repetition is done.
+    pub fn finished(&self) -> bool {
+        self.phase == Phase::Finished
+    }
+
+    fn point(&self) -> Vector3<f64> {
+        self.plan.points[self.plan.order[self.cursor.visit]]
+    }
+
+    fn above(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        p + self.plan.normal * self.params.lift
+    }
+
+    fn enter(&mut self, phase: Phase, t: f64) {
+        self.phase = phase;
+        self.since = t;
+    }
+
+    /// Start the transit to the point the cursor names, from the reference.
+    fn transit(&mut self, t: f64, surface_from: f64) {
+        let to = self.above(&self.point());
+        let distance = (to - self.reference).norm();
+        let duration = (distance / TRANSIT_SPEED).max(TRANSIT_MIN_TIME);
+        let from = self.reference;
+        self.enter(
+            Phase::Transit {
+                from,
+                to,
+                duration,
+                surface_from,
+            },
+            t,
+        );
+    }
+
+    /// The state `s` as the application receives it; the force offset it answers with.
+    pub fn step(&mut self, s: &DeviceState) -> ProbeStep {
+        let t = s.time;
+        let mut rest = None;
+        // (vertical hold weight w, surface weight)
+        let (w, surface) = match self.phase {
+            Phase::Start => {
+                self.reference = s.position;
+                self.transit(t, 0.0);
+                (1.0, 0.0)
+            }
+            Phase::Transit {
+                from,
+                to,
+                duration,
+                surface_from,
+            } => {
+                let u = t - self.since;
+                self.reference = from + (to - from) * min_jerk(u / duration);
+                let surface = surface_from * (1.0 - u / GRIP_TIME).max(0.0);
+                if u >= duration {
+                    self.enter(Phase::Lower, t);
+                }
+                (1.0, surface)
+            }
+            Phase::Lower => {
+                let u = t - self.since;
+                let p = self.point();
+                self.reference =
+                    p + self.plan.normal * (self.params.lift * (1.0 - min_jerk(u / LOWER_TIME)));
+                if u >= LOWER_TIME {
+                    self.enter(Phase::Release, t);
+                }
+                (1.0, 1.0)
+            }
+            Phase::Release => {
+                let w = 1.0 - (t - self.since) / RELEASE_TIME;
+                if w <= 0.0 {
+                    self.steady.reset();
+                    self.enter(Phase::Settle, t);
+                }
+                (w.max(0.0), 1.0)
+            }
+            Phase::Settle => {
+                let waited = t - self.since;
+                let found = self.steady.push(&s.position);
+                if found.is_some() || waited >= self.params.settle_timeout {
+                    let position = found
+                        .or_else(|| self.steady.last_mean())
+                        .unwrap_or(s.position);
+                    rest = Some(Rest {
+                        run: self.cursor.run,
+                        point: self.plan.order[self.cursor.visit],
+                        repetition: self.cursor.repetition,
+                        position,
+                        settled: found.is_some(),
+                        settle_time: waited,
+                    });
+                    self.enter(Phase::Lift, t);
+                }
+                (0.0, 1.0)
+            }
+            Phase::Lift => {
+                let u = t - self.since;
+                let p = self.point();
+                let raise = ((u - GRIP_TIME) / RAISE_TIME).max(0.0);
+                self.reference = p + self.plan.normal * (self.params.lift * min_jerk(raise));
+                if raise >= 1.0 {
+                    self.next(t);
+                }
+                ((u / GRIP_TIME).min(1.0), 1.0)
+            }
+            Phase::Finished => (1.0, 0.0),
+        };
+        ProbeStep {
+            force: self.force(s, w, surface),
+            rest,
+        }
+    }
+
+    /// After a lift: the next repetition, point or run, or the end.
+    fn next(&mut self, t: f64) {
+        let c = &mut self.cursor;
+        c.repetition += 1;
+        if c.repetition < self.plan.repetitions {
+            self.enter(Phase::Lower, t);
+            return;
+        }
+        c.repetition = 0;
+        c.visit += 1;
+        if c.visit == self.plan.order.len() {
+            c.visit = 0;
+            c.run += 1;
+            if c.run == self.plan.runs {
+                // Stay on the last point's lift height; the run counter stays in range.
+                c.run -= 1;
+                c.visit = self.plan.order.len() - 1;
+                self.enter(Phase::Finished, t);
+                return;
+            }
+        }
+        self.transit(t, 1.0);
+    }
+
+    /// The force for state `s` with the vertical hold weighed by `w` and the surface by `surface`.
+    fn force(&self, s: &DeviceState, w: f64, surface: f64) -> Vector3<f64> {
+        let n = self.plan.normal;
+        let k_h = self.params.hold_stiffness;
+        let c_h = k_h * HOLD_DAMPING_TIME;
+        let e = self.reference - s.position;
+        let (e_n, v_n) = (e.dot(&n), s.velocity.dot(&n));
+        let e_t = e - n * e_n;
+        let v_t = s.velocity - n * v_n;
+        let mut f = e_t * k_h - v_t * c_h + n * (w * (k_h * e_n - c_h * v_n));
+        if surface > 0.0 {
+            let depth = (self.point() - s.position).dot(&n);
+            if depth > 0.0 {
+                let push = self.params.stiffness * depth - self.params.surface_damping * v_n;
+                f += n * (surface * push.max(0.0));
+            }
+        }
+        let limit = self.params.max_force;
+        f.map(|c| c.clamp(-limit, limit))
+    }
+}
+
+/// Minimum-jerk profile from 0 to 1 over u ∈ [0, 1] (clamped outside).
+fn min_jerk(u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_paper_points_are_numbered_x_fastest_and_visited_by_neighbours() {
+        let plan = ContactPlan::paper(Vector3::zeros(), 0.03, Vector3::z(), 1, 1);
+        assert_eq!(plan.points[0], Vector3::new(-0.03, -0.03, -0.03));
+        assert_eq!(plan.points[1], Vector3::new(0.0, -0.03, -0.03));
+        assert_eq!(plan.points[26], Vector3::new(0.03, 0.03, 0.03));
+        let mut seen = plan.order.clone();
+        seen.sort_unstable();
+        assert_eq!(seen, (0..27).collect::<Vec<_>>());
+        for pair in plan.order.windows(2) {
+            let step = (plan.points[pair[1]] - plan.points[pair[0]]).norm();
+            assert!((step - 0.03).abs() < 1e-12, "{pair:?}");
+        }
+    }
+
+    #[test]
+    fn steady_state_needs_two_agreeing_windows() {
+        let p = |x: f64| Vector3::new(x, 0.0, 0.0);
+        let mut d = Steady::new(3, 1e-4);
+        // Creeping by 10 µm a sample (30 µm per window, ε/10 = 10 µm): never steady.
+        for k in 0..30 {
+            assert!(d.push(&p(k as f64 * 1e-5)).is_none());
+        }
+        let mut d = Steady::new(3, 1e-4);
+        let found = (0..6).filter_map(|_| d.push(&p(1e-3))).last();
+        assert_eq!(found, Some(p(1e-3)));
+    }
+
+    fn state(t: f64, x: Vector3<f64>, v: Vector3<f64>) -> DeviceState {
+        DeviceState {
+            time: t,
+            host_time: t,
+            position: x,
+            velocity: v,
+            status: Default::default(),
+            tick: 0,
+        }
+    }
+
+    fn params() -> ProbeParams {
+        ProbeParams {
+            stiffness: 1000.0,
+            surface_damping: 10.0,
+            hold_stiffness: 1000.0,
+            lift: 0.005,
+            steady_samples: 50,
+            steady_radius: 5e-5,
+            settle_timeout: 5.0,
+            max_force: 8.0,
+        }
+    }
+
+    /// A point mass m under gravity g along −z, pushed by the probe's force one tick late (as a
+    /// client's offset is applied), integrated at 10 kHz.
+    #[test]
+    fn a_probe_mass_on_the_surface_rests_at_its_weight_over_the_stiffness() {
+        let (m, g, dt) = (0.03, 9.81, 1e-3);
+        let plan = ContactPlan::paper(Vector3::zeros(), 0.03, Vector3::z(), 1, 2);
+        let mut probe = Probe::new(plan, params());
+        let (mut x, mut v) = (Vector3::new(0.01, 0.0, 0.0), Vector3::zeros());
+        let mut applied = Vector3::zeros();
+        let mut rests = Vec::new();
+        let mut t = 0.0;
+        while !probe.finished() {
+            let step = probe.step(&state(t, x, v));
+            for _ in 0..10 {
+                let a = applied / m - Vector3::z() * g - v * (1.0 / m);
+                v += a * dt / 10.0;
+                x += v * dt / 10.0;
+            }
+            applied = step.force;
+            rests.extend(step.rest);
+            t += dt;
+            assert!(t < 200.0, "the experiment does not end");
+        }
+        assert_eq!(rests.len(), 54);
+        let ideal = m * g / 1000.0;
+        for r in &rests {
+            let p = probe.plan().points[r.point];
+            let penalty = (p - r.position).norm();
+            assert!(r.settled);
+            assert!((penalty / ideal - 1.0).abs() < 0.01, "{r:?}: {penalty}");
+        }
+    }
+}

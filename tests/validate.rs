@@ -1,0 +1,271 @@
+//! `hgcd validate`: the paper's Section 5 experiment, run for real on the simulated point mass
+//! (virtual time), its results checked against the plant's own mass field; and the command's
+//! answers to bad input.
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+
+use hgcd::config::Config;
+use hgcd::grid::{GridFile, MassGrid};
+use hgcd::transport::Pacing;
+use hgcd::validate::{self, Mode, ValidateRequest, Validation};
+
+mod common;
+use common::{hgcd, truth_field_27};
+
+const PROBE: f64 = 0.03;
+const STIFFNESS: f64 = 1000.0;
+/// The paper's 10 (the whole experiment takes about a second in virtual time).
+const REPETITIONS: usize = 10;
+
+/// Calibrate (fresh, no `--grid`) and validate the point mass whose field is `truth`.
+fn validate_point_mass(dir: &Path, truth: &MassGrid) -> Validation {
+    let truth_file = dir.join("truth.toml");
+    GridFile::from(truth.clone())
+        .save_atomic(&truth_file)
+        .unwrap();
+    let mut config = Config::default();
+    config.sim.mass_grid = Some(truth_file);
+    config.paths.state_dir = Some(dir.join("state"));
+    config.servo.lock_memory = false;
+    let request = ValidateRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        pacing: Pacing::Virtual,
+        grid: None,
+        out: dir.join("out"),
+        probe_mass: PROBE,
+        stiffness: STIFFNESS,
+        repetitions: REPETITIONS,
+        modes: Mode::ALL.to_vec(),
+    };
+    let prepared = validate::prepare(&config, &request).unwrap();
+    assert!(prepared.calibrates_first());
+    prepared
+        .run(Arc::new(AtomicBool::new(false)), &mut |_| {})
+        .unwrap()
+}
+
+/// Depth at which the surface carries (M(X) + m_p) g with X = P − d v_G, from the plant's field.
+fn truth_penalty(truth: &MassGrid, p: &Vector3<f64>) -> f64 {
+    let mut d = 0.0;
+    for _ in 0..50 {
+        let x = p - truth.gravity_direction * d;
+        d = (truth.mass_at(&x) + PROBE) * truth.g / STIFFNESS;
+    }
+    d
+}
+
+#[test]
+fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_shows() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = truth_field_27();
+    let run = validate_point_mass(dir.path(), &truth);
+    let report = &run.report;
+    let ideal = PROBE * truth.g / STIFFNESS; // 0.294 mm
+    assert!((report.ideal - ideal).abs() < 1e-9);
+    assert_eq!(report.samples.len(), 3 * 27 * REPETITIONS);
+    assert!(report.samples.iter().all(|s| s.settled));
+
+    for m in &report.modes {
+        let name = m.mode.name();
+        if m.mode == Mode::None {
+            // The handle's own apparent mass sinks in with the probe, as the plant's field says.
+            for (n, s) in m.points.iter().enumerate() {
+                let expected = truth_penalty(&truth, &report.points[n]);
+                assert!(
+                    (s.mean / expected - 1.0).abs() < 0.02,
+                    "{name}, point {}: {:.4} mm, truth {:.4} mm",
+                    n + 1,
+                    s.mean * 1e3,
+                    expected * 1e3
+                );
+            }
+            let means: Vec<f64> = m.points.iter().map(|s| s.mean).collect();
+            let (lo, hi) = means
+                .iter()
+                .fold((f64::MAX, f64::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+            assert!(hi / lo > 2.0, "uncompensated penalties vary: {lo} to {hi}");
+        } else {
+            assert!(
+                (m.mean / ideal - 1.0).abs() < 0.05,
+                "{name}: mean {:.4} mm, ideal {:.4} mm",
+                m.mean * 1e3,
+                ideal * 1e3
+            );
+            for (n, s) in m.points.iter().enumerate() {
+                assert!(
+                    (s.mean / ideal - 1.0).abs() < 0.10,
+                    "{name}, point {}: {:.4} mm, ideal {:.4} mm",
+                    n + 1,
+                    s.mean * 1e3,
+                    ideal * 1e3
+                );
+            }
+        }
+    }
+
+    // The files: summary.json with the documented shape, the CSV, the figure.
+    let out = dir.path().join("out");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert!((summary["ideal_mm"].as_f64().unwrap() - ideal * 1e3).abs() < 1e-9);
+    for mode in ["none", "scalar", "vector"] {
+        let m = &summary["modes"][mode];
+        assert!(m["mean_mm"].as_f64().is_some(), "{mode}: {m}");
+        let points = m["points"].as_array().unwrap();
+        assert_eq!(points.len(), 27);
+        for p in points {
+            assert_eq!(p["position_mm"].as_array().unwrap().len(), 3);
+            assert!(p["mean_mm"].as_f64().unwrap() > 0.0);
+            assert!(p["std_mm"].as_f64().unwrap() >= 0.0);
+        }
+    }
+    // Point 1 is (−30, −30, −30) mm about the grid centre (the origin here).
+    assert_eq!(
+        summary["modes"]["scalar"]["points"][0]["position_mm"],
+        serde_json::json!([-30.0, -30.0, -30.0])
+    );
+    let csv = std::fs::read_to_string(out.join("penalties.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 3 * 27 * REPETITIONS);
+    let png = std::fs::read(out.join("penalty.png")).unwrap();
+    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n") && png.len() > 10_000);
+    let svg = std::fs::read_to_string(out.join("penalty.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.len() > 10_000);
+    assert!(svg.contains("ideal m_p g / k") && svg.contains("scalar: mean"));
+    // The fresh calibration went to the output directory, not to the state directory.
+    assert!(out.join("grid.toml").exists());
+    assert!(!dir.path().join("state").exists());
+}
+
+/// `hgcd validate` with `args`; its exit status and stderr.
+fn validate_cli(args: &[&str]) -> (std::process::ExitStatus, String) {
+    let out = hgcd()
+        .args(["--config", "/dev/null", "validate"])
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status,
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn one_line(stderr: &str, says: &str) {
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    assert!(stderr.contains(says), "{stderr}");
+}
+
+#[test]
+fn bad_input_gets_one_clear_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("a-file");
+    std::fs::write(&file, "").unwrap();
+    let out = file.join("results");
+    let out = out.to_str().unwrap();
+    let (status, stderr) = validate_cli(&["--device", "sim:point-mass", "--out", out]);
+    assert!(!status.success());
+    one_line(&stderr, "cannot write the results in");
+    assert!(stderr.contains("(--out)"), "{stderr}");
+
+    let out = dir.path().join("out");
+    let out = out.to_str().unwrap();
+    for (args, says) in [
+        (
+            vec!["--repetitions", "0"],
+            "--repetitions 0 is out of range (1 to 1000)",
+        ),
+        (
+            vec!["--probe-mass-g", "0"],
+            "--probe-mass-g 0 is out of range",
+        ),
+        (
+            vec!["--stiffness-n-per-mm", "0.01"],
+            "--stiffness-n-per-mm 0.01 is out of range",
+        ),
+        (vec!["--modes", "scalar,bogus"], "unknown mode `bogus`"),
+        (
+            vec!["--modes", "scalar,scalar"],
+            "--modes names no mode, or one twice",
+        ),
+        (
+            vec!["--grid", "/nonexistent/grid.toml"],
+            "no grid file at /nonexistent/grid.toml",
+        ),
+    ] {
+        let (status, stderr) =
+            validate_cli(&[&["--device", "sim:point-mass", "--out", out], &args[..]].concat());
+        assert!(!status.success(), "{args:?}");
+        one_line(&stderr, says);
+    }
+}
+
+#[test]
+fn a_device_without_a_stored_grid_is_refused_before_anything_moves() {
+    use std::io::{BufRead, BufReader};
+    // A device behind a socket is not simulated as far as hgcd knows: it must have a grid.
+    let dir = tempfile::tempdir().unwrap();
+    let device = dir.path().join("device.sock");
+    let mut sim = hgcd()
+        .args([
+            "--config",
+            "/dev/null",
+            "sim-device",
+            "--lockstep",
+            "--listen",
+        ])
+        .arg(&device)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = BufReader::new(sim.stderr.take().unwrap());
+    let mut log = String::new();
+    while !log.contains("simulated device listening") {
+        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
+    }
+    let spec = format!("socket:{}", device.display());
+    let state = dir.path().join("state");
+    let out = dir.path().join("out");
+    let (status, stderr) = validate_cli(&[
+        "--device",
+        &spec,
+        "--state-dir",
+        state.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--yes",
+    ]);
+    assert!(!status.success());
+    one_line(&stderr, "no calibration grid for socket:");
+    assert!(stderr.contains(state.to_str().unwrap()), "{stderr}");
+    assert!(
+        stderr.contains("hgcd calibrate --device socket:"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("--grid FILE"), "{stderr}");
+    // The device side ends when the host leaves.
+    assert!(sim.wait().unwrap().success());
+}
+
+#[test]
+fn the_shipped_example_field_is_the_one_tested_here() {
+    // docs/validation.md quotes runs of config/validate-point-mass.toml; this test runs the same
+    // field, so the two must not drift apart.
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let config = Config::load(&root.join("config/validate-point-mass.toml")).unwrap();
+    let field = GridFile::load(config.sim.mass_grid.as_ref().unwrap())
+        .unwrap()
+        .grid;
+    let truth = truth_field_27();
+    assert!((field.gravity_direction - truth.gravity_direction).norm() < 1e-12);
+    assert_eq!(
+        (field.origin, field.spacing, field.dims),
+        (truth.origin, truth.spacing, truth.dims)
+    );
+    for (a, b) in field.masses.iter().zip(&truth.masses) {
+        assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+    }
+}
