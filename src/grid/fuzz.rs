@@ -11,8 +11,8 @@ use nalgebra::Vector3;
 use proptest::prelude::*;
 
 use super::file::tests::calibrated;
-use super::lattice::tests::sample;
 use super::file::GridFile;
+use super::lattice::tests::sample;
 use super::GridError;
 
 /// A valid file with every table the format knows and an unknown one.
