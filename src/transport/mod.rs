@@ -316,6 +316,26 @@ mod tests {
     use std::error::Error as _;
 
     #[test]
+    fn a_device_that_reports_at_another_rate_is_refused_naming_the_key_to_set() {
+        let config = Config::default();
+        let device = crate::sim::SimDevice::from_config("point-mass", &config).unwrap();
+        let sim = sim::SimTransport::new(device, Pacing::Virtual);
+        let spec: DeviceSpec = "sim:point-mass".parse().unwrap();
+        let identity = identify(&sim, &spec, &config).unwrap();
+        assert_eq!(identity.grid_id(), "sim-point-mass");
+        assert_eq!(identity.info.unwrap().model, "sim-point-mass");
+        let mut slower = config.clone();
+        slower.servo.rate_hz = 500.0;
+        let err = identify(&sim, &spec, &slower).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "device sim:point-mass reports at 1000 Hz (its device-info report) but \
+             servo.rate_hz is 500: set servo.rate_hz = 1000"
+        );
+        assert!(!err.device_unavailable());
+    }
+
+    #[test]
     fn errors_keep_their_cause_and_name_the_remedy() {
         let denied = TransportError::Open {
             spec: "hid:1234:0006".into(),
