@@ -15,14 +15,16 @@ use nalgebra::Vector3;
 use hgcd::calibrate::{calibrate, calibrate_on, CalibrateRequest};
 use hgcd::config::Config;
 use hgcd::control::calibration::CalibrationEvent;
+use hgcd::control::ZeroForce;
 use hgcd::protocol::{
     DeviceInfo, InputReport, OutputReport, Status, DEVICE_INFO_LEN, INPUT_REPORT_LEN,
     OUTPUT_REPORT_LEN,
 };
+use hgcd::servo::{self, ServoError, ServoEvent, ServoOptions};
 use hgcd::sim::socket::{self, Served};
 use hgcd::sim::SimDevice;
 use hgcd::transport::socket::SocketTransport;
-use hgcd::transport::Pacing;
+use hgcd::transport::{Pacing, TransportError};
 
 mod common;
 use common::serial;
@@ -207,6 +209,57 @@ fn in_lock_step_every_host_frame_is_a_reply_and_the_device_watchdog_counts_devic
     let served = server.join().unwrap();
     assert_eq!(served.hosts, 2);
     assert_eq!(served.rejected, 61);
+}
+
+/// A lock-step device that hangs after its first report: its clock stands still, so no watchdog
+/// can trip on device time; after the stall limit of wall-clock time the run ends, naming it.
+#[test]
+fn a_lock_step_device_that_hangs_ends_the_run_without_a_watchdog_fault() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("hung.sock");
+    let listener = UnixListener::bind(&path).unwrap();
+    let device = std::thread::spawn(move || {
+        let (mut stream, _) = listener.accept().unwrap();
+        let mut request = [0u8; 2];
+        stream.read_exact(&mut request).unwrap();
+        assert_eq!(request, [1, 0x03]);
+        let mut sim = SimDevice::from_config("point-mass", &Config::default()).unwrap();
+        let mut info = [0u8; DEVICE_INFO_LEN];
+        sim.device_info_report(true, &mut info);
+        let mut report = [0u8; INPUT_REPORT_LEN];
+        sim.input_report(&mut report);
+        stream.write_all(&[DEVICE_INFO_LEN as u8]).unwrap();
+        stream.write_all(&info).unwrap();
+        stream.write_all(&[INPUT_REPORT_LEN as u8]).unwrap();
+        stream.write_all(&report).unwrap();
+        // Hangs: reads what the host sends, answers nothing, until the host leaves.
+        let _ = std::io::copy(&mut stream, &mut std::io::sink());
+    });
+    let mut transport = SocketTransport::connect(&path)
+        .unwrap()
+        .stalled_after(Duration::from_millis(300));
+    let (tx, events) = crossbeam_channel::unbounded();
+    let result = servo::run(
+        &mut transport,
+        &mut ZeroForce,
+        &ServoOptions::from_config(&Config::default()),
+        &AtomicBool::new(false),
+        Some(&tx),
+    );
+    drop(transport);
+    device.join().unwrap();
+    match result {
+        Err(ServoError::Transport(e @ TransportError::Stalled { .. })) => {
+            assert!(
+                e.to_string().contains("(lock-step) has sent nothing for"),
+                "{e}"
+            )
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(!events
+        .try_iter()
+        .any(|e| matches!(e, ServoEvent::WatchdogFault { .. })));
 }
 
 /// A calibration config of 8 vertices (the paper's 40 mm cube, of which the box keeps the 2×2×2

@@ -18,6 +18,23 @@ pub struct DeviceIdentity {
 }
 
 impl DeviceIdentity {
+    /// The device opened as `spec` that described itself as `info`. A HID device whose report
+    /// gives no serial number is known by its USB serial number, when it has one.
+    pub fn new(spec: DeviceSpec, info: Option<DeviceInfo>) -> Self {
+        let info = info.map(|mut info| {
+            if let DeviceSpec::Hid {
+                serial: Some(usb), ..
+            } = &spec
+            {
+                if info.serial.is_empty() {
+                    info.serial = usb.clone();
+                }
+            }
+            info
+        });
+        Self { spec, info }
+    }
+
     /// A device known by its spec alone.
     pub fn of_spec(spec: DeviceSpec) -> Self {
         Self { spec, info: None }
@@ -101,6 +118,13 @@ mod tests {
             info: Some(info("sim-point-mass", "")),
         };
         assert_eq!(sim.grid_id(), "sim-point-mass");
+        // A HID device without a serial in its report: the USB serial number tells units apart.
+        let hid = DeviceIdentity::new(
+            "hid:1234:abcd:SN 7".parse().unwrap(),
+            Some(info("Delta", "")),
+        );
+        assert_eq!(hid.grid_id(), "Delta-SN_7");
+        assert_eq!(hid.unit().unwrap().serial, "SN 7");
         assert_eq!(
             a.to_string(),
             "socket:/run/a/dev.sock (PHANToM-like 3 serial SN/7)"

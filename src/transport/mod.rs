@@ -230,10 +230,7 @@ pub fn identify(
             ""
         }
     );
-    Ok(DeviceIdentity {
-        spec,
-        info: Some(info),
-    })
+    Ok(DeviceIdentity::new(spec, Some(info)))
 }
 
 /// Picks the report to act on from a burst of queued input reports, offered oldest first: the

@@ -25,7 +25,8 @@ use crate::sys::wait_readable;
 /// know the request ignores it; the host then runs it as before the report existed.
 pub const DEVICE_INFO_WAIT: Duration = Duration::from_millis(500);
 
-/// How long a lock-step device may send nothing, wall-clock time, before the run ends.
+/// How long a lock-step device may send nothing, wall-clock time, before the run ends (unless
+/// [`SocketTransport::stalled_after`] says otherwise).
 pub const LOCKSTEP_STALL: Duration = Duration::from_secs(10);
 
 /// Host side of the socket transport.
@@ -47,8 +48,9 @@ pub struct SocketTransport {
     /// Lock-step: the device clock, unwrapped from the reports, and its newest reading, s.
     device_clock: DeviceClock,
     device_time: f64,
-    /// When the device last sent anything.
+    /// When the device last sent anything, and how long a lock-step device may send nothing.
     last_heard: Instant,
+    stall: Duration,
 }
 
 impl SocketTransport {
@@ -83,9 +85,17 @@ impl SocketTransport {
             device_clock: DeviceClock::default(),
             device_time: 0.0,
             last_heard: now,
+            stall: LOCKSTEP_STALL,
         };
         transport.info = transport.ask_device_info()?;
         Ok(transport)
+    }
+
+    /// Take a lock-step device that sends nothing for `limit` of wall-clock time as hung
+    /// (default [`LOCKSTEP_STALL`]).
+    pub fn stalled_after(mut self, limit: Duration) -> Self {
+        self.stall = limit;
+        self
     }
 
     fn disconnected(&self, source: std::io::Error) -> TransportError {
@@ -230,7 +240,7 @@ impl Transport for SocketTransport {
                 let (chosen, garbled) = burst.finish();
                 return Ok(self.chosen(chosen, garbled, &buf[..]));
             }
-            if self.lockstep() && self.last_heard.elapsed() >= LOCKSTEP_STALL {
+            if self.lockstep() && self.last_heard.elapsed() >= self.stall {
                 return Err(TransportError::Stalled {
                     spec: self.spec.clone(),
                     after: self.last_heard.elapsed(),
