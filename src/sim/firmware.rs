@@ -10,7 +10,8 @@ use super::{Encoder, Plant, PointMass};
 use crate::config::Config;
 use crate::grid::GridError;
 use crate::protocol::{
-    DeviceInfo, InputReport, OutputReport, ProtocolError, Status, DEVICE_INFO_LEN, INPUT_REPORT_LEN,
+    DeviceInfo, InputReport, OutputReport, ProtocolError, Status, DEVICE_INFO_LEN,
+    INPUT_REPORT_LEN, MODEL_LEN,
 };
 
 /// Emulated device firmware: one report period at a time.
@@ -121,8 +122,13 @@ impl SimDevice {
     /// (`docs/hid-protocol.md` §9).
     pub fn device_info(&self, lockstep: bool) -> DeviceInfo {
         let (lo, hi) = self.plant.workspace();
+        // As much of `sim-MODEL` as the report's field holds.
+        let mut model = self.model.clone();
+        while model.len() > MODEL_LEN {
+            model.pop();
+        }
         DeviceInfo {
-            model: self.model.clone(),
+            model,
             serial: self.serial.clone(),
             workspace_centre: (lo + hi) / 2.0,
             workspace_half_extents: (hi - lo) / 2.0,
@@ -135,7 +141,7 @@ impl SimDevice {
     /// Firmware answer to a get-feature request for the device-info report.
     pub fn device_info_report(&self, lockstep: bool, out: &mut [u8; DEVICE_INFO_LEN]) {
         self.device_info(lockstep).encode(out).expect(
-            "a validated config gives a model, serial, workspace and force limit the report carries",
+            "a validated config gives a serial, workspace and force limit the report carries",
         );
     }
 
@@ -231,7 +237,7 @@ mod tests {
             let mut report = [0; DEVICE_INFO_LEN];
             device.device_info_report(true, &mut report);
             let info = DeviceInfo::decode(&report).unwrap();
-            assert_eq!(info.model, format!("sim-{model}"));
+            assert!(format!("sim-{model}").starts_with(&info.model));
             assert_eq!(info.serial, config.sim.serial);
             let (lo, hi) = info.workspace();
             let (stops_lo, stops_hi) = device.plant().workspace();
