@@ -16,14 +16,18 @@ use crate::control::calibration::{
 };
 use crate::grid::{grid_path, GridError, GridFile};
 use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
-use crate::transport::{self, Pacing, TransportError};
+use crate::transport::{self, Pacing, Transport, TransportError};
+
+/// A calibration rides out a silent device (the watchdog zeroes the force, then the vertex in
+/// progress goes on) for this many watchdog periods; a longer silence ends it.
+pub const SILENCE_LIMIT_WATCHDOGS: f64 = 10.0;
 
 /// Why `hgcd calibrate` wrote nothing.
 #[derive(Debug, Error)]
 pub enum CalibrateError {
     #[error(transparent)]
     Config(#[from] ConfigError),
-    /// The device cannot be opened (the error names it).
+    /// The device cannot be opened, or hgcd cannot run it (the error names it).
     #[error(transparent)]
     Open(TransportError),
     #[error(transparent)]
@@ -55,18 +59,10 @@ pub struct CalibrateRequest {
     pub device: DeviceSpec,
     /// Pacing of simulated devices (virtual time for batch work).
     pub pacing: Pacing,
-    /// Where to write the grid: this file, or `<state_dir>/<device-id>.toml`.
+    /// Where to write the grid: this file, or `<state_dir>/<grid id>.toml` (the id is the
+    /// device's model and serial number when it names itself, see `grid::DeviceIdentity`).
     pub output: Option<PathBuf>,
     pub state_dir: PathBuf,
-}
-
-impl CalibrateRequest {
-    /// The file the grid goes to.
-    pub fn output_path(&self) -> PathBuf {
-        self.output
-            .clone()
-            .unwrap_or_else(|| grid_path(&self.state_dir, &self.device.device_id()))
-    }
 }
 
 /// A finished, saved calibration.
@@ -92,19 +88,37 @@ pub fn calibrate(
     config.validate()?;
     let transport =
         transport::open(&request.device, config, request.pacing).map_err(CalibrateError::Open)?;
-    // Name the grid after the device actually opened (a HID serial number the spec left out).
-    let mut request = request.clone();
-    if let Some(spec) = transport.resolved_spec() {
-        request.device = spec;
-    }
-    let request = &request;
-    let path = request.output_path();
+    calibrate_on(transport, config, request, stop, progress)
+}
+
+/// [`calibrate`] on the device `request.device` names, already opened as `transport`.
+///
+/// What the device says about itself (its device-info report) names the grid and stands in for
+/// the workspace and calibration-cube keys the config file does not give
+/// ([`Config::for_device`]). A watchdog fault zeroes the force; the calibration then goes on with
+/// the vertex it was on when reports resume within [`SILENCE_LIMIT_WATCHDOGS`] watchdog periods,
+/// and ends otherwise.
+pub fn calibrate_on(
+    transport: Box<dyn Transport>,
+    config: &Config,
+    request: &CalibrateRequest,
+    stop: Arc<AtomicBool>,
+    progress: &mut dyn FnMut(&CalibrationEvent),
+) -> Result<CalibrationRun, CalibrateError> {
+    config.validate()?;
+    let device = transport::identify(transport.as_ref(), &request.device, config)
+        .map_err(CalibrateError::Open)?;
+    let config = &config.for_device(device.info.as_ref());
+    let path = match &request.output {
+        Some(path) => path.clone(),
+        None => grid_path(&request.state_dir, &device.grid_id()),
+    };
     let params = CalibrationParams::from_config(config);
     let (tx, rx) = crossbeam_channel::bounded(4096);
     let calibration = Calibration::new(params, Some(tx))?;
     let plan = calibration.plan();
     // Fail now rather than after minutes of calibration.
-    check_room(&path, plan, &request.device).map_err(CalibrateError::NoRoom)?;
+    check_room(&path, plan, &device.spec).map_err(CalibrateError::NoRoom)?;
     if !plan.left_out.is_empty() {
         let names: Vec<String> = plan.left_out.iter().map(|v| v.to_string()).collect();
         warn!(
@@ -117,19 +131,26 @@ pub fn calibrate(
             names.join("; ")
         );
     }
+    let c = &config.calibration;
     info!(
-        "calibrating {} vertices ({}×{}×{}) on {}",
+        "calibrating {} vertices ({}×{}×{}, {} mm apart around ({}, {}, {}) mm) on {device}",
         plan.path.len(),
         plan.dims[0],
         plan.dims[1],
         plan.dims[2],
-        request.device
+        c.spacing_mm,
+        c.centre_mm[0],
+        c.centre_mm[1],
+        c.centre_mm[2],
     );
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
+    options.silence_limit = SILENCE_LIMIT_WATCHDOGS * options.watchdog;
     let mut servo_config = config.servo.clone();
-    if request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. }) {
-        // A virtual-time loop runs flat out: never let it take a core at real-time priority.
+    let virtual_sim =
+        request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. });
+    if virtual_sim || device.info.as_ref().is_some_and(|i| i.lockstep) {
+        // A loop the device paces runs flat out: never let it take a core at real-time priority.
         servo_config.realtime_priority = 0;
     }
     let started = Instant::now();
@@ -155,7 +176,8 @@ pub fn calibrate(
         (ExitReason::Fault(fault), None) => return Err(CalibrateError::Fault(fault)),
         (exit, None) => return Err(CalibrateError::EndedEarly(exit)),
     };
-    let grid = grid_file(&result, config, &request.device);
+    let mut grid = grid_file(&result, config, &device.spec);
+    device.stamp(&mut grid);
     grid.save_atomic(&path).map_err(CalibrateError::Save)?;
     info!("grid written to {}", path.display());
     Ok(CalibrationRun {

@@ -15,6 +15,7 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use crate::estimate::FoawVariant;
+use crate::protocol::{DeviceInfo, SERIAL_LEN};
 
 /// Default configuration file of an installed daemon.
 pub const DEFAULT_CONFIG_PATH: &str = "/etc/hgcd/hgcd.toml";
@@ -179,13 +180,20 @@ pub const RANGES: &[(&str, Range)] = &[
     ("validation.settle_timeout_s", Range::new(0.1, 3600.0, "s")),
 ];
 
+impl Range {
+    /// The range of `key`, an entry of [`RANGES`].
+    fn of(key: &str) -> Range {
+        RANGES
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map(|(_, r)| *r)
+            .unwrap_or_else(|| panic!("no range for config key {key}"))
+    }
+}
+
 /// `value` checked against the range of `key` (an entry of [`RANGES`]).
 fn in_range(key: &'static str, value: f64) -> Result<(), ConfigError> {
-    let range = RANGES
-        .iter()
-        .find(|(k, _)| *k == key)
-        .map(|(_, r)| *r)
-        .unwrap_or_else(|| panic!("no range for config key {key}"));
+    let range = Range::of(key);
     if range.contains(value) {
         Ok(())
     } else {
@@ -277,20 +285,24 @@ impl fmt::Display for DeviceSpec {
     }
 }
 
+/// `s` as part of a file name: ASCII letters, digits and `-` kept, anything else `_`.
+pub fn id_part(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
 impl DeviceSpec {
-    /// Stable identity used to name the device's calibration file (`<state_dir>/<id>.toml`).
+    /// Stable identity used to name the calibration file of a device that does not name itself
+    /// (`<state_dir>/<id>.toml`; see `grid::DeviceIdentity` for one that does).
     pub fn device_id(&self) -> String {
-        let clean = |s: &str| -> String {
-            s.chars()
-                .map(|c| {
-                    if c.is_ascii_alphanumeric() || c == '-' {
-                        c
-                    } else {
-                        '_'
-                    }
-                })
-                .collect()
-        };
+        let clean = id_part;
         match self {
             DeviceSpec::Hid { vid, pid, serial } => match serial {
                 Some(s) => format!("hid-{vid:04x}-{pid:04x}-{}", clean(s)),
@@ -332,10 +344,30 @@ pub enum OutsideGrid {
     Zero,
 }
 
+/// The keys a device's own description (its device-info report) stands in for when the file does
+/// not give them ([`Config::for_device`]). A config built in code gives none of them unless it
+/// says so here.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct GivenKeys {
+    /// `device.workspace_min_mm` or `device.workspace_max_mm`.
+    pub workspace: bool,
+    /// `calibration.centre_mm`.
+    pub centre: bool,
+    /// `calibration.spacing_mm` or `calibration.half_size`: the size of the cube.
+    pub cube: bool,
+}
+
+/// Share of each workspace half-extent left free around the calibration cube that
+/// [`Config::for_device`] fits into a device's workspace.
+pub const CUBE_MARGIN: f64 = 0.25;
+
 /// The whole configuration.
 #[derive(Clone, Debug, Default, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
+    /// Which of the keys a device can stand in for the file gave (not a key itself).
+    #[serde(skip)]
+    pub given: GivenKeys,
     pub device: DeviceConfig,
     pub servo: ServoConfig,
     pub safety: SafetyConfig,
@@ -440,6 +472,8 @@ impl Default for EstimateConfig {
 pub struct SimConfig {
     /// Seed of the noise generator; equal seeds give identical runs.
     pub seed: u64,
+    /// Serial number the simulated firmware reports in its device-info report; empty: none.
+    pub serial: String,
     /// Mass field from an `hgcd-grid/1` file (its gravity_direction and g then apply); empty: uniform.
     pub mass_grid: Option<PathBuf>,
     /// Uniform apparent mass when no grid is given, kg.
@@ -480,6 +514,7 @@ impl Default for SimConfig {
     fn default() -> Self {
         Self {
             seed: 1,
+            serial: String::new(),
             mass_grid: None,
             mass_kg: 0.12,
             g: 9.81,
@@ -836,10 +871,22 @@ impl Config {
     /// Errors: [`ConfigError::Parse`] for TOML or type errors and unknown keys, `OutOfRange`,
     /// `Invalid` or `DeviceSpec` for a value the checks refuse.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
-        let config: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let mut config: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: origin.to_path_buf(),
             message: e.to_string().trim().replace('\n', " "),
         })?;
+        let table: toml::Table = toml::from_str(text).unwrap_or_default();
+        let has = |section: &str, keys: &[&str]| {
+            table
+                .get(section)
+                .and_then(toml::Value::as_table)
+                .is_some_and(|t| keys.iter().any(|k| t.contains_key(*k)))
+        };
+        config.given = GivenKeys {
+            workspace: has("device", &["workspace_min_mm", "workspace_max_mm"]),
+            centre: has("calibration", &["centre_mm"]),
+            cube: has("calibration", &["spacing_mm", "half_size"]),
+        };
         config.validate()?;
         Ok(config)
     }
@@ -932,6 +979,16 @@ impl Config {
         if let Some(t) = sim.stop_reporting_after_s {
             in_range("sim.stop_reporting_after_s", t)?;
         }
+        if sim.serial.len() > SERIAL_LEN || sim.serial.chars().any(char::is_control) {
+            return Err(invalid(
+                "sim.serial",
+                format!(
+                    "{:?} is not a serial number the device-info report carries: at most \
+                     {SERIAL_LEN} bytes of text without control characters",
+                    sim.serial
+                ),
+            ));
+        }
 
         let c = &self.calibration;
         in_range("calibration.spacing_mm", c.spacing_mm)?;
@@ -988,6 +1045,41 @@ impl Config {
         in_range("validation.eps_s_mm", v.eps_s_mm)?;
         in_range("validation.settle_timeout_s", v.settle_timeout_s)?;
         Ok(())
+    }
+
+    /// This config with what the device said about itself (`info`, its device-info report)
+    /// standing in for the keys the file did not give ([`GivenKeys`]): the safe box becomes the
+    /// device's workspace, the calibration grid is centred in that box, and the cube's spacing
+    /// shrinks from its configured value, if need be, until the cube fits inside the box with
+    /// [`CUBE_MARGIN`] of each half-extent to spare. Without `info`, the config as it is.
+    pub fn for_device(&self, info: Option<&DeviceInfo>) -> Config {
+        let mut config = self.clone();
+        let Some(info) = info else {
+            return config;
+        };
+        // To the nanometre, in mm: what the report carried, without binary-fraction noise.
+        let mm = |v: Vector3<f64>| -> [f64; 3] { (v * 1e9).map(|nm| nm.round() / 1e6).into() };
+        if !self.given.workspace {
+            let (lo, hi) = info.workspace();
+            config.device.workspace_min_mm = mm(lo);
+            config.device.workspace_max_mm = mm(hi);
+        }
+        if !self.given.centre {
+            config.calibration.centre_mm = mm(info.workspace_centre);
+        }
+        if !self.given.cube {
+            let (lo, hi) = config.device.workspace();
+            let centre = config.calibration.centre();
+            let spare = (hi - lo) / 2.0 * CUBE_MARGIN;
+            let room = (centre - lo - spare).inf(&(hi - spare - centre)).min() * 1e3;
+            let fits = room / f64::from(config.calibration.half_size);
+            // A centre the file put outside the box: nothing fits; the plan says so.
+            if fits > 0.0 && fits < config.calibration.spacing_mm {
+                let least = Range::of("calibration.spacing_mm").min;
+                config.calibration.spacing_mm = ((fits * 1e6).floor() / 1e6).max(least);
+            }
+        }
+        config
     }
 
     /// The configured device spec.
@@ -1095,8 +1187,8 @@ mod tests {
         format!("[{section}]\n{name} = {value}\n")
     }
 
-    /// How the shipped file writes a key's value: array, integer or float (absent keys are the
-    /// optional floats).
+    /// How the shipped file writes a key's value, commented out or not: array, integer or float
+    /// (absent keys are the optional floats).
     #[derive(Clone, Copy, PartialEq)]
     enum Shape {
         Float,
@@ -1105,7 +1197,21 @@ mod tests {
     }
 
     fn shape(key: &str) -> Shape {
-        let shipped: toml::Table = include_str!("../config/hgcd.toml").parse().unwrap();
+        let uncommented: Vec<&str> = include_str!("../config/hgcd.toml")
+            .lines()
+            .map(|line| {
+                let bare = line.trim_start_matches("# ");
+                let setting = bare.split_once(" = ").is_some_and(|(k, _)| {
+                    !k.is_empty() && k.chars().all(|c| c.is_ascii_lowercase() || c == '_')
+                });
+                if setting {
+                    bare
+                } else {
+                    line
+                }
+            })
+            .collect();
+        let shipped: toml::Table = uncommented.join("\n").parse().unwrap();
         let (section, name) = key.split_once('.').unwrap();
         match shipped[section].get(name) {
             Some(toml::Value::Array(_)) => Shape::Array,
@@ -1276,6 +1382,87 @@ mod tests {
                 "config/hgcd.toml must say `Range: {range}` above {key}: {doc}"
             );
         }
+    }
+
+    fn info(centre_mm: [f64; 3], half_mm: [f64; 3]) -> DeviceInfo {
+        DeviceInfo {
+            model: "PHANToM-like 3".into(),
+            serial: "SN-1".into(),
+            workspace_centre: mm(centre_mm),
+            workspace_half_extents: mm(half_mm),
+            max_force: 3.0,
+            rate_hz: 1000.0,
+            lockstep: false,
+        }
+    }
+
+    #[test]
+    fn a_device_workspace_stands_in_for_the_keys_the_file_does_not_give() {
+        let config = Config::default();
+        assert_eq!(config.for_device(None), config);
+        // A workspace 150 mm from the origin: the safe box is the device's, the grid is centred
+        // in it, and the paper's 40 mm cube fits with a quarter of each half-extent to spare.
+        let far = info([0.0, 150.0, 60.0], [80.0, 60.0, 60.0]);
+        let c = config.for_device(Some(&far));
+        assert_eq!(c.device.workspace_min_mm, [-80.0, 90.0, 0.0]);
+        assert_eq!(c.device.workspace_max_mm, [80.0, 210.0, 120.0]);
+        assert_eq!(c.calibration.centre_mm, [0.0, 150.0, 60.0]);
+        assert_eq!(c.calibration.spacing_mm, 40.0);
+        // A small workspace: the cube shrinks to 0.75 × 30 mm per half-size.
+        let small = info([10.0, 0.0, 0.0], [50.0, 30.0, 40.0]);
+        assert_eq!(config.for_device(Some(&small)).calibration.spacing_mm, 22.5);
+        let mut two = config.clone();
+        two.calibration.half_size = 2;
+        assert_eq!(two.for_device(Some(&small)).calibration.spacing_mm, 11.25);
+        // Everything else is the config's.
+        let mut rest = c.clone();
+        rest.device = config.device.clone();
+        rest.calibration.centre_mm = config.calibration.centre_mm;
+        assert_eq!(rest, config);
+    }
+
+    #[test]
+    fn keys_the_file_gives_win_over_the_device() {
+        let given = parse(
+            "[device]\nworkspace_max_mm = [70.0, 70.0, 70.0]\n\
+             [calibration]\ncentre_mm = [0.0, 0.0, 0.0]\nspacing_mm = 30.0\n",
+        )
+        .unwrap();
+        assert_eq!(
+            given.given,
+            GivenKeys {
+                workspace: true,
+                centre: true,
+                cube: true
+            }
+        );
+        let far = info([0.0, 150.0, 60.0], [80.0, 60.0, 60.0]);
+        assert_eq!(given.for_device(Some(&far)), given);
+        // The cube's size is given by either of its keys.
+        let n = parse("[calibration]\nhalf_size = 2\n").unwrap();
+        let c = n.for_device(Some(&info([0.0; 3], [30.0; 3])));
+        assert_eq!(c.calibration.spacing_mm, 40.0);
+        assert_eq!(c.device.workspace_max_mm, [30.0; 3]);
+        // The shipped file leaves them to the device.
+        let shipped = parse(include_str!("../config/hgcd.toml")).unwrap();
+        assert_eq!(shipped.given, GivenKeys::default());
+    }
+
+    #[test]
+    fn a_sim_serial_the_device_info_report_cannot_carry_is_refused() {
+        let err = parse("[sim]\nserial = \"0123456789ABC\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("config key `sim.serial`: \"0123456789ABC\" is not a serial number")
+                && err.contains("at most 12 bytes"),
+            "{err}"
+        );
+        assert!(parse("[sim]\nserial = \"a\\tb\"\n").is_err());
+        assert_eq!(
+            parse("[sim]\nserial = \"SN-0001\"\n").unwrap().sim.serial,
+            "SN-0001"
+        );
     }
 
     #[test]

@@ -48,7 +48,8 @@ enum Command {
         /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
         #[arg(long, value_name = "SPEC")]
         device: Option<String>,
-        /// Stop after this many seconds.
+        /// Stop after this many seconds: of device time where the device sets the pace
+        /// (--virtual-time, or a socket device in lock-step), of wall-clock time otherwise.
         #[arg(long, value_name = "S")]
         duration: Option<f64>,
         /// Run a simulated device in virtual time (as fast as possible) instead of real time.
@@ -114,6 +115,7 @@ enum Command {
     Status,
     /// Serve the simulated device (config [sim]) on a Unix socket, for `--device socket:PATH`:
     /// the device side of the socket transport, as an external simulator or bridge would be.
+    /// Serves one host after another until Ctrl-C/SIGTERM; each connection is a power-on.
     SimDevice {
         /// Socket to listen on.
         #[arg(long, value_name = "PATH")]
@@ -388,10 +390,12 @@ fn confirm_validation(probe_mass: f64) -> Result<()> {
     Ok(())
 }
 
-/// `hgcd sim-device`: serve the simulated device on a Unix socket until the host leaves.
+/// `hgcd sim-device`: serve the simulated device on a Unix socket, host after host, until stopped.
 fn sim_device(config: &Config, listen: &Path, lockstep: bool, model: &str) -> Result<()> {
     let stop = install_stop_handler()?;
-    let mut device = hgcd::sim::SimDevice::from_config(model, config)?;
+    let power_on = || hgcd::sim::SimDevice::from_config(model, config);
+    // A config whose device cannot be built fails now, not at the first host.
+    power_on()?;
     // Replaces a stale socket, refuses a live one or anything that is not a socket.
     let listener = hgcd::app::server::bind(listen, 0o660)
         .with_context(|| format!("listening on {}", listen.display()))?;
@@ -400,13 +404,12 @@ fn sim_device(config: &Config, listen: &Path, lockstep: bool, model: &str) -> Re
         listen.display(),
         if lockstep { "lock-step" } else { "real time" }
     );
-    let served = hgcd::sim::socket::serve(&listener, &mut device, lockstep, &stop);
+    let served = hgcd::sim::socket::serve(&listener, power_on, lockstep, &stop);
     let _ = std::fs::remove_file(listen);
-    served.with_context(|| format!("serving {}", listen.display()))?;
+    let served = served.with_context(|| format!("serving {}", listen.display()))?;
     println!(
-        "simulated device served {:.3} s of device time; {} output reports rejected",
-        device.time(),
-        device.rejected_outputs()
+        "simulated device served {} host(s), {:.3} s of device time; {} output reports rejected",
+        served.hosts, served.device_time, served.rejected
     );
     Ok(())
 }

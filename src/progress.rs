@@ -48,6 +48,10 @@ impl Display {
                 initial_mass * 1e3
             ),
             CalibrationEvent::VertexStarted { vertex, of, at } => {
+                // The plan the device's workspace gave (the bar began with the config's).
+                if let Some(bar) = &self.bar {
+                    bar.set_length(*of as u64);
+                }
                 format!("vertex {}/{}: moving to {at}", vertex + 1, of)
             }
             CalibrationEvent::Iteration {

@@ -283,9 +283,11 @@ fn unwritable_state_dir_fails_before_calibrating() {
     );
 }
 
-/// The simulated device's top stop is at +30 mm, but the config claims ±70 mm is safe.
-const STOP_AT_30_MM: &str =
-    "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration]\nvertex_timeout_s = 8.0\n";
+/// The simulated device's top stop is at +30 mm, but the config claims ±70 mm around the origin
+/// is safe (over what the device declares).
+const STOP_AT_30_MM: &str = "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration]\n\
+    vertex_timeout_s = 8.0\ncentre_mm = [0.0, 0.0, 0.0]\n[device]\n\
+    workspace_max_mm = [70.0, 70.0, 70.0]\n";
 
 #[test]
 fn a_vertex_behind_a_mechanical_stop_is_unreachable_and_named() {

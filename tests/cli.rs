@@ -197,15 +197,18 @@ fn missing_hid_device_is_reported_clearly() {
     );
 }
 
+/// `hgcd sim-device` serves one host after another, each from power-on, until it is stopped;
+/// in lock-step `run --duration` counts the device's time, so each run is the same 0.5 s of
+/// device time however fast the two processes exchange reports (before: wall time, several
+/// seconds of device time, and the device exited after the first host).
 #[test]
-fn the_socket_transport_runs_against_hgcd_sim_device() {
-    use std::io::{BufRead, BufReader};
+fn hgcd_sim_device_serves_host_after_host_and_run_duration_counts_its_time() {
+    use std::io::{BufRead, BufReader, Read};
     let _serial = serial();
-    // Real time is not what this tests: the device waits for each of the host's reports, and
-    // the host's watchdog (wall clock) is as generous as the config allows, so a loaded machine
-    // that holds either process back for a while does not make it a fault.
     let cfg = empty_config();
-    std::fs::write(cfg.path(), "[servo]\nwatchdog_ms = 1000\n").unwrap();
+    // The default 10 ms watchdog: in lock-step it counts device time, which a loaded machine
+    // cannot stretch.
+    std::fs::write(cfg.path(), "[sim]\nserial = \"SIM-0042\"\n").unwrap();
     let dir = tempfile::tempdir().unwrap();
     let device = dir.path().join("device.sock");
     let mut sim = hgcd()
@@ -227,22 +230,54 @@ fn the_socket_transport_runs_against_hgcd_sim_device() {
         assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
     }
     let spec = format!("socket:{}", device.display());
-    let out = hgcd_in(&cfg, &dir.path().join("app.sock"), dir.path())
-        .args(["run", "--device", &spec, "--duration", "0.5"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(stdout.contains("watchdog faults 0"), "{stdout}");
-    // The device side ends when the host disconnects, having rejected nothing.
+    for host in 1..=2 {
+        let out = hgcd_in(&cfg, &dir.path().join("app.sock"), dir.path())
+            .args(["run", "--device", &spec, "--duration", "0.5"])
+            .output()
+            .unwrap();
+        let run_log = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{run_log}");
+        assert!(
+            run_log.contains("sim-point-mass serial SIM-0042")
+                && run_log.contains("lock-step (the run counts device time)")
+                && run_log.contains("grid id sim-point-mass-SIM-0042"),
+            "{run_log}"
+        );
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(stdout.contains("watchdog faults 0"), "{stdout}");
+        // One tick per report from 0 to 500 ms of device time.
+        let ticks: u64 = stdout
+            .split("servo loop: ")
+            .nth(1)
+            .and_then(|rest| rest.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("{stdout}"));
+        assert!((500..=502).contains(&ticks), "host {host}: {ticks} ticks");
+    }
+    // Stopped, it says what it served: two hosts, each from power-on (its clock at 0 again).
+    // SAFETY: kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(sim.id() as i32, libc::SIGTERM) }, 0);
+    stderr.read_to_string(&mut log).unwrap();
     let served = sim.wait_with_output().unwrap();
-    assert!(served.status.success());
+    assert!(served.status.success(), "{log}");
     let text = String::from_utf8_lossy(&served.stdout);
-    assert!(text.contains("0 output reports rejected"), "{text}");
+    assert!(
+        text.contains("served 2 host(s)") && text.contains("0 output reports rejected"),
+        "{text}"
+    );
+    for host in 1..=2 {
+        let line = log
+            .lines()
+            .find(|l| l.contains(&format!("host {host} left: ")))
+            .unwrap_or_else(|| panic!("{log}"));
+        let seconds: f64 = line
+            .split("left: ")
+            .nth(1)
+            .and_then(|rest| rest.split(' ').next())
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("{line}"));
+        assert!((0.5..0.51).contains(&seconds), "{line}");
+    }
     assert!(!device.exists());
 }
 

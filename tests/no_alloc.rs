@@ -275,7 +275,8 @@ fn a_device_behind_the_socket_transport() {
     let flag = stop_device.clone();
     let device = std::thread::spawn(move || {
         let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
-        socket::serve(&listener, &mut device, true, &flag).unwrap();
+        let host = socket::accept(&listener, &flag).unwrap().unwrap();
+        socket::serve_host(host, &mut device, true, &flag).unwrap();
     });
     let (mut tap, seen) = counting(SocketTransport::connect(&path).unwrap());
     let mut options = ServoOptions::from_config(&config);

@@ -409,7 +409,8 @@ fn socket_transport_carries_the_same_protocol() {
     let flag = server_stop.clone();
     let server = std::thread::spawn(move || {
         let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
-        socket::serve(&listener, &mut device, true, &flag).unwrap();
+        let host = socket::accept(&listener, &flag).unwrap().unwrap();
+        socket::serve_host(host, &mut device, true, &flag).unwrap();
         device
     });
     let mut transport = SocketTransport::connect(&path).unwrap();

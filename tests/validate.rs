@@ -140,10 +140,11 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
     assert!(!dir.path().join("state").exists());
 }
 
-/// `hgcd validate` with `args`; its exit status and stderr.
+/// `hgcd validate` with `args`; its exit status and stderr (warnings and errors: the line that
+/// describes the device opened is information).
 fn validate_cli(args: &[&str]) -> (std::process::ExitStatus, String) {
     let out = hgcd()
-        .args(["--config", "/dev/null", "validate"])
+        .args(["--config", "/dev/null", "--log-level", "warn", "validate"])
         .args(args)
         .output()
         .unwrap();
@@ -246,7 +247,9 @@ fn a_device_without_a_stored_grid_is_refused_before_anything_moves() {
         "{stderr}"
     );
     assert!(stderr.contains("--grid FILE"), "{stderr}");
-    // The device side ends when the host leaves.
+    // The device side serves host after host until it is told to stop.
+    // SAFETY: kill(2) on the child we spawned.
+    unsafe { libc::kill(sim.id() as libc::pid_t, libc::SIGTERM) };
     assert!(sim.wait().unwrap().success());
 }
 

@@ -24,7 +24,7 @@ use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{self, grid_file};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel, ModelError};
-use crate::grid::{grid_path, GridError, GridFile};
+use crate::grid::{grid_path, DeviceIdentity, GridError, GridFile};
 use crate::mailbox::{
     mailbox, CommandSender, HubMailbox, OffsetSender, PublishedState, ServoCommand, ServoReturn,
 };
@@ -103,36 +103,35 @@ fn chain(e: &dyn std::error::Error) -> String {
 
 /// The grid file of `device` and the model built from it, if any. A missing grid (nothing at
 /// `path`) runs uncompensated with a warning; any other grid error, a grid made for another
-/// device or one the compensation mode cannot use is refused unless
-/// `compensation.allow_uncompensated` is set.
+/// device or calibrated on another unit, or one the compensation mode cannot use is refused
+/// unless `compensation.allow_uncompensated` is set.
 pub fn load_model(
     config: &Config,
-    device: &DeviceSpec,
+    device: &DeviceIdentity,
     path: &Path,
 ) -> Result<Option<Box<GravityModel>>, RunError> {
-    let built: Result<GravityModel, UnusableGrid> =
-        match GridFile::load_for(path, &device.device_id()) {
-            Err(GridError::Missing { .. }) => {
-                warn!(
+    let built: Result<GravityModel, UnusableGrid> = match GridFile::load_for(path, device) {
+        Err(GridError::Missing { .. }) => {
+            warn!(
                 "no calibration grid at {}: running WITHOUT gravity compensation; calibrate with \
                  `hgcd calibrate --via-daemon`",
                 path.display()
             );
-                return Ok(None);
+            return Ok(None);
+        }
+        Err(e) => Err(e.into()),
+        Ok(file) => {
+            if file.device.is_none() {
+                warn!(
+                    "grid {} names no device ([device] id); using it for {}",
+                    path.display(),
+                    device.grid_id()
+                );
             }
-            Err(e) => Err(e.into()),
-            Ok(file) => {
-                if file.device.is_none() {
-                    warn!(
-                        "grid {} names no device ([device] id); using it for {}",
-                        path.display(),
-                        device.device_id()
-                    );
-                }
-                let c = &config.compensation;
-                GravityModel::new(file, c.mode, c.outside_grid).map_err(UnusableGrid::from)
-            }
-        };
+            let c = &config.compensation;
+            GravityModel::new(file, c.mode, c.outside_grid).map_err(UnusableGrid::from)
+        }
+    };
     match built {
         Ok(model) => {
             info!(
@@ -160,7 +159,7 @@ fn mode_name(model: &Option<Box<GravityModel>>) -> Compensating {
 /// A running daemon's hub state.
 struct Hub {
     config: Config,
-    device: DeviceSpec,
+    device: DeviceIdentity,
     grid_path: PathBuf,
     registry: SharedRegistry,
     commands: CommandSender,
@@ -251,7 +250,7 @@ impl Hub {
                     Ok(calibration) => {
                         // Fail now rather than after minutes of calibration.
                         let plan = calibration.plan();
-                        let room = persist::check_room(&self.grid_path, plan, &self.device);
+                        let room = persist::check_room(&self.grid_path, plan, &self.device.spec);
                         if let Err(e) = room {
                             let message = chain(&e);
                             self.reply(
@@ -339,7 +338,8 @@ impl Hub {
                 self.abort_sent = false;
                 let outcome = match calibration.outcome() {
                     Some(Ok(result)) => {
-                        let file = grid_file(&result, &self.config, &self.device);
+                        let mut file = grid_file(&result, &self.config, &self.device.spec);
+                        self.device.stamp(&mut file);
                         let c = &self.config.compensation;
                         file.save_atomic(&self.grid_path)
                             .map_err(|e| chain(&e))
@@ -467,7 +467,9 @@ impl Daemon {
     }
 
     /// Run until a stop signal, the duration, or the end of the servo loop. `ready` is called
-    /// once the socket listens and the servo thread runs (systemd readiness).
+    /// once the socket listens and the servo thread runs (systemd readiness). What the device
+    /// says about itself (its device-info report) names its grid and stands in for the workspace
+    /// and calibration-cube keys the config file does not give ([`Config::for_device`]).
     ///
     /// Errors: [`RunError::Grid`] or `File`/`Model` for a stored grid it must not use, `Listen`
     /// when the socket cannot be served, `Spawn` or `ServoPanicked` for the servo thread, `Servo`
@@ -479,18 +481,23 @@ impl Daemon {
         ready: &mut dyn FnMut(&Path),
     ) -> Result<ServoReport, RunError> {
         self.config.validate()?;
-        if let Some(spec) = transport.resolved_spec() {
-            self.device = spec;
+        let device = transport::identify(transport.as_ref(), &self.device, &self.config)
+            .map_err(RunError::Open)?;
+        self.config = self.config.for_device(device.info.as_ref());
+        if device.info.as_ref().is_some_and(|i| i.lockstep) {
+            // A loop the device paces runs flat out: never let it take a core at real-time
+            // priority.
+            self.config.servo.realtime_priority = 0;
         }
         let config = &self.config;
-        let grid_path = grid_path(&config.state_dir(), &self.device.device_id());
+        let grid_path = grid_path(&config.state_dir(), &device.grid_id());
         if let Err(e) = std::fs::create_dir_all(config.state_dir()) {
             warn!(
                 "state directory {} is not usable ({e}); calibrations will fail to save",
                 config.state_dir().display()
             );
         }
-        let model = load_model(config, &self.device, &grid_path)?;
+        let model = load_model(config, &device, &grid_path)?;
         let mode = mode_name(&model);
         let offset = ForceOffset::new(config.app.stale_offset(), config.app.stale_ramp());
         let compensation = Compensation::new(model, offset);
@@ -498,7 +505,7 @@ impl Daemon {
         let (commands, offsets, servo_mailbox, mut hub_mailbox) = mailbox();
         let (events_tx, events) = crossbeam_channel::bounded(1024);
         let (hub_tx, requests) = crossbeam_channel::bounded(256);
-        let server = self.serve_applications(commands.clone(), offsets, hub_tx)?;
+        let server = self.serve_applications(&device, commands.clone(), offsets, hub_tx)?;
 
         let mut options = ServoOptions::from_config(config);
         options.duration = self.duration;
@@ -514,23 +521,22 @@ impl Daemon {
         )
         .map_err(RunError::Spawn)?;
         info!(
-            "hgcd running on {} ({}), compensation: {mode}, socket {}",
-            self.device,
-            self.device.device_id(),
+            "hgcd running on {device} (grid id {}), compensation: {mode}, socket {}",
+            device.grid_id(),
             self.socket.display()
         );
         ready(&self.socket);
 
         let mut hub = Hub {
             status: Status {
-                device: self.device.to_string(),
-                device_id: self.device.device_id(),
+                device: device.spec.to_string(),
+                device_id: device.grid_id(),
                 grid: (mode != Compensating::None).then(|| grid_path.display().to_string()),
                 mode,
                 ..Status::default()
             },
             config: self.config.clone(),
-            device: self.device.clone(),
+            device,
             grid_path,
             registry: server.registry.clone(),
             commands,
@@ -561,6 +567,7 @@ impl Daemon {
     /// `commands` and `offsets` and the hub through `hub`.
     fn serve_applications(
         &self,
+        device: &DeviceIdentity,
         commands: CommandSender,
         offsets: OffsetSender,
         hub: Sender<HubRequest>,
@@ -578,8 +585,8 @@ impl Daemon {
             commands,
             offsets,
             hub,
-            device: self.device.to_string(),
-            device_id: self.device.device_id(),
+            device: device.spec.to_string(),
+            device_id: device.grid_id(),
             rate_hz: config.servo.rate_hz,
             max_force: config.safety.max_force_n,
             max_clients: config.app.max_clients,

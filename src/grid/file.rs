@@ -8,7 +8,8 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::lattice::{MassGrid, DIM_RANGE, G_RANGE, MAX_MASS_KG};
-use super::{store, GridError, Problem};
+use super::{store, DeviceIdentity, GridError, Problem};
+use crate::protocol::{MODEL_LEN, SERIAL_LEN};
 
 /// Format tag of version 1 grid files.
 pub const GRID_FORMAT: &str = "hgcd-grid/1";
@@ -20,6 +21,60 @@ pub struct DeviceRecord {
     pub id: String,
     /// The spec the device was opened with (`hid:1234:abcd:SN 7`).
     pub spec: Option<String>,
+}
+
+/// `[device] model` and `[device] serial`: the unit a grid was calibrated on, as its device-info
+/// report named it (`docs/hid-protocol.md` §5a). `serial` is empty for a device without one.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UnitRecord {
+    pub model: String,
+    pub serial: String,
+}
+
+impl std::fmt::Display for UnitRecord {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.serial.is_empty() {
+            write!(f, "{} without a serial number", self.model)
+        } else {
+            write!(f, "{} serial {}", self.model, self.serial)
+        }
+    }
+}
+
+/// The `[device]` table as it is in the file: the device record and the unit, side by side.
+#[derive(Serialize, Deserialize)]
+struct DeviceTable {
+    id: String,
+    spec: Option<String>,
+    model: Option<String>,
+    serial: Option<String>,
+}
+
+impl DeviceTable {
+    fn new(device: &Option<DeviceRecord>, unit: &Option<UnitRecord>) -> Option<Self> {
+        device.as_ref().map(|d| Self {
+            id: d.id.clone(),
+            spec: d.spec.clone(),
+            model: unit.as_ref().map(|u| u.model.clone()),
+            serial: unit.as_ref().map(|u| u.serial.clone()),
+        })
+    }
+
+    fn split(table: Option<Self>) -> (Option<DeviceRecord>, Option<UnitRecord>) {
+        match table {
+            None => (None, None),
+            Some(t) => (
+                Some(DeviceRecord {
+                    id: t.id,
+                    spec: t.spec,
+                }),
+                t.model.map(|model| UnitRecord {
+                    model,
+                    serial: t.serial.unwrap_or_default(),
+                }),
+            ),
+        }
+    }
 }
 
 /// `[calibration]`: how the grid was made. Parameters are in the units of their configuration keys
@@ -115,6 +170,8 @@ impl VertexRecords {
 pub struct GridFile {
     pub grid: MassGrid,
     pub device: Option<DeviceRecord>,
+    /// The unit the grid was calibrated on (in the `[device]` table, with `device`).
+    pub unit: Option<UnitRecord>,
     pub calibration: Option<CalibrationRecord>,
     pub vertices: VertexRecords,
     /// Root keys this version does not know: kept as read and written back (format §4).
@@ -127,6 +184,7 @@ impl From<MassGrid> for GridFile {
         Self {
             grid,
             device: None,
+            unit: None,
             calibration: None,
             vertices: VertexRecords::default(),
             extra: toml::Table::new(),
@@ -144,7 +202,7 @@ struct Raw {
     spacing: f64,
     dims: [i64; 3],
     masses: Vec<f64>,
-    device: Option<DeviceRecord>,
+    device: Option<DeviceTable>,
     calibration: Option<CalibrationRecord>,
     #[serde(default)]
     vertices: VertexRecords,
@@ -155,7 +213,7 @@ struct Raw {
 /// Everything after the lattice, as serde writes it.
 #[derive(Serialize)]
 struct Records<'a> {
-    device: &'a Option<DeviceRecord>,
+    device: Option<DeviceTable>,
     calibration: &'a Option<CalibrationRecord>,
     #[serde(skip_serializing_if = "VertexRecords::is_empty")]
     vertices: &'a VertexRecords,
@@ -185,6 +243,7 @@ impl GridFile {
                 found: format!("{:?}", raw.format),
             }));
         }
+        let (device, unit) = DeviceTable::split(raw.device);
         let mut dims = [0usize; 3];
         for (d, &n) in dims.iter_mut().zip(&raw.dims) {
             if !DIM_RANGE.contains(&n) {
@@ -201,7 +260,8 @@ impl GridFile {
                 dims,
                 masses: raw.masses,
             },
-            device: raw.device,
+            device,
+            unit,
             calibration: raw.calibration,
             vertices: raw.vertices,
             extra: raw.extra,
@@ -218,16 +278,28 @@ impl GridFile {
         Self::from_toml_str(&store::read_regular(path)?, path)
     }
 
-    /// [`load`](Self::load), and refuse a grid whose `[device] id` names another device than
-    /// `device_id` ([`GridError::OtherDevice`]). A grid that names no device is returned; its
-    /// `device` is `None`.
-    pub fn load_for(path: &Path, device_id: &str) -> Result<Self, GridError> {
+    /// [`load`](Self::load), and refuse a grid calibrated on another unit than `device`'s (both
+    /// name a serial number, and they or the models differ: [`GridError::OtherUnit`]), or one
+    /// whose `[device] id` names another device ([`GridError::OtherDevice`]). A grid that names
+    /// no device is returned; its `device` is `None`.
+    pub fn load_for(path: &Path, device: &DeviceIdentity) -> Result<Self, GridError> {
         let file = Self::load(path)?;
+        if let (Some(made_on), Some(unit)) = (&file.unit, device.unit()) {
+            let serials = !made_on.serial.is_empty() && !unit.serial.is_empty();
+            if serials && *made_on != unit {
+                return Err(GridError::OtherUnit {
+                    path: path.to_path_buf(),
+                    made_on: Box::new(made_on.clone()),
+                    unit: Box::new(unit),
+                });
+            }
+        }
+        let id = device.grid_id();
         match &file.device {
-            Some(d) if d.id != device_id => Err(GridError::OtherDevice {
+            Some(d) if d.id != id => Err(GridError::OtherDevice {
                 path: path.to_path_buf(),
                 made_for: d.id.clone(),
-                device: device_id.to_string(),
+                device: id,
             }),
             _ => Ok(file),
         }
@@ -255,7 +327,7 @@ impl GridFile {
         }
         out.push_str("]\n");
         let records = Records {
-            device: &self.device,
+            device: DeviceTable::new(&self.device, &self.unit),
             calibration: &self.calibration,
             vertices: &self.vertices,
             extra: &self.extra,
@@ -288,8 +360,10 @@ impl GridFile {
     pub fn size_bound(vertices: usize, spec_len: usize) -> u64 {
         // Lattice keys and the calibration record: under 2 KiB. Per vertex: a mass, a force
         // vector, an iteration count and an error, each number at most 24 characters, with
-        // separators, about 160 bytes; a left-out vertex's indices take less.
-        4096 + 2 * spec_len as u64 + 256 * vertices as u64
+        // separators, about 160 bytes; a left-out vertex's indices take less. The unit's model
+        // and serial, every byte escaped at worst, and an id made of them.
+        let unit = 4 * (MODEL_LEN + SERIAL_LEN) as u64 + 64;
+        4096 + 2 * spec_len as u64 + unit + 256 * vertices as u64
     }
 }
 
@@ -376,6 +450,10 @@ pub(crate) mod tests {
         file.device = Some(DeviceRecord {
             id: "sim-point-mass".into(),
             spec: Some("sim:point-mass".into()),
+        });
+        file.unit = Some(UnitRecord {
+            model: "sim-point-mass".into(),
+            serial: "SIM-7".into(),
         });
         file.calibration = Some(CalibrationRecord {
             created: Some("2026-11-21T23:29:02Z".parse().unwrap()),
@@ -566,8 +644,9 @@ pub(crate) mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("dev.toml");
         calibrated().save_atomic(&path).unwrap();
-        assert!(GridFile::load_for(&path, "sim-point-mass").is_ok());
-        match GridFile::load_for(&path, "hid-1234-5678") {
+        let spec = |s: &str| DeviceIdentity::of_spec(s.parse().unwrap());
+        assert!(GridFile::load_for(&path, &spec("sim:point-mass")).is_ok());
+        match GridFile::load_for(&path, &spec("hid:1234:5678")) {
             Err(GridError::OtherDevice {
                 made_for, device, ..
             }) => assert_eq!(
@@ -579,9 +658,52 @@ pub(crate) mod tests {
         // A grid that names no device is anybody's.
         GridFile::from(sample()).save_atomic(&path).unwrap();
         assert_eq!(
-            GridFile::load_for(&path, "hid-1234-5678").unwrap().device,
+            GridFile::load_for(&path, &spec("hid:1234:5678"))
+                .unwrap()
+                .device,
             None
         );
+    }
+
+    #[test]
+    fn a_grid_calibrated_on_another_unit_is_refused_in_one_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dev.toml");
+        let unit = |serial: &str| DeviceIdentity {
+            spec: "socket:/run/dev.sock".parse().unwrap(),
+            info: Some(crate::protocol::DeviceInfo {
+                model: "PHANToM-like 3".into(),
+                serial: serial.into(),
+                workspace_centre: Vector3::zeros(),
+                workspace_half_extents: Vector3::repeat(0.1),
+                max_force: 3.0,
+                rate_hz: 1000.0,
+                lockstep: false,
+            }),
+        };
+        let mut file = calibrated();
+        unit("A-1").stamp(&mut file);
+        file.save_atomic(&path).unwrap();
+        let back = GridFile::load_for(&path, &unit("A-1")).unwrap();
+        assert_eq!(back.unit, unit("A-1").unit());
+        assert_eq!(back.device.unwrap().id, "PHANToM-like_3-A-1");
+        let err = GridFile::load_for(&path, &unit("B-2")).unwrap_err();
+        assert!(matches!(err, GridError::OtherUnit { .. }), "{err}");
+        let line = err.to_string();
+        assert!(!line.contains('\n'));
+        assert!(
+            line.contains("PHANToM-like 3 serial A-1")
+                && line.contains("PHANToM-like 3 serial B-2"),
+            "{line}"
+        );
+        // A device that does not name itself is judged by its id alone.
+        assert!(matches!(
+            GridFile::load_for(
+                &path,
+                &DeviceIdentity::of_spec("socket:/run/dev.sock".parse().unwrap())
+            ),
+            Err(GridError::OtherDevice { .. })
+        ));
     }
 
     #[test]
@@ -619,6 +741,10 @@ pub(crate) mod tests {
             file.device = Some(DeviceRecord {
                 id: spec.clone(),
                 spec: Some(spec.clone()),
+            });
+            file.unit = Some(UnitRecord {
+                model: "\"".repeat(MODEL_LEN),
+                serial: "\\".repeat(SERIAL_LEN),
             });
             file.calibration = Some(CalibrationRecord {
                 created: Some("2026-11-21T23:29:02.123456789Z".parse().unwrap()),

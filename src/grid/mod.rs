@@ -4,11 +4,14 @@
 //! - `file`: [`GridFile`], the file format: the lattice plus typed provenance and per-vertex
 //!   records, parsed with serde and checked against physical ranges;
 //! - `store`: where grids live and how they are read and written: only regular files, bounded,
-//!   never blocking; atomic replace with a backup that needs no data space; a room check.
+//!   never blocking; atomic replace with a backup that needs no data space; a room check;
+//! - `identity`: which device a grid belongs to ([`DeviceIdentity`]): its model and serial
+//!   number when the device names itself, else the spec it was opened with.
 
 mod file;
 #[cfg(test)]
 mod fuzz;
+mod identity;
 mod lattice;
 mod store;
 
@@ -18,7 +21,8 @@ use thiserror::Error;
 
 use lattice::{DIM_RANGE, MAX_VERTICES};
 
-pub use file::{CalibrationRecord, DeviceRecord, GridFile, VertexRecords, GRID_FORMAT};
+pub use file::{CalibrationRecord, DeviceRecord, GridFile, UnitRecord, VertexRecords, GRID_FORMAT};
+pub use identity::DeviceIdentity;
 pub use lattice::{CellWeights, MassGrid, G_RANGE, MAX_MASS_KG, SPACING_RANGE};
 pub use store::{check_room, grid_path};
 
@@ -49,6 +53,12 @@ pub enum GridError {
     Syntax { path: PathBuf, message: String },
     #[error("grid file {path}: {problem}")]
     Invalid { path: PathBuf, problem: Problem },
+    #[error("grid {path} was calibrated on another unit ({made_on}), not on this one ({unit})")]
+    OtherUnit {
+        path: PathBuf,
+        made_on: Box<UnitRecord>,
+        unit: Box<UnitRecord>,
+    },
     #[error("grid {path} was made for device `{made_for}`, not `{device}`")]
     OtherDevice {
         path: PathBuf,

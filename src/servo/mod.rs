@@ -21,7 +21,9 @@ use crate::config::{Config, EstimateConfig, SafetyConfig};
 use crate::control::{Controller, DeviceState};
 use crate::estimate::{Foaw, FoawError};
 use crate::protocol::MAX_REPORT_LEN;
-use crate::protocol::{InputReport, OutputReport, ProtocolError, Status, OUTPUT_REPORT_LEN};
+use crate::protocol::{
+    DeviceClock, InputReport, OutputReport, ProtocolError, Status, OUTPUT_REPORT_LEN,
+};
 use crate::transport::{Transport, TransportError};
 use safety::SafetyLayer;
 pub use stats::TimingStats;
@@ -33,10 +35,18 @@ pub struct ServoOptions {
     pub period: f64,
     /// No report for this long is a fault, s.
     pub watchdog: f64,
-    /// Stop after this much time on the transport's clock, s.
+    /// Stop after this much time on the transport's clock, s: device time where the device sets
+    /// the pace (virtual time, a lock-step socket device), wall-clock time otherwise
+    /// ([`Transport::now`]).
     pub duration: Option<f64>,
-    /// End the run at the first fault (calibration) instead of waiting for the device (daemon).
+    /// End the run at a fault (calibration) instead of waiting for the device (daemon): at once
+    /// for a fault the device reports, after `silence_limit` for a device that falls silent.
     pub stop_on_fault: bool,
+    /// With `stop_on_fault`: how long a silent device may take to report again, s, on the
+    /// transport's clock. The watchdog fault zeroes the force at once either way; reports that
+    /// resume within this time let the run carry on (a calibration goes on with the vertex it was
+    /// on), a longer silence ends it ([`Fault::DeviceSilent`]). 0 ends it at the watchdog fault.
+    pub silence_limit: f64,
     pub safety: SafetyConfig,
     pub estimate: EstimateConfig,
     /// Incremented on every loop iteration (reports or timeouts): a supervisor sees the loop is
@@ -51,6 +61,7 @@ impl ServoOptions {
             watchdog: config.servo.watchdog(),
             duration: None,
             stop_on_fault: false,
+            silence_limit: 0.0,
             safety: config.safety.clone(),
             estimate: config.estimate.clone(),
             heartbeat: None,
@@ -159,31 +170,6 @@ pub enum ServoError {
     Transport(#[from] TransportError),
     #[error("velocity estimator: {0}")]
     Estimator(#[from] FoawError),
-}
-
-/// Unwraps the device's 32-bit microsecond clock into seconds since the first report. The result
-/// never runs backwards: a clock that jumps back (a device reset) just adds no time.
-#[derive(Clone, Copy, Debug, Default)]
-struct DeviceClock {
-    last: Option<u32>,
-    elapsed_us: u64,
-}
-
-impl DeviceClock {
-    /// Seconds since the first report, and whether the clock just jumped back (a device reset).
-    fn seconds(&mut self, raw: u32) -> (f64, bool) {
-        let mut jumped_back = false;
-        if let Some(last) = self.last {
-            let step = raw.wrapping_sub(last);
-            if step < u32::MAX / 2 {
-                self.elapsed_us += u64::from(step);
-            } else {
-                jumped_back = true;
-            }
-        }
-        self.last = Some(raw);
-        (self.elapsed_us as f64 * 1e-6, jumped_back)
-    }
 }
 
 fn emit(events: Option<&Sender<ServoEvent>>, event: ServoEvent) {
@@ -475,9 +461,9 @@ fn run_loop(
             core.stats.watchdog_faults += 1;
             emit(events, ServoEvent::WatchdogFault { silent_for });
             transport.write_output(core.prepare_zero())?;
-            if options.stop_on_fault {
-                return Ok(ExitReason::Fault(Fault::DeviceSilent));
-            }
+        }
+        if silent && options.stop_on_fault && silent_for >= options.silence_limit {
+            return Ok(ExitReason::Fault(Fault::DeviceSilent));
         }
     }
 }
@@ -485,18 +471,6 @@ fn run_loop(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn device_clock_unwraps() {
-        let mut c = DeviceClock::default();
-        assert_eq!(c.seconds(u32::MAX - 999), (0.0, false));
-        assert!((c.seconds(u32::MAX).0 - 999e-6).abs() < 1e-12);
-        assert!((c.seconds(1000).0 - 2000e-6).abs() < 1e-12);
-        // A reset clock does not make time run backwards, and says it jumped.
-        let (t, jumped) = c.seconds(10);
-        assert!((t - 2000e-6).abs() < 1e-12 && jumped);
-        assert_eq!(c.seconds(20), (2010e-6, false));
-    }
 
     /// Asks for a large force and remembers what `after_tick` says was sent.
     struct Pushy {

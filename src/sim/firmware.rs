@@ -1,16 +1,25 @@
 //! Emulated device firmware around a simulated plant: it decodes output reports and encodes input
-//! reports exactly as a v1 device would, so the whole byte path runs in tests. The firmware clamps forces to its actuator limit, zeroes force when the host goes silent
-//! (device-side watchdog), and can be told to stop reporting (fault injection).
+//! reports exactly as a v1 device would, and answers the device-info feature report, so the whole
+//! byte path runs in tests. The firmware clamps forces to its actuator limit, zeroes force when
+//! the host goes silent (device-side watchdog), and can be told to stop reporting (fault
+//! injection).
 
 use nalgebra::Vector3;
 
 use super::{delta, phantom, Encoder, Plant, PointMass, SimError};
 use crate::config::Config;
-use crate::protocol::{InputReport, OutputReport, ProtocolError, Status, INPUT_REPORT_LEN};
+use crate::protocol::{
+    DeviceInfo, InputReport, OutputReport, ProtocolError, Status, DEVICE_INFO_LEN,
+    INPUT_REPORT_LEN, MODEL_LEN,
+};
 
 /// Emulated device firmware: one report period at a time.
 pub struct SimDevice {
     plant: Box<dyn Plant>,
+    /// Model name in the device-info report (`sim-MODEL`).
+    model: String,
+    /// Serial number in the device-info report (`sim.serial`; empty: none).
+    serial: String,
     encoder: Encoder,
     /// Report period, s.
     period: f64,
@@ -42,6 +51,8 @@ impl SimDevice {
     ) -> Self {
         Self {
             plant,
+            model: "sim".into(),
+            serial: String::new(),
             encoder,
             period,
             substeps: (period * substep_hz).ceil().max(1.0) as u32,
@@ -88,6 +99,8 @@ impl SimDevice {
             sim.device_watchdog(),
         );
         device.stop_reporting_after = sim.stop_reporting_after_s;
+        device.model = format!("sim-{model}");
+        device.serial = sim.serial.clone();
         Ok(device)
     }
 
@@ -114,6 +127,34 @@ impl SimDevice {
     /// Output reports the firmware rejected as malformed.
     pub fn rejected_outputs(&self) -> u64 {
         self.rejected_outputs
+    }
+
+    /// What the firmware says about itself: its model and serial number, the plant's workspace
+    /// (its mechanical stops), its force limit and report rate. `lockstep` says how it is served
+    /// (`docs/hid-protocol.md` §9).
+    pub fn device_info(&self, lockstep: bool) -> DeviceInfo {
+        let (lo, hi) = self.plant.workspace();
+        // As much of `sim-MODEL` as the report's field holds.
+        let mut model = self.model.clone();
+        while model.len() > MODEL_LEN {
+            model.pop();
+        }
+        DeviceInfo {
+            model,
+            serial: self.serial.clone(),
+            workspace_centre: (lo + hi) / 2.0,
+            workspace_half_extents: (hi - lo) / 2.0,
+            max_force: self.max_force,
+            rate_hz: 1.0 / self.period,
+            lockstep,
+        }
+    }
+
+    /// Firmware answer to a get-feature request for the device-info report.
+    pub fn device_info_report(&self, lockstep: bool, out: &mut [u8; DEVICE_INFO_LEN]) {
+        self.device_info(lockstep).encode(out).expect(
+            "a validated config gives a serial, workspace and force limit the report carries",
+        );
     }
 
     /// Whether the device is currently silent (fault injection).
@@ -189,5 +230,33 @@ impl SimDevice {
         report
             .encode(out)
             .expect("simulated workspace lies within the protocol's position range");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::SIM_MODELS;
+
+    #[test]
+    fn every_simulated_model_describes_itself_in_a_device_info_report() {
+        let mut config = Config::default();
+        config.sim.serial = "SN-000000001".into(); // the longest serial the report carries
+        config.sim.workspace_min_mm = [-1000.0, 20.0, -80.0];
+        config.sim.workspace_max_mm = [1000.0, 220.0, 40.0];
+        for model in SIM_MODELS {
+            let device = SimDevice::from_config(model, &config).unwrap();
+            let mut report = [0; DEVICE_INFO_LEN];
+            device.device_info_report(true, &mut report);
+            let info = DeviceInfo::decode(&report).unwrap();
+            assert!(format!("sim-{model}").starts_with(&info.model));
+            assert_eq!(info.serial, config.sim.serial);
+            let (lo, hi) = info.workspace();
+            let (stops_lo, stops_hi) = device.plant().workspace();
+            assert!((lo - stops_lo).amax() < 1e-9 && (hi - stops_hi).amax() < 1e-9);
+            assert_eq!(info.max_force, config.sim.max_force_n);
+            assert_eq!(info.rate_hz, config.servo.rate_hz);
+            assert!(info.lockstep);
+        }
     }
 }

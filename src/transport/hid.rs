@@ -14,11 +14,11 @@ use std::time::{Duration, Instant};
 
 use hidapi::{HidApi, HidDevice};
 
-use super::{Burst, Transport, TransportError};
+use super::{Burst, NoDeviceInfo, Transport, TransportError};
 use crate::config::DeviceSpec;
 use crate::newest::{newest, NewestWriter};
 use crate::protocol::MAX_REPORT_LEN;
-use crate::protocol::OUTPUT_REPORT_LEN;
+use crate::protocol::{DeviceInfo, DEVICE_INFO_LEN, DEVICE_INFO_REPORT_ID, OUTPUT_REPORT_LEN};
 
 /// A HID device the system shows, as `hgcd devices` lists it.
 #[derive(Clone, Debug)]
@@ -71,6 +71,8 @@ pub struct HidTransport {
     _lock: std::fs::File,
     /// VID, PID and the serial number the device reports.
     resolved: DeviceSpec,
+    /// Its device-info feature report, asked for when it was opened.
+    info: Result<DeviceInfo, NoDeviceInfo>,
     reader: HidDevice,
     spec: String,
     start: Instant,
@@ -183,6 +185,7 @@ impl HidTransport {
         };
         let lock = lock_device(&spec, &path)?;
         let reader = open("opening")?;
+        let info = device_info(&reader);
         let writer_dev = open("opening a second handle on")?;
         let writer = OutputWriter::spawn(move |report| {
             writer_dev
@@ -202,6 +205,7 @@ impl HidTransport {
                 pid,
                 serial: found_serial,
             },
+            info,
             reader,
             spec,
             start: Instant::now(),
@@ -209,6 +213,17 @@ impl HidTransport {
             writer,
         })
     }
+}
+
+/// Ask `device` for its device-info feature report (a GET_REPORT control transfer, which the
+/// kernel bounds at 5 s; a device without the report stalls it at once).
+fn device_info(device: &HidDevice) -> Result<DeviceInfo, NoDeviceInfo> {
+    let mut report = [0u8; DEVICE_INFO_LEN];
+    report[0] = DEVICE_INFO_REPORT_ID;
+    let n = device
+        .get_feature_report(&mut report)
+        .map_err(|e| NoDeviceInfo::Refused(e.to_string()))?;
+    DeviceInfo::decode(&report[..n.min(DEVICE_INFO_LEN)]).map_err(NoDeviceInfo::Malformed)
 }
 
 /// Take an exclusive advisory lock (flock) on the device node, so that a second hgcd process (a
@@ -288,6 +303,10 @@ impl Transport for HidTransport {
 
     fn resolved_spec(&self) -> Option<DeviceSpec> {
         Some(self.resolved.clone())
+    }
+
+    fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {
+        self.info.as_ref()
     }
 }
 

@@ -9,9 +9,11 @@ pub mod socket;
 use std::time::Duration;
 
 use thiserror::Error;
+use tracing::{info, warn};
 
 use crate::config::{Config, DeviceSpec};
-use crate::protocol::{InputReport, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
+use crate::grid::DeviceIdentity;
+use crate::protocol::{DeviceInfo, InputReport, ProtocolError, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
 use crate::sim::SimError;
 
 /// How fast a device clock may run slow against the host's unless its transport says otherwise
@@ -70,15 +72,51 @@ pub enum TransportError {
     /// cannot be resynchronised.
     #[error("device {spec} sent a frame of length {length} (must be 1 to {MAX_REPORT_LEN})")]
     Framing { spec: String, length: usize },
+    /// A lock-step device sent nothing for [`socket::LOCKSTEP_STALL`] of wall-clock time: its
+    /// clock stands still while it is silent, so no watchdog can tell; it has hung.
+    #[error("device {spec} (lock-step) has sent nothing for {after:?}: it has stopped")]
+    Stalled { spec: String, after: Duration },
+    /// The device's native rate (its device-info report) is not the host's `servo.rate_hz`.
+    #[error(
+        "device {spec} reports at {device_hz} Hz (its device-info report) but servo.rate_hz is \
+         {servo_hz}: set servo.rate_hz = {device_hz}"
+    )]
+    Rate {
+        spec: String,
+        device_hz: f64,
+        servo_hz: f64,
+    },
 }
 
 impl TransportError {
-    /// Whether the device cannot be opened or is gone (as opposed to a fault of the link itself):
-    /// `hgcd` exits with its own status for these, so udev can start it again on replug.
+    /// Whether the device cannot be opened or is gone (as opposed to a fault of the link itself,
+    /// or a device hgcd is not configured for): `hgcd` exits with its own status for these, so
+    /// udev can start it again on replug.
     pub fn device_unavailable(&self) -> bool {
-        !matches!(self, Self::Framing { .. })
+        !matches!(self, Self::Framing { .. } | Self::Rate { .. })
     }
 }
+
+/// Why a device gave no device-info report when it was opened (it then runs as before the report
+/// existed: grid named after its spec, calibration cube from the config).
+#[derive(Clone, Debug, Error, PartialEq)]
+pub enum NoDeviceInfo {
+    /// The transport does not ask (a test double).
+    #[error("it was not asked")]
+    NotAsked,
+    /// No answer within the wait (a device that does not know the request ignores it).
+    #[error("it did not answer within {0:?}")]
+    NoAnswer(Duration),
+    /// The device refused the request (a HID device without the feature report stalls it).
+    #[error("it refused the request ({0})")]
+    Refused(String),
+    /// It answered with a report that does not decode.
+    #[error("its answer is malformed: {0}")]
+    Malformed(#[source] ProtocolError),
+}
+
+/// Returned by transports that do not ask for device info.
+static NOT_ASKED: NoDeviceInfo = NoDeviceInfo::NotAsked;
 
 /// The remedy for a permission error, appended to its message.
 fn access_hint(e: &std::io::Error) -> &'static str {
@@ -130,6 +168,71 @@ pub trait Transport: Send {
     fn resolved_spec(&self) -> Option<DeviceSpec> {
         None
     }
+
+    /// What the device said about itself in its device-info report, asked for once when it was
+    /// opened (`docs/hid-protocol.md` §5a), or why it said nothing.
+    fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {
+        Err(&NOT_ASKED)
+    }
+}
+
+/// Who the device behind `transport`, opened with `spec`, is: the spec it resolved to and its
+/// device-info report. Logs what the device said about itself, or, once, that it said nothing
+/// and hgcd falls back to its spec and config. Errors: [`TransportError::Rate`] for a device whose
+/// native rate is not `servo.rate_hz`.
+pub fn identify(
+    transport: &dyn Transport,
+    spec: &DeviceSpec,
+    config: &Config,
+) -> Result<DeviceIdentity, TransportError> {
+    let spec = transport.resolved_spec().unwrap_or_else(|| spec.clone());
+    let info = match transport.device_info() {
+        Ok(info) => info.clone(),
+        Err(why) => {
+            if *why != NoDeviceInfo::NotAsked {
+                warn!(
+                    "device {spec} gave no device-info report ({why}): its grid is named after \
+                     its spec ({}) and it is calibrated in the configured workspace",
+                    spec.device_id()
+                );
+            }
+            return Ok(DeviceIdentity::of_spec(spec));
+        }
+    };
+    let servo_hz = config.servo.rate_hz;
+    if (info.rate_hz - servo_hz).abs() > 1e-3 {
+        return Err(TransportError::Rate {
+            spec: spec.to_string(),
+            device_hz: info.rate_hz,
+            servo_hz,
+        });
+    }
+    let (lo, hi) = info.workspace();
+    let (lo, hi) = (lo * 1e3, hi * 1e3);
+    info!(
+        "device {spec}: {}{}, workspace ({:.1}, {:.1}, {:.1}) to ({:.1}, {:.1}, {:.1}) mm, force \
+         limit {} N, {} Hz{}",
+        info.model,
+        if info.serial.is_empty() {
+            String::new()
+        } else {
+            format!(" serial {}", info.serial)
+        },
+        lo.x,
+        lo.y,
+        lo.z,
+        hi.x,
+        hi.y,
+        hi.z,
+        info.max_force,
+        info.rate_hz,
+        if info.lockstep {
+            ", lock-step (the run counts device time)"
+        } else {
+            ""
+        }
+    );
+    Ok(DeviceIdentity::new(spec, Some(info)))
 }
 
 /// Picks the report to act on from a burst of queued input reports, offered oldest first: the
@@ -210,6 +313,26 @@ pub fn open(
 mod tests {
     use super::*;
     use std::error::Error as _;
+
+    #[test]
+    fn a_device_that_reports_at_another_rate_is_refused_naming_the_key_to_set() {
+        let config = Config::default();
+        let device = crate::sim::SimDevice::from_config("point-mass", &config).unwrap();
+        let sim = sim::SimTransport::new(device, Pacing::Virtual);
+        let spec: DeviceSpec = "sim:point-mass".parse().unwrap();
+        let identity = identify(&sim, &spec, &config).unwrap();
+        assert_eq!(identity.grid_id(), "sim-point-mass");
+        assert_eq!(identity.info.unwrap().model, "sim-point-mass");
+        let mut slower = config.clone();
+        slower.servo.rate_hz = 500.0;
+        let err = identify(&sim, &spec, &slower).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "device sim:point-mass reports at 1000 Hz (its device-info report) but \
+             servo.rate_hz is 500: set servo.rate_hz = 1000"
+        );
+        assert!(!err.device_unavailable());
+    }
 
     #[test]
     fn errors_keep_their_cause_and_name_the_remedy() {

@@ -3,14 +3,18 @@
 
 use std::time::{Duration, Instant};
 
-use super::{Pacing, Transport, TransportError};
-use crate::protocol::{INPUT_REPORT_LEN, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
+use super::{NoDeviceInfo, Pacing, Transport, TransportError};
+use crate::protocol::{
+    DeviceInfo, DEVICE_INFO_LEN, INPUT_REPORT_LEN, MAX_REPORT_LEN, OUTPUT_REPORT_LEN,
+};
 use crate::sim::SimDevice;
 use crate::sys::sleep_until;
 
 /// A [`SimDevice`] behind the [`Transport`] trait, in virtual or real time.
 pub struct SimTransport {
     device: SimDevice,
+    /// The firmware's device-info report, asked for when the link was made.
+    info: Result<DeviceInfo, NoDeviceInfo>,
     pacing: Pacing,
     started: bool,
     start: Instant,
@@ -21,7 +25,11 @@ pub struct SimTransport {
 impl SimTransport {
     pub fn new(device: SimDevice, pacing: Pacing) -> Self {
         let now = Instant::now();
+        // As a HID host would: ask for the feature report and decode its bytes.
+        let mut report = [0u8; DEVICE_INFO_LEN];
+        device.device_info_report(false, &mut report);
         Self {
+            info: DeviceInfo::decode(&report).map_err(NoDeviceInfo::Malformed),
             device,
             pacing,
             started: false,
@@ -100,6 +108,10 @@ impl Transport for SimTransport {
 
     fn clock_drift(&self) -> f64 {
         0.0
+    }
+
+    fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {
+        self.info.as_ref()
     }
 
     fn describe(&self) -> String {

@@ -1,16 +1,33 @@
 //! `socket:PATH`: HID reports framed over a Unix stream socket, so an external simulator or a
 //! hardware-in-the-loop bridge can stand in for the device. hgcd connects as the client; the device
 //! side listens. Each frame is one length byte N (1–64) followed by the N bytes of one report,
-//! report ID first, exactly as over HID (`docs/hid-protocol.md`, "Socket framing").
+//! report ID first, exactly as over HID; a frame of one byte asks for the feature report it names
+//! (`docs/hid-protocol.md` §9).
+//!
+//! On connecting, the host asks for the device-info report and waits for it at most
+//! [`DEVICE_INFO_WAIT`]. A device that says it runs in lock-step advances only when the host
+//! answers: its clock, not the wall clock, is then the transport's ([`Transport::now`]), so the
+//! loop's watchdog and `--duration` count device time, and a device that sends nothing for
+//! [`LOCKSTEP_STALL`] has hung.
 
 use std::io::{ErrorKind, Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use super::{Burst, Transport, TransportError};
-use crate::protocol::{MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
+use super::{Burst, NoDeviceInfo, Transport, TransportError};
+use crate::protocol::{
+    DeviceClock, DeviceInfo, InputReport, DEVICE_INFO_REPORT_ID, MAX_REPORT_LEN, OUTPUT_REPORT_LEN,
+};
 use crate::sys::wait_readable;
+
+/// How long the host waits for the device-info report when it connects. A device that does not
+/// know the request ignores it; the host then runs it as before the report existed.
+pub const DEVICE_INFO_WAIT: Duration = Duration::from_millis(500);
+
+/// How long a lock-step device may send nothing, wall-clock time, before the run ends (unless
+/// [`SocketTransport::stalled_after`] says otherwise).
+pub const LOCKSTEP_STALL: Duration = Duration::from_secs(10);
 
 /// Host side of the socket transport.
 pub struct SocketTransport {
@@ -22,9 +39,22 @@ pub struct SocketTransport {
     filled: usize,
     start: Instant,
     garbled_skipped: u64,
+    /// What the device answered when asked for its device-info report.
+    info: Result<DeviceInfo, NoDeviceInfo>,
+    /// Input reports that came while the host waited for the device-info answer: the first read
+    /// hands up the newest valid one (a lock-step device waits for the host's reply to it).
+    held: Option<(usize, u64)>,
+    held_report: [u8; MAX_REPORT_LEN],
+    /// Lock-step: the device clock, unwrapped from the reports, and its newest reading, s.
+    device_clock: DeviceClock,
+    device_time: f64,
+    /// When the device last sent anything, and how long a lock-step device may send nothing.
+    last_heard: Instant,
+    stall: Duration,
 }
 
 impl SocketTransport {
+    /// Connect to the device side listening at `path` and ask for its device-info report.
     pub fn connect(path: &Path) -> Result<Self, TransportError> {
         let spec = format!("socket:{}", path.display());
         let stream = UnixStream::connect(path).map_err(|source| TransportError::Open {
@@ -41,20 +71,103 @@ impl SocketTransport {
                 doing: "making the socket non-blocking".into(),
                 source,
             })?;
-        Ok(Self {
+        let now = Instant::now();
+        let mut transport = Self {
             stream,
             spec,
             pending: [0; 2 * (MAX_REPORT_LEN + 1)],
             filled: 0,
-            start: Instant::now(),
+            start: now,
             garbled_skipped: 0,
-        })
+            info: Err(NoDeviceInfo::NotAsked),
+            held: None,
+            held_report: [0; MAX_REPORT_LEN],
+            device_clock: DeviceClock::default(),
+            device_time: 0.0,
+            last_heard: now,
+            stall: LOCKSTEP_STALL,
+        };
+        transport.info = transport.ask_device_info()?;
+        Ok(transport)
+    }
+
+    /// Take a lock-step device that sends nothing for `limit` of wall-clock time as hung
+    /// (default [`LOCKSTEP_STALL`]).
+    pub fn stalled_after(mut self, limit: Duration) -> Self {
+        self.stall = limit;
+        self
     }
 
     fn disconnected(&self, source: std::io::Error) -> TransportError {
         TransportError::Disconnected {
             spec: self.spec.clone(),
             source,
+        }
+    }
+
+    fn lockstep(&self) -> bool {
+        self.info.as_ref().is_ok_and(|info| info.lockstep)
+    }
+
+    /// Send the get-feature request for the device-info report and wait for the answer at most
+    /// [`DEVICE_INFO_WAIT`], keeping the input reports that come meanwhile for the first read.
+    fn ask_device_info(&mut self) -> Result<Result<DeviceInfo, NoDeviceInfo>, TransportError> {
+        self.stream
+            .write_all(&[1, DEVICE_INFO_REPORT_ID])
+            .map_err(|e| self.disconnected(e))?;
+        let deadline = Instant::now() + DEVICE_INFO_WAIT;
+        let mut burst = Burst::default();
+        let mut held = [0u8; MAX_REPORT_LEN];
+        let mut frame = [0u8; MAX_REPORT_LEN];
+        let answer = loop {
+            let mut answer = None;
+            while let Some(n) = self.take_frame(&mut frame)? {
+                if frame[0] == DEVICE_INFO_REPORT_ID {
+                    answer = Some(DeviceInfo::decode(&frame[..n]).map_err(NoDeviceInfo::Malformed));
+                } else {
+                    burst.offer(&frame[..n], &mut held);
+                }
+            }
+            if let Some(answer) = answer {
+                break answer;
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                break Err(NoDeviceInfo::NoAnswer(DEVICE_INFO_WAIT));
+            }
+            self.receive(deadline - now)?;
+        };
+        if let (Some(n), garbled) = burst.finish() {
+            self.held = Some((n, garbled));
+            self.held_report = held;
+        }
+        Ok(answer)
+    }
+
+    /// Wait at most `timeout` for bytes from the device and add them to `pending`.
+    fn receive(&mut self, timeout: Duration) -> Result<(), TransportError> {
+        loop {
+            let space = self.pending.len() - self.filled;
+            match self
+                .stream
+                .read(&mut self.pending[self.filled..self.filled + space])
+            {
+                Ok(0) => return Err(self.disconnected(peer_closed())),
+                Ok(n) => {
+                    self.filled += n;
+                    self.last_heard = Instant::now();
+                    return Ok(());
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                    if timeout.is_zero() {
+                        return Ok(());
+                    }
+                    wait_readable(&self.stream, timeout).map_err(|e| self.disconnected(e))?;
+                    return self.receive(Duration::ZERO);
+                }
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(e) => return Err(self.disconnected(e)),
+            }
         }
     }
 
@@ -81,6 +194,19 @@ impl SocketTransport {
         self.filled -= n + 1;
         Ok(Some(n))
     }
+
+    /// Hand up the chosen report (`Burst::finish`); in lock-step its timestamp sets the clock.
+    fn chosen(&mut self, chosen: Option<usize>, garbled: u64, buf: &[u8]) -> Option<usize> {
+        self.garbled_skipped += garbled;
+        if let Some(n) = chosen {
+            if self.lockstep() {
+                if let Ok(report) = InputReport::decode(&buf[..n]) {
+                    self.device_time = self.device_clock.seconds(report.timestamp_us).0;
+                }
+            }
+        }
+        chosen
+    }
 }
 
 impl Transport for SocketTransport {
@@ -89,38 +215,42 @@ impl Transport for SocketTransport {
         buf: &mut [u8; MAX_REPORT_LEN],
         timeout: Duration,
     ) -> Result<Option<usize>, TransportError> {
+        if let Some((n, garbled)) = self.held.take() {
+            buf.copy_from_slice(&self.held_report);
+            return Ok(self.chosen(Some(n), garbled, &buf[..]));
+        }
         let deadline = Instant::now() + timeout;
         let mut burst = Burst::default();
         let mut frame = [0u8; MAX_REPORT_LEN];
         loop {
             // Drain every complete frame; keep the newest valid one (skip ahead after an overrun).
+            // A device-info answer that came after the host stopped waiting is not a report.
             while let Some(n) = self.take_frame(&mut frame)? {
-                burst.offer(&frame[..n], buf);
-            }
-            let space = self.pending.len() - self.filled;
-            match self
-                .stream
-                .read(&mut self.pending[self.filled..self.filled + space])
-            {
-                Ok(0) => return Err(self.disconnected(peer_closed())),
-                Ok(n) => self.filled += n,
-                Err(e) if e.kind() == ErrorKind::WouldBlock => {
-                    // Nothing queued: return what we have, or wait for more.
-                    if !burst.is_empty() {
-                        let (chosen, garbled) = burst.finish();
-                        self.garbled_skipped += garbled;
-                        return Ok(chosen);
-                    }
-                    let now = Instant::now();
-                    if now >= deadline {
-                        return Ok(None);
-                    }
-                    wait_readable(&self.stream, deadline - now)
-                        .map_err(|e| self.disconnected(e))?;
+                if frame[0] != DEVICE_INFO_REPORT_ID {
+                    burst.offer(&frame[..n], buf);
                 }
-                Err(e) if e.kind() == ErrorKind::Interrupted => {}
-                Err(e) => return Err(self.disconnected(e)),
             }
+            let before = self.filled;
+            self.receive(Duration::ZERO)?;
+            if self.filled > before {
+                continue;
+            }
+            // Nothing queued: return what we have, or wait for more.
+            if !burst.is_empty() {
+                let (chosen, garbled) = burst.finish();
+                return Ok(self.chosen(chosen, garbled, &buf[..]));
+            }
+            if self.lockstep() && self.last_heard.elapsed() >= self.stall {
+                return Err(TransportError::Stalled {
+                    spec: self.spec.clone(),
+                    after: self.last_heard.elapsed(),
+                });
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            self.receive(deadline - now)?;
         }
     }
 
@@ -143,16 +273,38 @@ impl Transport for SocketTransport {
         Ok(())
     }
 
+    /// Device time of the newest report for a lock-step device (it stands still while the
+    /// device is silent), wall-clock time since connecting otherwise.
     fn now(&self) -> f64 {
-        self.start.elapsed().as_secs_f64()
+        if self.lockstep() {
+            self.device_time
+        } else {
+            self.start.elapsed().as_secs_f64()
+        }
     }
 
     fn take_garbled_skipped(&mut self) -> u64 {
         std::mem::take(&mut self.garbled_skipped)
     }
 
+    fn clock_drift(&self) -> f64 {
+        if self.lockstep() {
+            0.0
+        } else {
+            super::CLOCK_DRIFT
+        }
+    }
+
     fn describe(&self) -> String {
-        self.spec.clone()
+        if self.lockstep() {
+            format!("{} (lock-step)", self.spec)
+        } else {
+            self.spec.clone()
+        }
+    }
+
+    fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {
+        self.info.as_ref()
     }
 }
 

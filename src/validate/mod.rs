@@ -238,19 +238,20 @@ pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, V
     device_config.sim.probe_mass_kg = request.probe_mass;
     let transport = transport::open(&request.device, &device_config, request.pacing)
         .map_err(ValidateError::Open)?;
-    if let Some(spec) = transport.resolved_spec() {
-        request.device = spec;
-    }
-    let id = request.device.device_id();
+    let device = transport::identify(transport.as_ref(), &request.device, &device_config)
+        .map_err(ValidateError::Open)?;
+    request.device = device.spec.clone();
+    // What the device says about itself stands in for the workspace keys the config omits.
+    let config = &config.for_device(device.info.as_ref());
     let grid = match &request.grid {
         Some(path) => {
-            let file = GridFile::load_for(path, &id).map_err(ValidateError::Grid)?;
+            let file = GridFile::load_for(path, &device).map_err(ValidateError::Grid)?;
             GridSource::File(Box::new(file), path.clone())
         }
         None if simulated => GridSource::Calibrate(request.out.join("grid.toml")),
         None => {
-            let path = grid_path(&config.state_dir(), &id);
-            match GridFile::load_for(&path, &id) {
+            let path = grid_path(&config.state_dir(), &device.grid_id());
+            match GridFile::load_for(&path, &device) {
                 Ok(file) => GridSource::File(Box::new(file), path),
                 Err(GridError::Missing { .. }) => {
                     return Err(ValidateError::NoGrid {

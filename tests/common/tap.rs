@@ -7,8 +7,8 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use hgcd::protocol::MAX_REPORT_LEN;
-use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
-use hgcd::transport::{Transport, TransportError};
+use hgcd::protocol::{DeviceInfo, OutputReport, OUTPUT_REPORT_LEN};
+use hgcd::transport::{NoDeviceInfo, Transport, TransportError};
 
 /// How long a gated device waits for the test to let a report through, and the test for the
 /// servo loop to take the reports it let through, before the run fails.
@@ -152,6 +152,10 @@ impl<T: Transport> Transport for Tap<T> {
 
     fn describe(&self) -> String {
         format!("tap on {}", self.inner.describe())
+    }
+
+    fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {
+        self.inner.device_info()
     }
 }
 
