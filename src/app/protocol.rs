@@ -56,6 +56,9 @@ pub enum Reply {
         device: String,
         device_id: String,
         rate_hz: f64,
+        /// The largest force component `set_force` accepts, N (`safety.max_force_n`); the
+        /// safety layer also clamps the magnitude of the total force to it.
+        max_force_n: f64,
     },
     /// One servo tick.
     State(StateSample),
@@ -130,6 +133,16 @@ pub struct Status {
     /// The servo loop's counters, flattened into the status object.
     #[serde(flatten)]
     pub servo: ServoCounters,
+}
+
+/// What a `status.mode` value means, in a few words for people.
+pub fn mode_meaning(mode: &str) -> &'static str {
+    match mode {
+        "scalar" => "the weight M(X)·g of the grid's masses, along gravity (the paper's model)",
+        "vector" => "the holding forces the calibration measured, interpolated",
+        "none" => "no grid: the handle's own weight is not compensated",
+        _ => "a mode this hgcd does not know",
+    }
 }
 
 /// The servo loop's counters as `status` carries them (`docs/app-protocol.md` §5).

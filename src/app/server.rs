@@ -460,6 +460,7 @@ fn serve_client(
                         device: ctx.device.clone(),
                         device_id: ctx.device_id.clone(),
                         rate_hz: ctx.rate_hz,
+                        max_force_n: ctx.max_force,
                     },
                 );
                 if status_only {
