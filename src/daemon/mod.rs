@@ -18,7 +18,7 @@ use crossbeam_channel::{Receiver, Sender};
 use thiserror::Error;
 use tracing::{error, info, warn};
 
-use crate::app::protocol::{Reply, StateSample, Status};
+use crate::app::protocol::{mode_meaning, Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{self, grid_file};
@@ -69,7 +69,12 @@ pub enum RunError {
         chain(.0)
     )]
     Grid(UnusableGrid),
-    #[error("cannot listen on {} (set app.socket or --socket, or check /run/hgcd permissions)", path.display())]
+    #[error(
+        "cannot listen on {} (give another path with --socket PATH or app.socket, or let this \
+         user create files in {})",
+        path.display(),
+        path.parent().unwrap_or(Path::new("/")).display()
+    )]
     Listen {
         path: PathBuf,
         #[source]
@@ -117,10 +122,10 @@ pub fn load_model(
         match GridFile::load_for(path, &device.device_id()) {
             Err(GridError::Missing { .. }) => {
                 warn!(
-                "no calibration grid at {}: running WITHOUT gravity compensation; calibrate with \
-                 `hgcd calibrate --via-daemon`",
-                path.display()
-            );
+                    "no calibration grid at {}: running WITHOUT gravity compensation; {}",
+                    path.display(),
+                    how_to_calibrate(device)
+                );
                 return Ok(None);
             }
             Err(e) => Err(e.into()),
@@ -153,6 +158,20 @@ pub fn load_model(
             Ok(None)
         }
         Err(e) => Err(RunError::Grid(e)),
+    }
+}
+
+/// What to run to calibrate `device` while a daemon drives it. A simulated device is calibrated
+/// by `hgcd calibrate` on its own copy, in virtual time (the same configuration makes the same
+/// plant); a real one only by the daemon that holds it.
+fn how_to_calibrate(device: &DeviceSpec) -> String {
+    match device {
+        DeviceSpec::Sim { .. } => format!(
+            "calibrate with `hgcd calibrate --device {device}` (with this daemon's --config and \
+             --state-dir, if it was given any), then reload (SIGHUP) or restart"
+        ),
+        _ => "calibrate with `hgcd calibrate --via-daemon` (the daemon then uses the new grid)"
+            .into(),
     }
 }
 
@@ -504,9 +523,10 @@ impl Daemon {
         )
         .map_err(RunError::Spawn)?;
         info!(
-            "hgcd running on {} ({}), compensation: {mode}, socket {}",
+            "hgcd running on {} ({}), compensation: {mode} ({}), socket {}",
             self.device,
             self.device.device_id(),
+            mode_meaning(&mode),
             self.socket.display()
         );
         ready(&self.socket);
