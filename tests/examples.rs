@@ -315,3 +315,18 @@ fn virtual_wall_says_in_one_line_why_it_cannot_run() {
         assert_eq!(stderr.lines().count(), 1, "one line: {stderr}");
     }
 }
+
+#[test]
+fn bare_loop_says_in_one_line_what_its_argument_is() {
+    // Before: a panic ("seconds as a number") with a backtrace.
+    let out = Command::new(example("bare_loop"))
+        .arg("ten")
+        .env("RUST_BACKTRACE", "1")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.starts_with("bare_loop: "), "{stderr}");
+    assert!(stderr.contains("seconds"), "{stderr}");
+    assert_eq!(stderr.lines().count(), 1, "one line: {stderr}");
+}
