@@ -531,9 +531,15 @@ fn a_normal_user_calibrates_and_runs_a_simulated_device_without_naming_a_state_d
     std::fs::write(&cfg, "").unwrap();
     std::fs::set_permissions(&cfg, std::fs::Permissions::from_mode(0o644)).unwrap();
     let socket = home.path().join("hgcd.sock");
+    // A copy of the binary there too: the user may not be allowed into the build's directory.
+    let exe = home.path().join("hgcd");
+    std::fs::copy(env!("CARGO_BIN_EXE_hgcd"), &exe).unwrap();
     let hgcd_as_user = |args: &[&str]| {
-        let mut c = hgcd();
-        c.arg("--config").arg(&cfg).args(args);
+        let mut c = std::process::Command::new(&exe);
+        c.current_dir(home.path())
+            .arg("--config")
+            .arg(&cfg)
+            .args(args);
         unprivileged(c, home.path())
     };
     // The daemon, flat out in virtual time until told to stop; its mode as `status` gives it, and
