@@ -14,11 +14,17 @@ use hgcd::servo::rt;
 use hgcd::servo::stats::Histogram;
 use hgcd::sys::sleep_until;
 
-fn main() {
-    let seconds: f64 = std::env::args()
-        .nth(1)
-        .map(|s| s.parse().expect("seconds as a number"))
-        .unwrap_or(10.0);
+fn main() -> std::process::ExitCode {
+    let seconds: f64 = match std::env::args().nth(1).map(|s| s.parse::<f64>()) {
+        None => 10.0,
+        Some(Ok(s)) if s.is_finite() && s > 0.0 => s,
+        Some(_) => {
+            eprintln!(
+                "bare_loop: the one argument is how long to run, a positive number of seconds"
+            );
+            return std::process::ExitCode::FAILURE;
+        }
+    };
     let setup = rt::prepare_current_thread(&ServoConfig::default());
     for w in &setup.warnings {
         eprintln!("warning: {w}");
@@ -64,4 +70,5 @@ fn main() {
         q(0.999) - min,
         lateness.max_us() - min
     );
+    std::process::ExitCode::SUCCESS
 }

@@ -638,7 +638,7 @@ impl Default for AppConfig {
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct PathsConfig {
-    /// Where calibration grids live; systemd's STATE_DIRECTORY overrides the default.
+    /// Where calibration grids live (default: [`Config::state_dir`]).
     pub state_dir: Option<PathBuf>,
 }
 
@@ -1123,7 +1123,11 @@ impl Config {
         PathBuf::from(DEFAULT_SOCKET)
     }
 
-    /// Calibration state directory: config, else `$STATE_DIRECTORY` (systemd), else /var/lib/hgcd.
+    /// Calibration state directory, the first of: the config's `paths.state_dir` (which
+    /// `--state-dir` sets); `$STATE_DIRECTORY` (systemd); /var/lib/hgcd when this user may
+    /// create files there (root, user hgcd); else this user's own `$XDG_STATE_HOME/hgcd`
+    /// (`~/.local/state/hgcd`). Every command of one user picks the same directory, so `hgcd run`
+    /// finds the grid `hgcd calibrate` wrote, with or without root.
     pub fn state_dir(&self) -> PathBuf {
         if let Some(dir) = &self.paths.state_dir {
             return dir.clone();
@@ -1134,13 +1138,91 @@ impl Config {
                 return PathBuf::from(first);
             }
         }
-        PathBuf::from(DEFAULT_STATE_DIR)
+        let system = Path::new(DEFAULT_STATE_DIR);
+        default_state_dir(
+            system,
+            may_create_in(system),
+            std::env::var_os("XDG_STATE_HOME"),
+            std::env::var_os("HOME"),
+        )
+    }
+}
+
+/// The state directory when nothing names one: `system` if this user may create files there
+/// (`system_writable`), else `$XDG_STATE_HOME/hgcd`, else `$HOME/.local/state/hgcd` (the XDG
+/// default), else `system` (whose error then says what to do).
+fn default_state_dir(
+    system: &Path,
+    system_writable: bool,
+    xdg_state_home: Option<std::ffi::OsString>,
+    home: Option<std::ffi::OsString>,
+) -> PathBuf {
+    // The XDG spec ignores relative paths.
+    let absolute = |v: Option<std::ffi::OsString>| v.map(PathBuf::from).filter(|p| p.is_absolute());
+    if system_writable {
+        system.to_path_buf()
+    } else if let Some(state) = absolute(xdg_state_home) {
+        state.join("hgcd")
+    } else if let Some(home) = absolute(home) {
+        home.join(".local/state/hgcd")
+    } else {
+        system.to_path_buf()
+    }
+}
+
+/// Whether this process may create `dir` (when missing) and files in it: the nearest existing
+/// directory on its path is writable and searchable for the effective user.
+fn may_create_in(dir: &Path) -> bool {
+    use std::os::unix::ffi::OsStrExt;
+    let Some(existing) = dir.ancestors().find(|a| a.exists()) else {
+        return false;
+    };
+    let Ok(path) = std::ffi::CString::new(existing.as_os_str().as_bytes()) else {
+        return false;
+    };
+    // SAFETY: faccessat only reads the NUL-terminated path, which outlives the call.
+    unsafe {
+        libc::faccessat(
+            libc::AT_FDCWD,
+            path.as_ptr(),
+            libc::W_OK | libc::X_OK,
+            libc::AT_EACCESS,
+        ) == 0
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_default_state_dir_is_the_system_one_where_writable_else_the_users() {
+        let system = Path::new(DEFAULT_STATE_DIR);
+        let os = |s: &str| Some(std::ffi::OsString::from(s));
+        // root, or user hgcd: /var/lib/hgcd.
+        assert_eq!(
+            default_state_dir(system, true, os("/x"), os("/home/ann")),
+            system
+        );
+        // Anyone else: their own state directory, XDG first.
+        assert_eq!(
+            default_state_dir(system, false, os("/x"), os("/home/ann")),
+            Path::new("/x/hgcd")
+        );
+        assert_eq!(
+            default_state_dir(system, false, None, os("/home/ann")),
+            Path::new("/home/ann/.local/state/hgcd")
+        );
+        assert_eq!(
+            default_state_dir(system, false, os("relative"), os("/home/ann")),
+            Path::new("/home/ann/.local/state/hgcd")
+        );
+        // No home at all: the system directory, whose error says to use --state-dir.
+        assert_eq!(default_state_dir(system, false, None, None), system);
+        // The nearest existing directory decides whether a missing one may be created.
+        let dir = tempfile::tempdir().unwrap();
+        assert!(may_create_in(&dir.path().join("a/b")));
+    }
 
     #[test]
     fn shipped_config_file_equals_the_defaults() {

@@ -7,26 +7,31 @@ use anyhow::{bail, Result};
 
 use hgcd::client::{CalibrationStage, Client, Reply, Role};
 
+use crate::{err, out};
+
 /// Print the daemon's status.
 ///
 /// Errors: the client's, when no daemon listens on `socket` or it refuses.
 pub fn status(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd status")?;
     let s = client.status()?;
-    println!("device        {} ({})", s.device, s.device_id);
-    println!(
-        "compensation  {}{}",
+    out(&format!(
+        "device        {} ({})\n\
+         compensation  {}{}: {}\n\
+         calibrating   {}\n\
+         clients       {} (force owned by {})\n\
+         servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog \
+         faults {}; worst tick {:.1} µs, longest period {:.0} µs\n\
+         lateness      worst {:.0} µs after the report's timestamp; {} report(s) more than a period \
+         late\n",
+        s.device,
+        s.device_id,
         s.mode,
-        s.grid.map(|g| format!(" from {g}")).unwrap_or_default()
-    );
-    println!("calibrating   {}", if s.calibrating { "yes" } else { "no" });
-    println!(
-        "clients       {} (force owned by {})",
+        s.grid.map(|g| format!(" from {g}")).unwrap_or_default(),
+        s.mode.meaning(),
+        if s.calibrating { "yes" } else { "no" },
         s.clients,
-        s.owner.as_deref().unwrap_or("nobody")
-    );
-    println!(
-        "servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog faults {}; worst tick {:.1} µs, longest period {:.0} µs",
+        s.owner.as_deref().unwrap_or("nobody"),
         s.servo.ticks,
         s.uptime_s,
         s.servo.late,
@@ -35,13 +40,10 @@ pub fn status(socket: &Path) -> Result<()> {
         s.servo.garbled,
         s.servo.watchdog_faults,
         s.servo.worst_compute_us,
-        s.servo.worst_period_us
-    );
-    println!(
-        "lateness      worst {:.0} µs after the report's timestamp; {} report(s) more than a period late",
-        s.servo.worst_lateness_us, s.servo.late_wakeups
-    );
-    Ok(())
+        s.servo.worst_period_us,
+        s.servo.worst_lateness_us,
+        s.servo.late_wakeups
+    ))
 }
 
 /// Ask the daemon to calibrate and follow its progress until it finishes.
@@ -64,20 +66,23 @@ pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
         } = reply
         {
             match event {
-                CalibrationStage::Started => eprintln!("calibration started on {}", client.device),
-                CalibrationStage::InitDone => eprintln!(
-                    "gravity direction found; rough mass {:.1} g",
+                CalibrationStage::Started => {
+                    err(&format!("calibration started on {}\n", client.device))
+                }
+                CalibrationStage::InitDone => err(&format!(
+                    "gravity direction found; rough mass {:.1} g\n",
                     mass_kg.unwrap_or(0.0) * 1e3
-                ),
-                CalibrationStage::VertexDone => eprintln!(
-                    "vertex {}/{}: {:.2} g",
+                )),
+                CalibrationStage::VertexDone => err(&format!(
+                    "vertex {}/{}: {:.2} g\n",
                     vertex.unwrap_or(0) + 1,
                     of.unwrap_or(0),
                     mass_kg.unwrap_or(0.0) * 1e3
-                ),
+                )),
                 CalibrationStage::Finished => {
-                    println!("calibration finished; the daemon now uses {message}");
-                    return Ok(());
+                    return out(&format!(
+                        "calibration finished; the daemon now uses {message}\n"
+                    ));
                 }
                 CalibrationStage::Failed => bail!("calibration failed: {message}"),
             }

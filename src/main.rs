@@ -6,10 +6,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 use hgcd::calibrate::{calibrate, CalibrateError, CalibrateRequest};
-use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH};
+use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH, SIM_MODELS};
 use hgcd::daemon::{self, RunError, RunRequest, Signals};
 
 mod ctl;
@@ -28,7 +28,8 @@ struct Cli {
     /// Configuration file (default: /etc/hgcd/hgcd.toml if it exists, else built-in defaults).
     #[arg(long, global = true, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Directory of calibration grids (default: config `paths.state_dir`, $STATE_DIRECTORY, /var/lib/hgcd).
+    /// Directory of calibration grids (default: config `paths.state_dir`, $STATE_DIRECTORY,
+    /// /var/lib/hgcd if this user may write there, else ~/.local/state/hgcd).
     #[arg(long, global = true, value_name = "DIR")]
     state_dir: Option<PathBuf>,
     /// Application socket of the daemon (default: config `app.socket`, $RUNTIME_DIRECTORY/hgcd.sock, /run/hgcd/hgcd.sock).
@@ -132,6 +133,49 @@ enum Command {
     Devices,
 }
 
+/// Global options a subcommand ignores, by subcommand: left out of its help. (They are still
+/// accepted there, as global options are everywhere.)
+const IGNORED_OPTIONS: &[(&str, &[&str])] = &[
+    ("status", &["state_dir"]),
+    ("sim-device", &["state_dir", "socket"]),
+    ("devices", &["config", "state_dir", "socket"]),
+];
+
+/// The command line, each subcommand's help listing only the global options it uses.
+fn command() -> clap::Command {
+    let mut cmd = Cli::command();
+    for (sub, ignored) in IGNORED_OPTIONS {
+        for id in *ignored {
+            let hidden = cmd
+                .get_arguments()
+                .find(|a| a.get_id() == id)
+                .unwrap_or_else(|| panic!("no global option {id}"))
+                .clone()
+                .hide(true);
+            // A subcommand that has an option of that id does not get the global one's copy.
+            cmd = cmd.mut_subcommand(sub, |s| s.arg(hidden));
+        }
+    }
+    cmd
+}
+
+/// Print `text` on standard output. A reader that went away (`hgcd calibrate | head -3`) is not
+/// an error: the command still does its work, what it would have printed is dropped, and it
+/// exits as it would have.
+fn out(text: &str) -> Result<()> {
+    use std::io::Write;
+    match std::io::stdout().lock().write_all(text.as_bytes()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        written => written.context("writing to standard output"),
+    }
+}
+
+/// Print `text` on standard error; when that fails there is nowhere left to say so.
+fn err(text: &str) {
+    use std::io::Write;
+    let _ = std::io::stderr().lock().write_all(text.as_bytes());
+}
+
 fn load_config(path: Option<&Path>) -> Result<Config> {
     match path {
         Some(p) => Ok(Config::load(p)?),
@@ -149,21 +193,18 @@ fn init_logging(level: &str) -> Result<()> {
             anyhow::anyhow!("--log-level `{level}` is not one of error, warn, info, debug, trace")
         })?,
     };
+    // A log line that cannot be written (stderr's reader went away) is dropped without a word:
+    // saying so on stderr would fail the same way.
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .log_internal_errors(false);
     // Under systemd stderr is the journal, which stamps time itself and shows no colours.
     if std::env::var_os("JOURNAL_STREAM").is_some() {
-        tracing_subscriber::fmt()
-            .with_env_filter(filter)
-            .with_writer(std::io::stderr)
-            .with_ansi(false)
-            .without_time()
-            .init();
+        builder.with_ansi(false).without_time().init();
     } else {
         use std::io::IsTerminal;
-        tracing_subscriber::fmt()
-            .with_env_filter(filter)
-            .with_writer(std::io::stderr)
-            .with_ansi(std::io::stderr().is_terminal())
-            .init();
+        builder.with_ansi(std::io::stderr().is_terminal()).init();
     }
     Ok(())
 }
@@ -196,28 +237,33 @@ fn device_spec(arg: Option<&str>, config: &Config) -> Result<DeviceSpec> {
 
 fn real_main(cli: Cli) -> Result<()> {
     init_logging(&cli.log_level)?;
-    let mut config = load_config(cli.config.as_deref())?;
-    if let Some(dir) = cli.state_dir {
-        config.paths.state_dir = Some(dir);
-    }
-    if let Some(socket) = cli.socket {
-        config.app.socket = Some(socket);
-    }
+    // Read by the commands that use it (`devices` does not).
+    let config = || -> Result<Config> {
+        let mut config = load_config(cli.config.as_deref())?;
+        if let Some(dir) = &cli.state_dir {
+            config.paths.state_dir = Some(dir.clone());
+        }
+        if let Some(socket) = &cli.socket {
+            config.app.socket = Some(socket.clone());
+        }
+        Ok(config)
+    };
     match cli.command {
         Command::Run {
             device,
             duration,
             virtual_time,
-        } => run(&config, device.as_deref(), duration, virtual_time),
+        } => run(&config()?, device.as_deref(), duration, virtual_time),
         Command::Calibrate {
             via_daemon: true,
             yes,
             ..
         } => {
+            let socket = config()?.socket_path();
             if !yes {
                 confirm_start()?;
             }
-            ctl::calibrate_via_daemon(&config.socket_path())
+            ctl::calibrate_via_daemon(&socket)
         }
         Command::Calibrate {
             device,
@@ -225,7 +271,7 @@ fn real_main(cli: Cli) -> Result<()> {
             real_time,
             yes,
             ..
-        } => calibrate_here(&config, device.as_deref(), output, real_time, yes),
+        } => calibrate_here(&config()?, device.as_deref(), output, real_time, yes),
         Command::Validate {
             device,
             grid,
@@ -242,6 +288,7 @@ fn real_main(cli: Cli) -> Result<()> {
                 .map(|m| m.parse::<Mode>())
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(|e| anyhow::anyhow!("--modes: {e}"))?;
+            let config = config()?;
             let device = device_spec(device.as_deref(), &config)?;
             let simulated = matches!(device, DeviceSpec::Sim { .. });
             let request = ValidateRequest {
@@ -260,12 +307,12 @@ fn real_main(cli: Cli) -> Result<()> {
             };
             validate_here(&config, &request, yes)
         }
-        Command::Status => ctl::status(&config.socket_path()),
+        Command::Status => ctl::status(&config()?.socket_path()),
         Command::SimDevice {
             listen,
             lockstep,
             model,
-        } => sim_device(&config, &listen, lockstep, &model),
+        } => sim_device(&config()?, &listen, lockstep, &model),
         Command::Devices => devices(),
     }
 }
@@ -294,8 +341,7 @@ fn run(
     };
     let signals = install_signal_handlers()?;
     let report = daemon::run(config, &request, signals)?;
-    println!("{}", report.stats);
-    Ok(())
+    out(&format!("{}\n", report.stats))
 }
 
 /// `hgcd calibrate` on a device this process opens itself; prints the summary.
@@ -326,8 +372,7 @@ fn calibrate_here(
     let run = calibrate(config, &request, stop, &mut |e| display.show(e));
     display.finish();
     let run = run?;
-    print!("{}", progress::summary(&run));
-    Ok(())
+    out(&progress::summary(&run))
 }
 
 /// `hgcd validate` in this process: prepare, confirm on hardware, run; prints the table.
@@ -338,28 +383,27 @@ fn validate_here(config: &Config, request: &ValidateRequest, yes: bool) -> Resul
         confirm_validation(request.probe_mass)?;
     }
     if prepared.calibrates_first() {
-        println!(
-            "calibrating {} first (grid to {})",
+        out(&format!(
+            "calibrating {} first (grid to {})\n",
             prepared.device(),
             request.out.join("grid.toml").display()
-        );
+        ))?;
     }
     let stop = install_stop_handler()?;
     let mut display = progress::ValidationDisplay::new(config);
     let run = prepared.run(stop, &mut |e| display.show(e));
     display.finish();
     let run = run?;
-    print!("{}", run.report.table());
-    println!(
-        "results in {}: {}, {}, {} and {} ({:.1} s wall time)",
+    out(&run.report.table())?;
+    out(&format!(
+        "results in {}: {}, {}, {} and {} ({:.1} s wall time)\n",
         request.out.display(),
         file_name(&run.outputs.csv),
         file_name(&run.outputs.summary),
         file_name(&run.outputs.svg),
         file_name(&run.outputs.png),
         run.wall_time
-    );
-    Ok(())
+    ))
 }
 
 fn file_name(path: &Path) -> String {
@@ -407,30 +451,44 @@ fn sim_device(config: &Config, listen: &Path, lockstep: bool, model: &str) -> Re
     let served = hgcd::sim::socket::serve(&listener, power_on, lockstep, &stop);
     let _ = std::fs::remove_file(listen);
     let served = served.with_context(|| format!("serving {}", listen.display()))?;
-    println!(
-        "simulated device served {} host(s), {:.3} s of device time; {} output reports rejected",
+    out(&format!(
+        "simulated device served {} host(s), {:.3} s of device time; {} output reports rejected\n",
         served.hosts, served.device_time, served.rejected
-    );
-    Ok(())
+    ))
 }
 
-/// `hgcd devices`: the HID devices this process can see.
+/// `hgcd devices`: the HID devices this process can see, then the simulated ones.
 fn devices() -> Result<()> {
-    let devices = hid::list_devices()?;
-    if devices.is_empty() {
-        println!("no HID devices visible (unplugged, or no permission: see docs/install.md)");
+    let listed = hid::list_devices();
+    match &listed {
+        Ok(devices) if devices.is_empty() => {
+            out("no HID devices visible (unplugged, or no permission: see docs/install.md)\n")?
+        }
+        Ok(devices) => {
+            for d in devices {
+                out(&format!(
+                    "{:<32} {} {} (interface {}, {})\n",
+                    d.spec(),
+                    d.manufacturer.as_deref().unwrap_or("?"),
+                    d.product.as_deref().unwrap_or("?"),
+                    d.interface,
+                    d.path
+                ))?;
+            }
+        }
+        Err(_) => {}
     }
-    for d in devices {
-        println!(
-            "{:<32} {} {} (interface {}, {})",
-            d.spec(),
-            d.manufacturer.as_deref().unwrap_or("?"),
-            d.product.as_deref().unwrap_or("?"),
-            d.interface,
-            d.path
-        );
+    for model in SIM_MODELS {
+        let spec = DeviceSpec::Sim {
+            model: model.to_string(),
+        };
+        out(&format!(
+            "{:<32} simulated: mock-HID firmware around a {model} plant (config [sim]); no \
+             hardware needed\n",
+            spec.to_string()
+        ))?;
     }
-    Ok(())
+    listed.map(|_| ()).context("listing HID devices")
 }
 
 /// On a real device the user brings the handle near the workspace centre first (paper §3.1).
@@ -442,9 +500,9 @@ fn confirm_start() -> Result<()> {
         "calibrating a real device needs confirmation: run it on a terminal or pass --yes once the \
          handle rests near the centre of the workspace"
     );
-    eprint!(
+    err(
         "Bring the handle near the centre of the workspace and let go of it; hgcd will hold it with \
-         a soft spring.\nPress Enter to start (Ctrl-C aborts). "
+         a soft spring.\nPress Enter to start (Ctrl-C aborts). ",
     );
     std::io::stderr().flush().ok();
     let mut line = String::new();
@@ -486,11 +544,11 @@ fn exit_status(e: &anyhow::Error) -> u8 {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
     match real_main(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("hgcd: {e:#}");
+            err(&format!("hgcd: {e:#}\n"));
             ExitCode::from(exit_status(&e))
         }
     }

@@ -166,7 +166,7 @@ fn bad_input_gets_one_clear_line() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("known: point-mass"));
 
     let out = hgcd()
-        .args(["--config", "/nonexistent/hgcd.toml", "devices"])
+        .args(["--config", "/nonexistent/hgcd.toml", "status"])
         .output()
         .unwrap();
     assert!(!out.status.success());
@@ -422,4 +422,346 @@ fn exit_status_says_whether_the_device_is_gone() {
     assert_eq!(status(&["run", "--device", "usb:1:2"]), Some(1));
     assert_eq!(status(&["run", "--duration", "0"]), Some(1));
     assert_eq!(status(&["run", "--duration", "-1"]), Some(2));
+}
+
+/// A pipe whose reader has gone already: every write to it fails (EPIPE), as when `head` has
+/// read what it wanted.
+fn closed_pipe() -> std::process::Stdio {
+    use std::os::fd::FromRawFd;
+    let mut fds = [0; 2];
+    // SAFETY: pipe2 fills `fds` with two new descriptors; the read end is closed at once and the
+    // write end owned by the returned Stdio alone.
+    unsafe {
+        assert_eq!(libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC), 0);
+        libc::close(fds[0]);
+        std::process::Stdio::from(std::os::fd::OwnedFd::from_raw_fd(fds[1]))
+    }
+}
+
+/// `command` run with stdout, stderr or both going to a pipe nobody reads any more, the other
+/// one kept: its exit status and what it printed there.
+fn with_reader_gone(
+    mut command: std::process::Command,
+    stdout: bool,
+    stderr: bool,
+) -> (Option<i32>, String) {
+    use std::process::Stdio;
+    command
+        .stdin(Stdio::null())
+        .stdout(if stdout {
+            closed_pipe()
+        } else {
+            Stdio::piped()
+        })
+        .stderr(if stderr {
+            closed_pipe()
+        } else {
+            Stdio::piped()
+        })
+        .env("RUST_BACKTRACE", "1");
+    let out = command.output().unwrap();
+    let kept = if stdout { &out.stderr } else { &out.stdout };
+    (
+        out.status.code(),
+        String::from_utf8_lossy(kept).into_owned(),
+    )
+}
+
+/// Send SIGTERM to this test's child process whose command line names `path`.
+fn terminate_the_process_serving(path: &std::path::Path) {
+    let wanted = path.as_os_str().as_encoded_bytes();
+    for entry in std::fs::read_dir("/proc").unwrap().flatten() {
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<i32>() else {
+            continue;
+        };
+        let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
+            continue;
+        };
+        if cmdline.split(|&b| b == 0).any(|arg| arg == wanted) {
+            // SAFETY: kill(2) on a process started by this test.
+            unsafe { libc::kill(pid, libc::SIGTERM) };
+            return;
+        }
+    }
+    panic!("no process serves {}", path.display());
+}
+
+#[test]
+fn every_command_ends_quietly_when_its_reader_goes_away() {
+    use std::io::{BufRead, BufReader};
+    // Before: a write to a closed pipe panicked (exit status 101, and a message when stderr was
+    // still there). Now the command does its work, drops what it cannot print and exits with the
+    // status it would have had.
+    let cfg = empty_config();
+    let dir = tempfile::tempdir().unwrap();
+    let socket = dir.path().join("s.sock");
+    let check = |args: &[&str], expected: i32| {
+        for (stdout, stderr) in [(true, false), (false, true), (true, true)] {
+            let mut command = hgcd_in(&cfg, &socket, dir.path());
+            command.args(args);
+            let (code, kept) = with_reader_gone(command, stdout, stderr);
+            let gone = match (stdout, stderr) {
+                (true, false) => "stdout",
+                (false, true) => "stderr",
+                _ => "stdout and stderr",
+            };
+            assert_eq!(code, Some(expected), "{args:?}, {gone} gone: {kept}");
+            assert!(!kept.contains("panicked"), "{args:?}, {gone} gone: {kept}");
+            assert!(
+                !kept.contains("Broken pipe"),
+                "{args:?}, {gone} gone: {kept}"
+            );
+        }
+    };
+    check(&["--help"], 0);
+    check(&["devices"], 0);
+    check(&["calibrate", "--device", "sim:point-mass"], 0);
+    check(
+        &[
+            "run",
+            "--device",
+            "sim:point-mass",
+            "--virtual-time",
+            "--duration",
+            "0.5",
+        ],
+        0,
+    );
+    // Nobody listens: the error has nowhere to go either, the status says it.
+    check(&["status"], 1);
+
+    // The commands that talk to a daemon, with one running (flat out, in virtual time).
+    let mut daemon = hgcd_in(&cfg, &socket, dir.path())
+        .args(["run", "--device", "sim:point-mass", "--virtual-time"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut log = BufReader::new(daemon.stderr.take().unwrap());
+    let mut line = String::new();
+    while !line.contains("hgcd running on") {
+        line.clear();
+        assert!(log.read_line(&mut line).unwrap() > 0, "the daemon ended");
+    }
+    // Keep the daemon's log flowing so it never blocks on it.
+    let drain = std::thread::spawn(move || std::io::copy(&mut log, &mut std::io::sink()));
+    check(&["status"], 0);
+    check(&["calibrate", "--via-daemon", "--yes"], 0);
+    // SAFETY: kill(2) on our own child.
+    assert_eq!(unsafe { libc::kill(daemon.id() as i32, libc::SIGTERM) }, 0);
+    assert!(daemon.wait().unwrap().success());
+    drain.join().unwrap().unwrap();
+
+    // The simulated device served on a socket prints what it served when it is stopped.
+    let device = dir.path().join("device.sock");
+    let slow_watchdog = empty_config();
+    std::fs::write(slow_watchdog.path(), "[servo]\nwatchdog_ms = 1000\n").unwrap();
+    for (stdout, stderr) in [(true, false), (false, true), (true, true)] {
+        let mut sim = hgcd();
+        sim.args(["--config", slow_watchdog.path().to_str().unwrap()])
+            .args(["sim-device", "--lockstep", "--listen"])
+            .arg(&device);
+        let sim = std::thread::spawn(move || with_reader_gone(sim, stdout, stderr));
+        common::wait_for("the simulated device's socket", || {
+            device.exists().then_some(())
+        });
+        let spec = format!("socket:{}", device.display());
+        let mut host = hgcd_in(&slow_watchdog, &socket, dir.path());
+        host.args(["run", "--device", &spec, "--duration", "0.2"]);
+        let (code, kept) = with_reader_gone(host, stdout, stderr);
+        assert_eq!(code, Some(0), "host: {kept}");
+        // It serves host after host until told to stop.
+        terminate_the_process_serving(&device);
+        let (code, kept) = sim.join().unwrap();
+        assert_eq!(code, Some(0), "sim-device: {kept}");
+        assert!(!kept.contains("panicked"), "sim-device: {kept}");
+    }
+}
+
+/// Runs as a user who may not write /var/lib/hgcd: as `nobody` when the tests run as root.
+fn unprivileged(
+    mut command: std::process::Command,
+    home: &std::path::Path,
+) -> std::process::Command {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: geteuid has no preconditions.
+    if unsafe { libc::geteuid() } == 0 {
+        command.uid(65534).gid(65534);
+    }
+    command
+        .env("HOME", home)
+        .env_remove("XDG_STATE_HOME")
+        .env_remove("STATE_DIRECTORY")
+        .env_remove("RUNTIME_DIRECTORY");
+    command
+}
+
+#[test]
+fn a_normal_user_calibrates_and_runs_a_simulated_device_without_naming_a_state_dir() {
+    use std::io::{BufRead, BufReader};
+    use std::os::unix::fs::PermissionsExt;
+    // SAFETY: geteuid and access have no preconditions; the path is a NUL-terminated literal.
+    let (root, system_writable) = unsafe {
+        (
+            libc::geteuid() == 0,
+            libc::access(c"/var/lib".as_ptr(), libc::W_OK) == 0,
+        )
+    };
+    if !root && system_writable {
+        eprintln!("skipped: this user may write /var/lib, where the grid would go");
+        return;
+    }
+    // A home the unprivileged user may write, holding the config and the socket too.
+    let home = tempfile::tempdir().unwrap();
+    std::fs::set_permissions(home.path(), std::fs::Permissions::from_mode(0o777)).unwrap();
+    let cfg = home.path().join("hgcd.toml");
+    std::fs::write(&cfg, "").unwrap();
+    std::fs::set_permissions(&cfg, std::fs::Permissions::from_mode(0o644)).unwrap();
+    let socket = home.path().join("hgcd.sock");
+    // A copy of the binary there too: the user may not be allowed into the build's directory.
+    let exe = home.path().join("hgcd");
+    std::fs::copy(env!("CARGO_BIN_EXE_hgcd"), &exe).unwrap();
+    let hgcd_as_user = |args: &[&str]| {
+        let mut c = std::process::Command::new(&exe);
+        c.current_dir(home.path())
+            .arg("--config")
+            .arg(&cfg)
+            .args(args);
+        unprivileged(c, home.path())
+    };
+    // The daemon, flat out in virtual time until told to stop; its mode as `status` gives it, and
+    // what it logged.
+    let run_daemon = || {
+        let mut daemon = hgcd_as_user(&["run", "--device", "sim:point-mass", "--virtual-time"]);
+        let mut daemon = daemon
+            .arg("--socket")
+            .arg(&socket)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut log = String::new();
+        let mut stderr = BufReader::new(daemon.stderr.take().unwrap());
+        while !log.contains("hgcd running on") {
+            assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
+        }
+        let status = hgcd::client::Client::connect(&socket, hgcd::client::Role::Observe, "test")
+            .unwrap()
+            .status()
+            .unwrap();
+        // SAFETY: kill(2) on our own child.
+        assert_eq!(unsafe { libc::kill(daemon.id() as i32, libc::SIGTERM) }, 0);
+        std::io::Read::read_to_string(&mut stderr, &mut log).unwrap();
+        assert!(daemon.wait().unwrap().success(), "{log}");
+        (status, log)
+    };
+
+    // No grid yet: the daemon says which command calibrates this device.
+    let (status, log) = run_daemon();
+    assert_eq!(status.mode, hgcd::client::Compensating::None);
+    let advice = "hgcd calibrate --device sim:point-mass";
+    assert!(log.contains(&format!("`{advice}`")), "{log}");
+    assert!(!log.contains("--via-daemon"), "{log}");
+
+    // The advice, as given (with the daemon's --config): the grid goes to the user's state dir.
+    let args: Vec<&str> = advice.split_whitespace().skip(1).collect();
+    let out = hgcd_as_user(&args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let grid = home.path().join(".local/state/hgcd/sim-point-mass.toml");
+    assert!(grid.is_file(), "{}", String::from_utf8_lossy(&out.stdout));
+
+    // `hgcd run` finds it the same way.
+    let (status, log) = run_daemon();
+    assert_eq!(status.mode, hgcd::client::Compensating::Scalar, "{log}");
+    assert_eq!(
+        status.grid.as_deref(),
+        Some(grid.to_str().unwrap()),
+        "{log}"
+    );
+}
+
+#[test]
+fn help_and_devices_show_what_a_newcomer_can_use() {
+    // A subcommand's help lists only the options it uses.
+    let help = |sub: &str| {
+        let out = hgcd().args([sub, "--help"]).output().unwrap();
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    for (sub, shown, hidden) in [
+        (
+            "devices",
+            &[][..],
+            &["--config", "--socket", "--state-dir"][..],
+        ),
+        (
+            "status",
+            &["--config", "--socket"][..],
+            &["--state-dir"][..],
+        ),
+        (
+            "sim-device",
+            &["--config"][..],
+            &["--socket", "--state-dir"][..],
+        ),
+        ("run", &["--config", "--socket", "--state-dir"][..], &[][..]),
+        (
+            "calibrate",
+            &["--config", "--socket", "--state-dir"][..],
+            &[][..],
+        ),
+    ] {
+        let text = help(sub);
+        for o in shown {
+            assert!(text.contains(o), "{sub} --help lacks {o}: {text}");
+        }
+        for o in hidden {
+            assert!(!text.contains(o), "{sub} --help shows {o}: {text}");
+        }
+    }
+    // `devices` names the simulated devices too, and each spec it gives opens.
+    let out = hgcd().arg("devices").output().unwrap();
+    let listing = String::from_utf8_lossy(&out.stdout);
+    let sims: Vec<&str> = listing
+        .split_whitespace()
+        .filter(|w| w.starts_with("sim:"))
+        .collect();
+    let models: Vec<String> = hgcd::config::SIM_MODELS
+        .iter()
+        .map(|m| format!("sim:{m}"))
+        .collect();
+    assert_eq!(sims, models, "{listing}");
+    let cfg = empty_config();
+    let dir = tempfile::tempdir().unwrap();
+    for spec in sims {
+        let out = hgcd_in(&cfg, &dir.path().join("s.sock"), dir.path())
+            .args([
+                "run",
+                "--device",
+                spec,
+                "--virtual-time",
+                "--duration",
+                "0.1",
+            ])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    // Where the daemon is not, `status` says how to point at it.
+    let out = hgcd()
+        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
+        .arg(dir.path().join("nothing.sock"))
+        .arg("status")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("--socket"), "{stderr}");
 }

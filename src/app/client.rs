@@ -14,8 +14,14 @@ use super::protocol::{Request, APP_PROTOCOL_VERSION, MAX_LINE_LEN};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
-    #[error("cannot connect to the hgcd socket {path}: {error} (is `hgcd run` running?)")]
-    Connect { path: String, error: std::io::Error },
+    #[error("cannot connect to the hgcd socket {path} ({hint})")]
+    Connect {
+        path: String,
+        /// What to do about it.
+        hint: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("socket I/O: {0}")]
     Io(#[from] std::io::Error),
     #[error("the daemon closed the connection")]
@@ -24,6 +30,20 @@ pub enum ClientError {
     Protocol(String),
     #[error("the daemon refused: {0}")]
     Refused(String),
+}
+
+/// What to do when connecting to the socket failed with `e`.
+fn connect_hint(e: &std::io::Error) -> &'static str {
+    match e.kind() {
+        std::io::ErrorKind::PermissionDenied => {
+            "this user may not connect: join group hgcd (docs/install.md §3), or give a socket you \
+             may use with --socket PATH"
+        }
+        _ => {
+            "is `hgcd run` running? A daemon listening on another socket is reached with --socket \
+             PATH"
+        }
+    }
 }
 
 /// One connection to the daemon.
@@ -38,6 +58,8 @@ pub struct Client {
     pub device_id: String,
     /// Servo rate, Hz.
     pub rate_hz: f64,
+    /// The largest force component the daemon accepts, N (see [`Client::within_limit`]).
+    pub max_force: f64,
 }
 
 impl Client {
@@ -47,9 +69,10 @@ impl Client {
     /// Errors: [`ClientError::Connect`] when nobody listens there, `Refused` when the daemon
     /// refuses the hello, `Closed`, `Io` or `Protocol` when the conversation breaks.
     pub fn connect(path: &Path, role: Role, name: &str) -> Result<Self, ClientError> {
-        let stream = UnixStream::connect(path).map_err(|error| ClientError::Connect {
+        let stream = UnixStream::connect(path).map_err(|source| ClientError::Connect {
             path: path.display().to_string(),
-            error,
+            hint: connect_hint(&source),
+            source,
         })?;
         let writer = stream.try_clone()?;
         let mut client = Self {
@@ -61,6 +84,7 @@ impl Client {
             device: String::new(),
             device_id: String::new(),
             rate_hz: 0.0,
+            max_force: 0.0,
         };
         client.send(&Request::Hello {
             version: APP_PROTOCOL_VERSION,
@@ -74,6 +98,7 @@ impl Client {
                 device,
                 device_id,
                 rate_hz,
+                max_force_n,
                 ..
             } => {
                 client.role = role;
@@ -81,6 +106,7 @@ impl Client {
                 client.device = device;
                 client.device_id = device_id;
                 client.rate_hz = rate_hz;
+                client.max_force = max_force_n;
                 Ok(client)
             }
             other => Err(ClientError::Protocol(format!(
@@ -108,6 +134,19 @@ impl Client {
             seq,
             force: force.into(),
         })
+    }
+
+    /// `force` (N) scaled down, its direction kept, to a magnitude of at most the daemon's limit
+    /// [`Client::max_force`]. The daemon refuses (fatally) a component beyond the limit, and its
+    /// safety layer clamps the magnitude of the total force to it anyway: an application whose
+    /// force law can ask for more (a stiff wall deep inside) sends this instead.
+    pub fn within_limit(&self, force: Vector3<f64>) -> Vector3<f64> {
+        let norm = force.norm();
+        if norm > self.max_force {
+            force * (self.max_force / norm)
+        } else {
+            force
+        }
     }
 
     /// Sequence number of the last `set_force` sent.

@@ -57,6 +57,9 @@ pub enum Reply {
         device: String,
         device_id: String,
         rate_hz: f64,
+        /// The largest force component `set_force` accepts, N (`safety.max_force_n`); the
+        /// safety layer also clamps the magnitude of the total force to it.
+        max_force_n: f64,
     },
     /// One servo tick.
     State(StateSample),
@@ -133,6 +136,19 @@ impl From<Option<CompensationMode>> for Compensating {
             None => Self::None,
             Some(CompensationMode::Scalar) => Self::Scalar,
             Some(CompensationMode::Vector) => Self::Vector,
+        }
+    }
+}
+
+impl Compensating {
+    /// What the mode means, in a few words for people.
+    pub fn meaning(self) -> &'static str {
+        match self {
+            Self::Scalar => {
+                "the weight M(X)·g of the grid's masses, along gravity (the paper's model)"
+            }
+            Self::Vector => "the holding forces the calibration measured, interpolated",
+            Self::None => "no grid: the handle's own weight is not compensated",
         }
     }
 }

@@ -515,6 +515,7 @@ impl Session<'_> {
                 device: ctx.device.clone(),
                 device_id: ctx.device_id.clone(),
                 rate_hz: ctx.rate_hz,
+                max_force_n: ctx.max_force,
             },
         );
         if self.status_only {

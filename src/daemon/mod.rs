@@ -66,7 +66,12 @@ pub enum RunError {
         chain(.0)
     )]
     Grid(UnusableGrid),
-    #[error("cannot listen on {} (set app.socket or --socket, or check /run/hgcd permissions)", path.display())]
+    #[error(
+        "cannot listen on {} (give another path with --socket PATH or app.socket, or let this \
+         user create files in {})",
+        path.display(),
+        path.parent().unwrap_or(Path::new("/")).display()
+    )]
     Listen {
         path: PathBuf,
         #[source]
@@ -113,9 +118,9 @@ pub fn load_model(
     let built: Result<GravityModel, UnusableGrid> = match GridFile::load_for(path, device) {
         Err(GridError::Missing { .. }) => {
             warn!(
-                "no calibration grid at {}: running WITHOUT gravity compensation; calibrate with \
-                 `hgcd calibrate --via-daemon`",
-                path.display()
+                "no calibration grid at {}: running WITHOUT gravity compensation; {}",
+                path.display(),
+                how_to_calibrate(&device.spec)
             );
             return Ok(None);
         }
@@ -149,6 +154,20 @@ pub fn load_model(
             Ok(None)
         }
         Err(e) => Err(RunError::Grid(e)),
+    }
+}
+
+/// What to run to calibrate `device` while a daemon drives it. A simulated device is calibrated
+/// by `hgcd calibrate` on its own copy, in virtual time (the same configuration makes the same
+/// plant); a real one only by the daemon that holds it.
+fn how_to_calibrate(device: &DeviceSpec) -> String {
+    match device {
+        DeviceSpec::Sim { .. } => format!(
+            "calibrate with `hgcd calibrate --device {device}` (with this daemon's --config and \
+             --state-dir, if it was given any), then reload (SIGHUP) or restart"
+        ),
+        _ => "calibrate with `hgcd calibrate --via-daemon` (the daemon then uses the new grid)"
+            .into(),
     }
 }
 
@@ -521,8 +540,9 @@ impl Daemon {
         )
         .map_err(RunError::Spawn)?;
         info!(
-            "hgcd running on {device} (grid id {}), compensation: {mode}, socket {}",
+            "hgcd running on {device} (grid id {}), compensation: {mode} ({}), socket {}",
             device.grid_id(),
+            mode.meaning(),
             self.socket.display()
         );
         ready(&self.socket);

@@ -55,24 +55,54 @@ pub fn prepare_current_thread(config: &ServoConfig) -> RealtimeSetup {
         }
     }
     if config.realtime_priority > 0 {
-        let result = ThreadPriority::try_from(config.realtime_priority)
-            .map_err(|e| e.to_string())
-            .and_then(|p| {
-                set_thread_priority_and_policy(
-                    thread_native_id(),
-                    p,
-                    ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo),
-                )
-                .map_err(|e| format!("{e:?}"))
-            });
+        let priority = ThreadPriority::try_from(config.realtime_priority)
+            .map_err(thread_priority::Error::Priority);
+        let result = priority.and_then(|p| {
+            set_thread_priority_and_policy(
+                thread_native_id(),
+                p,
+                ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo),
+            )
+        });
         match result {
             Ok(()) => setup.fifo_priority = Some(config.realtime_priority),
-            Err(e) => setup.warnings.push(format!(
-                "cannot use SCHED_FIFO priority {} ({e}); running at normal priority — expect more \
-                 jitter (grant LimitRTPRIO or CAP_SYS_NICE, see docs/install.md)",
-                config.realtime_priority
-            )),
+            Err(e) => setup
+                .warnings
+                .push(fifo_refused(config.realtime_priority, &e)),
         }
     }
     setup
+}
+
+/// The warning when SCHED_FIFO at `priority` was refused with `error`: the reason in words and
+/// what allows it.
+fn fifo_refused(priority: u8, error: &thread_priority::Error) -> String {
+    let reason = match error {
+        thread_priority::Error::OS(code) => std::io::Error::from_raw_os_error(*code).to_string(),
+        other => other.to_string(),
+    };
+    format!(
+        "cannot use SCHED_FIFO priority {priority}: {reason}; running at normal priority, expect \
+         more jitter. Allow it with LimitRTPRIO=90 in the unit, an `rtprio 90` line in \
+         /etc/security/limits.d/ for a user running hgcd by hand, or CAP_SYS_NICE \
+         (docs/install.md §5)"
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_refused_priority_is_explained_in_words_with_the_remedy() {
+        let warning = fifo_refused(80, &thread_priority::Error::OS(libc::EPERM));
+        assert!(!warning.contains("OS(1)"), "{warning}");
+        assert!(
+            warning.contains(&std::io::Error::from_raw_os_error(libc::EPERM).to_string()),
+            "{warning}"
+        );
+        for remedy in ["LimitRTPRIO", "rtprio", "CAP_SYS_NICE", "docs/install.md"] {
+            assert!(warning.contains(remedy), "{remedy}: {warning}");
+        }
+    }
 }

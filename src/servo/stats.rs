@@ -40,7 +40,8 @@ impl Histogram {
         self.max_ns as f64 / 1000.0
     }
 
-    /// The `p`-quantile (0–1), µs, to bin resolution (upper edge of its bin); None when empty.
+    /// The `p`-quantile (0–1), µs, to bin resolution (upper edge of its bin, but never above the
+    /// largest value recorded); None when empty.
     pub fn quantile_us(&self, p: f64) -> Option<f64> {
         if self.count == 0 {
             return None;
@@ -50,7 +51,7 @@ impl Histogram {
         for (i, &n) in self.bins.iter().enumerate() {
             seen += u64::from(n);
             if seen >= rank {
-                return Some((i + 1) as f64);
+                return Some(((i + 1) as f64).min(self.max_us()));
             }
         }
         Some(self.max_us())
@@ -218,6 +219,25 @@ mod tests {
         assert_eq!(h.quantile_us(0.99), Some(99.0));
         h.record_ns(1_000_000);
         assert_eq!(h.quantile_us(1.0), Some(1000.0));
+    }
+
+    #[test]
+    fn no_quantile_exceeds_the_maximum() {
+        // A virtual-time loop: every period exactly 1 ms, the lower edge of the 1000 µs bin.
+        let mut h = Histogram::new(20_000);
+        for _ in 0..1000 {
+            h.record_ns(1_000_000);
+        }
+        assert_eq!(h.max_us(), 1000.0);
+        for p in [0.5, 0.99, 0.999, 1.0] {
+            assert_eq!(h.quantile_us(p), Some(1000.0), "p = {p}");
+        }
+        // Within a bin, a quantile is its upper edge unless that is above the maximum.
+        h.record_ns(1_000_400);
+        assert_eq!(h.quantile_us(1.0), Some(1000.4));
+        h.record_ns(2_500_000);
+        assert_eq!(h.quantile_us(0.999), Some(1001.0));
+        assert_eq!(h.quantile_us(1.0), Some(2500.0));
     }
 
     #[test]

@@ -19,7 +19,8 @@ use super::{truth_field_27, WAIT};
 pub struct TestDaemon {
     config: Config,
     grid: Option<GridFile>,
-    truth: MassGrid,
+    /// The plant's mass field; None: the config's own plant, as it is.
+    truth: Option<MassGrid>,
     pacing: Pacing,
     duration: Option<f64>,
 }
@@ -27,17 +28,14 @@ pub struct TestDaemon {
 impl TestDaemon {
     /// A daemon on `sim:point-mass` in virtual time, no stored grid, truth field
     /// [`truth_field_27`]. A frictionless point mass is a double integrator: any bias force,
-    /// however small, makes it drift quadratically, so unless the config says otherwise the plant
-    /// gets 1 N·s/m of viscous friction, typical of desktop haptic devices.
+    /// however small, makes it drift quadratically, so unless the config says otherwise that
+    /// plant gets 1 N·s/m of viscous friction, typical of desktop haptic devices.
     pub fn new(mut config: Config) -> Self {
-        if config.sim.damping_n_s_per_m == 0.0 {
-            config.sim.damping_n_s_per_m = 1.0;
-        }
         config.servo.lock_memory = false;
         Self {
             config,
             grid: None,
-            truth: truth_field_27(),
+            truth: Some(truth_field_27()),
             pacing: Pacing::Virtual,
             duration: None,
         }
@@ -51,7 +49,13 @@ impl TestDaemon {
 
     /// The plant's apparent-mass field.
     pub fn truth(mut self, truth: &MassGrid) -> Self {
-        self.truth = truth.clone();
+        self.truth = Some(truth.clone());
+        self
+    }
+
+    /// The plant the config's `[sim]` section describes, untouched.
+    pub fn plant_from_config(mut self) -> Self {
+        self.truth = None;
         self
     }
 
@@ -76,9 +80,14 @@ impl TestDaemon {
         let dir = tempfile::tempdir().unwrap();
         let state = dir.path().join("state");
         std::fs::create_dir_all(&state).unwrap();
-        let truth = dir.path().join("truth.toml");
-        GridFile::from(self.truth).save_atomic(&truth).unwrap();
-        self.config.sim.mass_grid = Some(truth);
+        if let Some(field) = self.truth {
+            let truth = dir.path().join("truth.toml");
+            GridFile::from(field).save_atomic(&truth).unwrap();
+            self.config.sim.mass_grid = Some(truth);
+            if self.config.sim.damping_n_s_per_m == 0.0 {
+                self.config.sim.damping_n_s_per_m = 1.0;
+            }
+        }
         if let Some(grid) = &self.grid {
             grid.save_atomic(&state.join("sim-point-mass.toml"))
                 .unwrap();
