@@ -248,9 +248,12 @@ fn entry(function: &str, body: impl FnOnce() -> Result<hgcd_result, Failure>) ->
 }
 
 /// The handle's session, without waiting for another thread.
-fn lock(client: *mut hgcd_client) -> Result<MutexGuard<'static, Session>, Failure> {
-    // SAFETY: a non-NULL handle comes from `hgcd_connect` and is not yet closed (the header's
-    // contract); it lives until `hgcd_close`, which must not race this call.
+///
+/// # Safety
+///
+/// `client` is NULL or a handle from `hgcd_connect` that stays open while the guard lives.
+unsafe fn lock(client: *mut hgcd_client) -> Result<MutexGuard<'static, Session>, Failure> {
+    // SAFETY: by this function's contract.
     let handle =
         unsafe { client.as_ref() }.ok_or_else(|| fail(HGCD_ERR_ARGUMENT, "the handle is NULL"))?;
     match handle.session.try_lock() {
@@ -267,11 +270,15 @@ fn lock(client: *mut hgcd_client) -> Result<MutexGuard<'static, Session>, Failur
 }
 
 /// The C string at `s` as UTF-8; `what` names it in the error.
-fn utf8<'a>(s: *const c_char, what: &str) -> Result<Option<&'a str>, Failure> {
+///
+/// # Safety
+///
+/// `s` is NULL or a NUL-terminated string that outlives `'a`.
+unsafe fn utf8<'a>(s: *const c_char, what: &str) -> Result<Option<&'a str>, Failure> {
     if s.is_null() {
         return Ok(None);
     }
-    // SAFETY: the caller passes a NUL-terminated string (the header's contract).
+    // SAFETY: by this function's contract.
     unsafe { CStr::from_ptr(s) }
         .to_str()
         .map(Some)
