@@ -48,17 +48,21 @@ fn tool(name: &str, why: &str) -> PathBuf {
         .unwrap_or_else(|| panic!("`{name}` is not on PATH: {why}"))
 }
 
-/// The directory cargo builds into (the one holding this test's `debug/deps`).
-fn target_dir() -> PathBuf {
+/// The directory cargo builds into and this test's profile directory in it (`debug`, or
+/// `release` under `cargo test --release`): this test runs from `TARGET/PROFILE/deps/`.
+fn target_dir() -> (PathBuf, String) {
     let exe = std::env::current_exe().unwrap();
-    exe.ancestors()
-        .nth(3)
-        .expect("target/PROFILE/deps/TEST")
-        .to_path_buf()
+    let mut up = exe.ancestors().skip(2);
+    let profile = up
+        .next()
+        .and_then(|p| p.file_name())
+        .expect("TARGET/PROFILE/deps/TEST");
+    let profile = profile.to_string_lossy().into_owned();
+    (up.next().unwrap().to_path_buf(), profile)
 }
 
-/// `clients/c/examples/virtual_wall.c`, built once per run: `cargo build -p hgcd-c`, then `cc`
-/// against the shared library, warnings as errors.
+/// `clients/c/examples/virtual_wall.c`, built once per run: `cargo build -p hgcd-c` with this
+/// test's profile, then `cc` against the shared library, warnings as errors.
 fn c_wall() -> &'static Path {
     static EXE: OnceLock<PathBuf> = OnceLock::new();
     EXE.get_or_init(|| {
@@ -67,19 +71,22 @@ fn c_wall() -> &'static Path {
             "the C client tests build clients/c/examples/virtual_wall.c with the system's C \
              compiler (Debian: apt-get install gcc)",
         );
-        let target = target_dir();
-        let built = Command::new(env!("CARGO"))
+        let (target, profile) = target_dir();
+        let mut build = Command::new(env!("CARGO"));
+        build
             .args(["build", "-p", "hgcd-c", "--target-dir"])
             .arg(&target)
-            .current_dir(repo())
-            .output()
-            .unwrap();
+            .current_dir(repo());
+        if profile == "release" {
+            build.arg("--release");
+        }
+        let built = build.output().unwrap();
         assert!(
             built.status.success(),
             "cargo build -p hgcd-c failed:\n{}",
             String::from_utf8_lossy(&built.stderr)
         );
-        let lib = target.join("debug");
+        let lib = target.join(profile);
         let out = target.join("clients-test");
         std::fs::create_dir_all(&out).unwrap();
         let exe = out.join("virtual_wall");
@@ -515,7 +522,9 @@ fn the_python_trial_holds_still_then_its_spring_balances_a_probe_mass() {
 
 /// A daemon that answers the hello with `replies`, then waits for the client to go.
 fn fake_daemon(dir: &Path, replies: &'static [&'static str]) -> PathBuf {
-    let path = dir.join(format!("fake-{}.sock", replies.len()));
+    static MADE: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = MADE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let path = dir.join(format!("fake-{n}.sock"));
     let listener = UnixListener::bind(&path).unwrap();
     std::thread::spawn(move || {
         let (stream, _) = listener.accept().unwrap();
@@ -602,6 +611,37 @@ fn the_python_client_names_a_reply_it_does_not_understand() {
             "is `hgcd run` running?",
         ],
     );
+}
+
+/// `hgcd_client` in `python3 -c` on `socket`: what `script` prints.
+fn python_module(socket: &Path, script: &str) -> Output {
+    let python = tool(
+        "python3",
+        "the Python client tests run it (Debian: apt-get install python3)",
+    );
+    Command::new(python)
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .env("PYTHONPATH", repo().join("clients/python"))
+        .args(["-c", script])
+        .arg(socket)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn the_python_client_takes_the_force_limit_from_the_welcome_or_the_protocol() {
+    const LIMITED: &[&str] = &[
+        r#"{"type":"welcome","version":1,"role":"control","client_id":1,"device":"sim:point-mass","device_id":"sim-point-mass","rate_hz":1000.0,"max_force_n":3.5}"#,
+    ];
+    let dir = tempfile::tempdir().unwrap();
+    let script = "import sys, hgcd_client\n\
+                  with hgcd_client.connect(sys.argv[1]) as c:\n    \
+                  print(c.take_ownership().max_force_n)";
+    for (replies, limit) in [(LIMITED, "3.5"), (&[WELCOME][..], "8.0")] {
+        let output = python_module(&fake_daemon(dir.path(), replies), script);
+        assert!(output.status.success(), "{output:?}");
+        assert_eq!(text(&output.stdout).trim(), limit);
+    }
 }
 
 /// Start `example` on the daemon's own socket, wait until it owns the force, stop the daemon:

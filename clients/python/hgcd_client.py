@@ -109,6 +109,9 @@ class Welcome:
     device: str
     device_id: str
     rate_hz: float  # servo rate, Hz
+    #: Largest force component set_force may send, N: the daemon's safety.max_force_n when its
+    #: welcome gives it, else DEFAULT_MAX_FORCE_N.
+    max_force_n: float = DEFAULT_MAX_FORCE_N
 
 
 @dataclass(frozen=True)
@@ -259,6 +262,8 @@ class Client:
             device=_field(reply, "device", str),
             device_id=_field(reply, "device_id", str),
             rate_hz=_field(reply, "rate_hz", float),
+            max_force_n=(_field(reply, "max_force_n", float) if "max_force_n" in reply
+                         else DEFAULT_MAX_FORCE_N),
         )
         return self.welcome
 
@@ -273,8 +278,8 @@ class Client:
     def set_force(self, force: Sequence[float]) -> int:
         """Render `force` (N) on top of gravity compensation until the next call; its number.
         Send one per state sample, and at least every 50 ms (app.stale_offset_ms), or it ramps
-        to zero. Each component must be at most the daemon's safety.max_force_n
-        (DEFAULT_MAX_FORCE_N unless configured otherwise), or the daemon closes the connection."""
+        to zero. Each component must be at most welcome.max_force_n, or the daemon closes the
+        connection."""
         self._greeted()
         if self.welcome is None or self.welcome.role is not Role.CONTROL:
             raise NotOwnerError("this client does not own the force (it observes)")

@@ -38,9 +38,8 @@ STATE_WAIT_S = 2.0
 
 
 def spring(position: Sequence[float], velocity: Sequence[float], anchor: Sequence[float],
-           k: float, b: float) -> List[float]:
-    """F = -k (x - anchor) - b v, each axis within the protocol's per-axis limit (N)."""
-    limit = hgcd_client.DEFAULT_MAX_FORCE_N
+           k: float, b: float, limit: float) -> List[float]:
+    """F = -k (x - anchor) - b v, each axis within the daemon's per-axis `limit` (N)."""
     return [max(-limit, min(limit, -k * (x - a) - b * v))
             for x, a, v in zip(position, anchor, velocity)]
 
@@ -79,9 +78,10 @@ def run(args: argparse.Namespace) -> None:
             if done:
                 offset = [0.0, 0.0, 0.0]
             elif phase == "hold":
-                offset = spring(s.position, s.velocity, anchor, HOLD_STIFFNESS, HOLD_DAMPING)
+                offset = spring(s.position, s.velocity, anchor, HOLD_STIFFNESS, HOLD_DAMPING,
+                                welcome.max_force_n)
             else:
-                offset = spring(s.position, s.velocity, anchor, k, 0.0)
+                offset = spring(s.position, s.velocity, anchor, k, 0.0, welcome.max_force_n)
             client.set_force(offset)
             rows.writerow([phase, s.tick, s.time, *s.position, *s.velocity, *s.force, *offset,
                            s.flags, s.offset_seq])
