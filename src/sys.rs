@@ -6,8 +6,9 @@ use std::os::unix::io::AsRawFd;
 use std::time::{Duration, Instant};
 
 /// Wait until `stream` is readable or `timeout` passes (ppoll: nanosecond timeout, no tick
-/// rounding). EINTR counts as a wake-up; the caller re-checks.
-pub fn wait_readable(fd: &impl AsRawFd, timeout: Duration) -> std::io::Result<()> {
+/// rounding); whether it is readable (or at its end, or failed: a read then says which). EINTR
+/// counts as a wake-up (`false`); the caller re-checks.
+pub fn wait_readable(fd: &impl AsRawFd, timeout: Duration) -> std::io::Result<bool> {
     let mut fds = libc::pollfd {
         fd: fd.as_raw_fd(),
         events: libc::POLLIN,
@@ -25,7 +26,7 @@ pub fn wait_readable(fd: &impl AsRawFd, timeout: Duration) -> std::io::Result<()
             return Err(e);
         }
     }
-    Ok(())
+    Ok(r > 0)
 }
 
 /// Read whatever is queued on `stream` without waiting (EWOULDBLOCK when nothing is).

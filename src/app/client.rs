@@ -11,6 +11,7 @@ use nalgebra::Vector3;
 
 pub use super::protocol::{CalibrationStage, Compensating, Reply, Role, StateSample, Status};
 use super::protocol::{Request, APP_PROTOCOL_VERSION, MAX_LINE_LEN};
+use crate::sys::wait_readable;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
@@ -63,19 +64,31 @@ pub struct Client {
 }
 
 impl Client {
-    /// Connect to the socket at `path` and say hello asking for `role`. The granted role may be
-    /// `Observe` when another client already owns the force.
+    /// Connect to the socket at `path` and say hello asking for `role`: [`Client::open`] then
+    /// [`Client::hello`]. The granted role may be `Observe` when another client already owns the
+    /// force.
     ///
     /// Errors: [`ClientError::Connect`] when nobody listens there, `Refused` when the daemon
     /// refuses the hello, `Closed`, `Io` or `Protocol` when the conversation breaks.
     pub fn connect(path: &Path, role: Role, name: &str) -> Result<Self, ClientError> {
+        let mut client = Self::open(path)?;
+        client.hello(role, name)?;
+        Ok(client)
+    }
+
+    /// Connect to the socket at `path` without saying hello: the daemon refuses every request
+    /// but [`Client::hello`], which must follow within `app.hello_timeout_ms`.
+    ///
+    /// Errors: [`ClientError::Connect`] when nobody listens there, `Io` when the socket cannot
+    /// be shared between reader and writer.
+    pub fn open(path: &Path) -> Result<Self, ClientError> {
         let stream = UnixStream::connect(path).map_err(|source| ClientError::Connect {
             path: path.display().to_string(),
             hint: connect_hint(&source),
             source,
         })?;
         let writer = stream.try_clone()?;
-        let mut client = Self {
+        Ok(Self {
             writer,
             reader: BufReader::new(stream),
             seq: 0,
@@ -85,13 +98,22 @@ impl Client {
             device_id: String::new(),
             rate_hz: 0.0,
             max_force: 0.0,
-        };
-        client.send(&Request::Hello {
+        })
+    }
+
+    /// Say hello asking for `role` (once, first, on a connection from [`Client::open`]) and
+    /// fill in `role` (check it), `client_id`, `device`, `device_id`, `rate_hz` and `max_force` from the
+    /// welcome.
+    ///
+    /// Errors: `Refused` when the daemon refuses the hello (a second one included), `Closed`,
+    /// `Io` or `Protocol` when the conversation breaks.
+    pub fn hello(&mut self, role: Role, name: &str) -> Result<(), ClientError> {
+        self.send(&Request::Hello {
             version: APP_PROTOCOL_VERSION,
             role,
             name: name.to_string(),
         })?;
-        match client.next_reply()? {
+        match self.next_reply()? {
             Reply::Welcome {
                 role,
                 client_id,
@@ -101,13 +123,13 @@ impl Client {
                 max_force_n,
                 ..
             } => {
-                client.role = role;
-                client.client_id = client_id;
-                client.device = device;
-                client.device_id = device_id;
-                client.rate_hz = rate_hz;
-                client.max_force = max_force_n;
-                Ok(client)
+                self.role = role;
+                self.client_id = client_id;
+                self.device = device;
+                self.device_id = device_id;
+                self.rate_hz = rate_hz;
+                self.max_force = max_force_n;
+                Ok(())
             }
             other => Err(ClientError::Protocol(format!(
                 "expected welcome, got {other:?}"
@@ -168,6 +190,13 @@ impl Client {
         self.send(&Request::Calibrate {})
     }
 
+    /// Ask for the daemon's status without waiting for it: it arrives as a `Reply::Status`.
+    ///
+    /// Errors: [`ClientError::Io`] when the daemon is gone.
+    pub fn request_status(&mut self) -> Result<(), ClientError> {
+        self.send(&Request::Status {})
+    }
+
     /// Limit how long the next reads may block (None: forever).
     ///
     /// Errors: [`ClientError::Io`] for a zero duration (as `std` refuses it).
@@ -195,6 +224,19 @@ impl Client {
         }
     }
 
+    /// The next reply if one begins to arrive within `timeout` (`Duration::ZERO`: only one
+    /// already here), else `None`; a reply that has begun to arrive is read to its end. A fatal
+    /// error from the daemon is returned as `Refused`. Unlike a read timeout, running out of
+    /// time never cuts a reply in half.
+    ///
+    /// Errors: as [`Client::next_reply`].
+    pub fn next_reply_within(&mut self, timeout: Duration) -> Result<Option<Reply>, ClientError> {
+        if self.reader.buffer().is_empty() && !wait_readable(self.reader.get_ref(), timeout)? {
+            return Ok(None);
+        }
+        self.next_reply().map(Some)
+    }
+
     /// The next state sample. Other replies in between (non-fatal errors such as "does not own
     /// the force", calibration progress) are skipped: use [`Client::next_reply`] to see them.
     pub fn next_state(&mut self) -> Result<StateSample, ClientError> {
@@ -210,7 +252,7 @@ impl Client {
     /// Errors: [`ClientError::Refused`] for a refusal, `Closed`, `Io` or `Protocol` when the
     /// conversation breaks (a read timeout is an `Io` error of kind `WouldBlock`/`TimedOut`).
     pub fn status(&mut self) -> Result<Status, ClientError> {
-        self.send(&Request::Status {})?;
+        self.request_status()?;
         loop {
             if let Reply::Status(s) = self.next_reply()? {
                 return Ok(*s);
