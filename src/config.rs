@@ -124,7 +124,8 @@ pub const RANGES: &[(&str, Range)] = &[
         "estimate.max_window",
         Range::new(1.0, crate::estimate::foaw::MAX_WINDOW as f64, "periods"),
     ),
-    ("sim.mass_kg", Range::new(0.001, 10.0, "kg")),
+    ("sim.mass_kg", Range::new(-10.0, 10.0, "kg")),
+    ("sim.inertia_kg", Range::new(0.001, 10.0, "kg")),
     ("sim.g", Range::new(1.0, 30.0, "m/s^2")),
     ("sim.gravity_direction", Range::new(-1000.0, 1000.0, "")),
     ("sim.workspace_min_mm", Range::new(-1000.0, 1000.0, "mm")),
@@ -134,6 +135,7 @@ pub const RANGES: &[(&str, Range)] = &[
     ("sim.encoder_resolution_mm", Range::new(0.0, 1.0, "mm")),
     ("sim.noise_mm", Range::new(0.0, 1.0, "mm")),
     ("sim.damping_n_s_per_m", Range::new(0.0, 100.0, "N*s/m")),
+    ("sim.coulomb_friction_n", Range::new(0.0, 10.0, "N")),
     ("sim.probe_mass_kg", Range::new(0.0, 1.0, "kg")),
     ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
     ("sim.device_watchdog_ms", Range::new(1.0, 1000.0, "ms")),
@@ -427,8 +429,12 @@ pub struct SimConfig {
     pub seed: u64,
     /// Mass field from an `hgcd-grid/1` file (its gravity_direction and g then apply); empty: uniform.
     pub mass_grid: Option<PathBuf>,
-    /// Uniform apparent mass when no grid is given, kg.
+    /// Uniform apparent mass when no grid is given, kg: negative for an over-balanced handle that
+    /// gravity (through its counterweight) pushes along v_G.
     pub mass_kg: f64,
+    /// Moving mass the actuators accelerate, kg; unset: the magnitude of the apparent mass (at
+    /// least 1 g). The probe mass adds to it.
+    pub inertia_kg: Option<f64>,
     /// Gravitational acceleration, m/s².
     pub g: f64,
     /// Unit direction of the compensating force (opposite to gravity) when no grid is given.
@@ -446,6 +452,9 @@ pub struct SimConfig {
     pub noise_mm: f64,
     /// Viscous friction, N·s/m.
     pub damping_n_s_per_m: f64,
+    /// Coulomb friction at the handle, N: the handle sticks while the net force on it is at most
+    /// this, and slides against this much force otherwise.
+    pub coulomb_friction_n: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
     pub probe_mass_kg: f64,
     /// Integration rate, Hz (at least the report rate; 10 kHz or more keeps the physics accurate).
@@ -462,6 +471,7 @@ impl Default for SimConfig {
             seed: 1,
             mass_grid: None,
             mass_kg: 0.12,
+            inertia_kg: None,
             g: 9.81,
             gravity_direction: [0.0, 0.0, 1.0],
             workspace_min_mm: [-80.0; 3],
@@ -471,6 +481,7 @@ impl Default for SimConfig {
             encoder_resolution_mm: 0.005,
             noise_mm: 0.002,
             damping_n_s_per_m: 0.0,
+            coulomb_friction_n: 0.0,
             probe_mass_kg: 0.0,
             substep_hz: 10_000.0,
             device_watchdog_ms: 50.0,
@@ -810,6 +821,9 @@ impl Config {
 
         let sim = &self.sim;
         in_range("sim.mass_kg", sim.mass_kg)?;
+        if let Some(m) = sim.inertia_kg {
+            in_range("sim.inertia_kg", m)?;
+        }
         in_range("sim.g", sim.g)?;
         each_in_range("sim.gravity_direction", sim.gravity_direction)?;
         if Vector3::from(sim.gravity_direction).norm() < 1e-6 {
@@ -829,6 +843,7 @@ impl Config {
         in_range("sim.encoder_resolution_mm", sim.encoder_resolution_mm)?;
         in_range("sim.noise_mm", sim.noise_mm)?;
         in_range("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
+        in_range("sim.coulomb_friction_n", sim.coulomb_friction_n)?;
         in_range("sim.probe_mass_kg", sim.probe_mass_kg)?;
         in_range("sim.substep_hz", sim.substep_hz)?;
         if sim.substep_hz < s.rate_hz {
