@@ -494,7 +494,7 @@ mod tests {
             problem(&good.replace("[0.0, 0.0, 1.0]", "[0.0, 0.0, 2.0]")),
             Problem::NotUnit { .. }
         ));
-        for bad in ["-0.05", "nan", "inf", "1e9"] {
+        for bad in ["-1e9", "nan", "-inf", "1e9"] {
             assert!(
                 matches!(
                     problem(&good.replacen("0.05, ", &format!("{bad}, "), 1)),
@@ -503,6 +503,10 @@ mod tests {
                 "{bad}"
             );
         }
+        // Negative and zero masses load (issue 17: over-balanced arms); only the magnitude is
+        // bounded.
+        let signed = good.replacen("0.05, 0.060000000000000005", "-0.05, 0.0", 1);
+        assert_eq!(parse(&signed).unwrap().grid.masses[..2], [-0.05, 0.0]);
         // Item 7 of issue 7: a grid with g = 1e308 loaded.
         assert!(matches!(
             problem(&good.replace("g = 9.81", "g = 1e308")),
