@@ -36,6 +36,7 @@ fn valid_text() -> String {
         force_vectors: (0..n).map(|i| [1e-3 * i as f64, -2e-3, 1.2]).collect(),
         iterations: vec![2; n],
         final_error_mm: vec![0.0071; n],
+        friction_n: vec![[0.05, 0.04, 0.06]; n],
     };
     let mut text = file.to_toml_string();
     text.push_str("\n[future]\nkey = \"value\"\nwhen = 1979-05-27\n");

@@ -141,4 +141,13 @@ pub enum Problem {
          {value:?}"
     )]
     FinalError { vertex: usize, value: f64 },
+    #[error(
+        "`[vertices] friction_n` at vertex {vertex} is {value:?} N, expected finite components \
+         from 0 to {max:?} N"
+    )]
+    Friction {
+        vertex: usize,
+        value: [f64; 3],
+        max: f64,
+    },
 }
