@@ -23,12 +23,9 @@ use crate::transport::{self, Pacing, TransportError};
 pub enum CalibrateError {
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error("opening {spec}")]
-    Open {
-        spec: String,
-        #[source]
-        source: TransportError,
-    },
+    /// The device cannot be opened (the error names it).
+    #[error(transparent)]
+    Open(TransportError),
     #[error(transparent)]
     Plan(#[from] PlanError),
     /// The output directory is unusable or has no room for the grid (checked before starting).
@@ -93,12 +90,8 @@ pub fn calibrate(
     progress: &mut dyn FnMut(&CalibrationEvent),
 ) -> Result<CalibrationRun, CalibrateError> {
     config.validate()?;
-    let transport = transport::open(&request.device, config, request.pacing).map_err(|source| {
-        CalibrateError::Open {
-            spec: request.device.to_string(),
-            source,
-        }
-    })?;
+    let transport =
+        transport::open(&request.device, config, request.pacing).map_err(CalibrateError::Open)?;
     // Name the grid after the device actually opened (a HID serial number the spec left out).
     let mut request = request.clone();
     if let Some(spec) = transport.resolved_spec() {

@@ -137,6 +137,7 @@ pub const RANGES: &[(&str, Range)] = &[
     ("sim.damping_n_s_per_m", Range::new(0.0, 100.0, "N*s/m")),
     ("sim.coulomb_friction_n", Range::new(0.0, 10.0, "N")),
     ("sim.probe_mass_kg", Range::new(0.0, 1.0, "kg")),
+    ("sim.friction_scale", Range::new(0.0, 10.0, "")),
     ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
     ("sim.device_watchdog_ms", Range::new(1.0, 1000.0, "ms")),
     ("sim.stop_reporting_after_s", Range::new(0.0, 1e6, "s")),
@@ -202,7 +203,7 @@ pub enum DeviceSpec {
 }
 
 /// Simulated plants `sim:MODEL` knows.
-pub const SIM_MODELS: &[&str] = &["point-mass"];
+pub const SIM_MODELS: &[&str] = &["point-mass", "phantom", "delta"];
 
 impl FromStr for DeviceSpec {
     type Err = ConfigError;
@@ -457,6 +458,11 @@ pub struct SimConfig {
     pub coulomb_friction_n: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
     pub probe_mass_kg: f64,
+    /// Linkage plants: which unit of the model (0: the nominal published one; any other value a
+    /// unit whose masses, centres of mass and friction differ by a few percent).
+    pub unit_seed: u64,
+    /// Linkage plants: multiplies every joint friction coefficient (0: frictionless).
+    pub friction_scale: f64,
     /// Integration rate, Hz (at least the report rate; 10 kHz or more keeps the physics accurate).
     pub substep_hz: f64,
     /// The device zeroes force when no output report arrives for this long, ms.
@@ -483,6 +489,8 @@ impl Default for SimConfig {
             damping_n_s_per_m: 0.0,
             coulomb_friction_n: 0.0,
             probe_mass_kg: 0.0,
+            unit_seed: 0,
+            friction_scale: 1.0,
             substep_hz: 10_000.0,
             device_watchdog_ms: 50.0,
             stop_reporting_after_s: None,
@@ -764,6 +772,9 @@ impl AppConfig {
 
 impl Config {
     /// Parse and validate TOML text; `origin` names the source in messages.
+    ///
+    /// Errors: [`ConfigError::Parse`] for TOML or type errors and unknown keys, `OutOfRange`,
+    /// `Invalid` or `DeviceSpec` for a value the checks refuse.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
         let config: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: origin.to_path_buf(),
@@ -774,6 +785,9 @@ impl Config {
     }
 
     /// Load a config file.
+    ///
+    /// Errors: [`ConfigError::Read`] when the file cannot be read, then as
+    /// [`Config::from_toml_str`].
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
             path: path.to_path_buf(),
@@ -845,6 +859,7 @@ impl Config {
         in_range("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
         in_range("sim.coulomb_friction_n", sim.coulomb_friction_n)?;
         in_range("sim.probe_mass_kg", sim.probe_mass_kg)?;
+        in_range("sim.friction_scale", sim.friction_scale)?;
         in_range("sim.substep_hz", sim.substep_hz)?;
         if sim.substep_hz < s.rate_hz {
             return Err(invalid(
@@ -905,6 +920,8 @@ impl Config {
     }
 
     /// The configured device spec.
+    ///
+    /// Errors: [`ConfigError::DeviceSpec`] when `device.spec` does not parse.
     pub fn device_spec(&self) -> Result<DeviceSpec, ConfigError> {
         self.device.spec.parse()
     }
@@ -915,6 +932,8 @@ impl Config {
     }
 
     /// The socket file's permission bits.
+    ///
+    /// Errors: [`ConfigError::Invalid`] when `app.socket_mode` is not octal up to 0777.
     pub fn socket_mode(&self) -> Result<u32, ConfigError> {
         u32::from_str_radix(self.app.socket_mode.trim_start_matches("0o"), 8)
             .ok()

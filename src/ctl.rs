@@ -5,9 +5,11 @@ use std::path::Path;
 
 use anyhow::{bail, Result};
 
-use hgcd::client::{Client, Reply, Role};
+use hgcd::client::{CalibrationStage, Client, Reply, Role};
 
 /// Print the daemon's status.
+///
+/// Errors: the client's, when no daemon listens on `socket` or it refuses.
 pub fn status(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd status")?;
     let s = client.status()?;
@@ -43,6 +45,8 @@ pub fn status(socket: &Path) -> Result<()> {
 }
 
 /// Ask the daemon to calibrate and follow its progress until it finishes.
+///
+/// Errors: the client's, a refusal, or the calibration's failure as the daemon reports it.
 pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd calibrate")?;
     client.request_calibration()?;
@@ -59,24 +63,23 @@ pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
             message,
         } = reply
         {
-            match event.as_str() {
-                "started" => eprintln!("calibration started on {}", client.device),
-                "init_done" => eprintln!(
+            match event {
+                CalibrationStage::Started => eprintln!("calibration started on {}", client.device),
+                CalibrationStage::InitDone => eprintln!(
                     "gravity direction found; rough mass {:.1} g",
                     mass_kg.unwrap_or(0.0) * 1e3
                 ),
-                "vertex_done" => eprintln!(
+                CalibrationStage::VertexDone => eprintln!(
                     "vertex {}/{}: {:.2} g",
                     vertex.unwrap_or(0) + 1,
                     of.unwrap_or(0),
                     mass_kg.unwrap_or(0.0) * 1e3
                 ),
-                "finished" => {
+                CalibrationStage::Finished => {
                     println!("calibration finished; the daemon now uses {message}");
                     return Ok(());
                 }
-                "failed" => bail!("calibration failed: {message}"),
-                _ => {}
+                CalibrationStage::Failed => bail!("calibration failed: {message}"),
             }
         }
     }

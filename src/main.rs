@@ -84,6 +84,9 @@ enum Command {
         /// both sides allow) instead of reporting in real time.
         #[arg(long)]
         lockstep: bool,
+        /// The simulated model, as in `sim:MODEL` (docs/simulated-devices.md).
+        #[arg(long, default_value = "point-mass")]
+        model: String,
     },
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
@@ -184,7 +187,11 @@ fn real_main(cli: Cli) -> Result<()> {
             ..
         } => calibrate_here(&config, device.as_deref(), output, real_time, yes),
         Command::Status => ctl::status(&config.socket_path()),
-        Command::SimDevice { listen, lockstep } => sim_device(&config, &listen, lockstep),
+        Command::SimDevice {
+            listen,
+            lockstep,
+            model,
+        } => sim_device(&config, &listen, lockstep, &model),
         Command::Devices => devices(),
     }
 }
@@ -256,9 +263,9 @@ fn calibrate_here(
 }
 
 /// `hgcd sim-device`: serve the simulated device on a Unix socket until the host leaves.
-fn sim_device(config: &Config, listen: &Path, lockstep: bool) -> Result<()> {
+fn sim_device(config: &Config, listen: &Path, lockstep: bool, model: &str) -> Result<()> {
     let stop = install_stop_handler()?;
-    let mut device = hgcd::sim::SimDevice::from_config("point-mass", config)?;
+    let mut device = hgcd::sim::SimDevice::from_config(model, config)?;
     // Replaces a stale socket, refuses a live one or anything that is not a socket.
     let listener = hgcd::app::server::bind(listen, 0o660)
         .with_context(|| format!("listening on {}", listen.display()))?;
@@ -322,20 +329,15 @@ const EXIT_DEVICE_GONE: u8 = 3;
 
 /// The exit status for an error: the device family gets its own, everything else 1.
 fn exit_status(e: &anyhow::Error) -> u8 {
-    let gone = |t: &TransportError| {
-        matches!(
-            t,
-            TransportError::Open { .. } | TransportError::Disconnected(_)
-        )
-    };
+    let gone = TransportError::device_unavailable;
     let servo_gone = |s: &ServoError| matches!(s, ServoError::Transport(t) if gone(t));
     let device_gone = match (
         e.downcast_ref::<RunError>(),
         e.downcast_ref::<CalibrateError>(),
     ) {
-        (Some(RunError::Open { source, .. }), _) => gone(source),
+        (Some(RunError::Open(t)), _) => gone(t),
         (Some(RunError::Servo(s)), _) => servo_gone(s),
-        (_, Some(CalibrateError::Open { source, .. })) => gone(source),
+        (_, Some(CalibrateError::Open(t))) => gone(t),
         (_, Some(CalibrateError::Servo(s))) => servo_gone(s),
         _ => false,
     };

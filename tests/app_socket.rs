@@ -5,87 +5,30 @@
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::os::unix::net::UnixStream;
-use std::path::PathBuf;
-use std::sync::atomic::Ordering;
-use std::thread::{self, JoinHandle};
+use std::thread;
 use std::time::{Duration, Instant};
 
-use hgcd::client::{Client, Reply, Role};
+use hgcd::client::{CalibrationStage, Client, Compensating, Reply, Role};
 use hgcd::config::Config;
-use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::GridFile;
-use hgcd::servo::ServoReport;
-use hgcd::sim::SimDevice;
-use hgcd::transport::sim::SimTransport;
-use hgcd::transport::Pacing;
 
 mod common;
+use common::daemon::{Running, TestDaemon};
 use common::{hgcd, serial, truth_field_27, with_device_id};
 
 /// A daemon serving the simulated point mass in virtual time, with its own socket and state dir.
-struct Running {
-    dir: tempfile::TempDir,
-    socket: PathBuf,
-    signals: Signals,
-    handle: JoinHandle<Result<ServoReport, hgcd::daemon::RunError>>,
+fn start(config: Config, grid: Option<&GridFile>) -> Running {
+    TestDaemon::new(config).grid(grid).start()
 }
 
-impl Running {
-    /// `grid`: written to the state dir as the device's grid.
-    fn start(mut config: Config, grid: Option<&GridFile>) -> Self {
-        let dir = tempfile::tempdir().unwrap();
-        let truth = dir.path().join("truth.toml");
-        GridFile::from(truth_field_27())
-            .save_atomic(&truth)
-            .unwrap();
-        config.sim.mass_grid = Some(truth);
-        config.sim.damping_n_s_per_m = 1.0;
-        let state = dir.path().join("state");
-        std::fs::create_dir_all(&state).unwrap();
-        if let Some(g) = grid {
-            g.save_atomic(&state.join("sim-point-mass.toml")).unwrap();
-        }
-        config.paths.state_dir = Some(state);
-        let socket = dir.path().join("hgcd.sock");
-        config.app.socket = Some(socket.clone());
-        config.servo.lock_memory = false;
-        let transport = Box::new(SimTransport::new(
-            SimDevice::from_config("point-mass", &config).unwrap(),
-            Pacing::Virtual,
-        ));
-        let request = RunRequest {
-            device: "sim:point-mass".parse().unwrap(),
-            duration: None,
-            pacing: Pacing::Virtual,
-        };
-        let signals = Signals::default();
-        let s2 = signals.clone();
-        let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
-        let handle = thread::spawn(move || {
-            Daemon::new(config, &request).run(transport, s2, &mut |_| {
-                let _ = ready_tx.send(());
-            })
-        });
-        ready_rx
-            .recv()
-            .expect("the daemon failed before it was ready");
-        Self {
-            dir,
-            socket,
-            signals,
-            handle,
-        }
-    }
+/// A raw connection to `daemon`'s socket.
+fn connect(daemon: &Running) -> UnixStream {
+    UnixStream::connect(&daemon.socket).unwrap()
+}
 
-    fn connect(&self) -> UnixStream {
-        UnixStream::connect(&self.socket).unwrap()
-    }
-
-    fn stop(self) {
-        self.signals.stop.store(true, Ordering::SeqCst);
-        self.handle.join().unwrap().unwrap();
-        drop(self.dir);
-    }
+/// Stop `daemon`, which must end cleanly.
+fn stop(daemon: Running) {
+    daemon.stop().unwrap();
 }
 
 /// Everything the daemon sends on `stream` until it closes the connection (bounded by `limit`).
@@ -206,7 +149,7 @@ struct Script<'a> {
 
 impl Script<'_> {
     fn connect(&mut self, name: char) -> Peer {
-        let stream = self.daemon.connect();
+        let stream = connect(self.daemon);
         stream
             .set_read_timeout(Some(Duration::from_secs(30)))
             .unwrap();
@@ -287,7 +230,7 @@ fn is_error(r: &Reply) -> bool {
 fn the_scripted_session_matches_its_golden_transcript() {
     let _serial = serial();
     let grid = with_device_id(truth_field_27(), "sim-point-mass");
-    let daemon = Running::start(Config::default(), Some(&grid));
+    let daemon = start(Config::default(), Some(&grid));
     let state_dir = daemon.dir.path().join("state");
     let grid_file = state_dir.join("sim-point-mass.toml");
     let mut s = Script {
@@ -316,8 +259,8 @@ fn the_scripted_session_matches_its_golden_transcript() {
         unreachable!()
     };
     assert_eq!(
-        (status.mode.as_str(), status.owner.as_deref()),
-        ("scalar", Some("golden"))
+        (status.mode, status.owner.as_deref()),
+        (Compensating::Scalar, Some("golden"))
     );
 
     s.note(
@@ -360,12 +303,12 @@ fn the_scripted_session_matches_its_golden_transcript() {
         let Reply::Calibration { event, message, .. } = reply else {
             unreachable!()
         };
-        match event.as_str() {
-            "finished" => {
+        match event {
+            CalibrationStage::Finished => {
                 assert_eq!(message, "$STATE_DIR/sim-point-mass.toml");
                 break;
             }
-            "failed" => panic!("calibration failed: {message}"),
+            CalibrationStage::Failed => panic!("calibration failed: {message}"),
             _ => {}
         }
     }
@@ -433,7 +376,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
     s.expect_fatal(&mut a);
 
     let transcript = s.transcript;
-    daemon.stop();
+    stop(daemon);
     if std::env::var_os("HGCD_BLESS").is_some() {
         std::fs::write(GOLDEN, &transcript).unwrap();
         return;
@@ -463,9 +406,9 @@ fn a_client_trickling_bytes_is_closed_at_the_hello_deadline() {
     let _serial = serial();
     let mut config = Config::default();
     config.app.hello_timeout_ms = 300.0;
-    let daemon = Running::start(config, None);
+    let daemon = start(config, None);
 
-    let stream = daemon.connect();
+    let stream = connect(&daemon);
     let connected = Instant::now();
     // One byte every 20 ms and never a newline: every read returns long before the 300 ms
     // timeout, so only a deadline counted from the connection can end it.
@@ -497,7 +440,7 @@ fn a_client_trickling_bytes_is_closed_at_the_hello_deadline() {
         closed_after < Duration::from_secs(5),
         "closed after {closed_after:?}"
     );
-    daemon.stop();
+    stop(daemon);
 }
 
 #[test]
@@ -507,7 +450,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
     config.app.max_clients = 4;
     // Long enough that the idle connections below are all still open when status is asked.
     config.app.hello_timeout_ms = 60_000.0;
-    let daemon = Running::start(config, None);
+    let daemon = start(config, None);
 
     // Every place taken: two subscribers that said hello, two connections that never will.
     let mut held = Vec::new();
@@ -516,7 +459,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
         c.subscribe(1.0).unwrap();
         held.push(c);
     }
-    let idle: Vec<UnixStream> = (0..2).map(|_| daemon.connect()).collect();
+    let idle: Vec<UnixStream> = (0..2).map(|_| connect(&daemon)).collect();
 
     let out = hgcd()
         .arg("--config")
@@ -542,7 +485,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
     while held[0].status().unwrap().clients != 4 {
         assert!(Instant::now() < gone, "the status query never left");
     }
-    let spare = daemon.connect();
+    let spare = connect(&daemon);
     spare
         .set_read_timeout(Some(Duration::from_secs(30)))
         .unwrap();
@@ -565,7 +508,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
         Reply::Status(s) => assert_eq!(s.clients, 5),
         other => panic!("{other:?}"),
     }
-    let refused = read_until_closed(daemon.connect(), Duration::from_secs(30));
+    let refused = read_until_closed(connect(&daemon), Duration::from_secs(30));
     assert!(refused.contains("too many clients"), "{refused:?}");
     send(b"{\"type\":\"subscribe\",\"rate_hz\":10}\n");
     let mut rest = String::new();
@@ -577,7 +520,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
 
     drop(idle);
     drop(held);
-    daemon.stop();
+    stop(daemon);
 }
 
 #[test]
@@ -586,11 +529,11 @@ fn a_status_only_connection_is_closed_at_its_deadline() {
     let mut config = Config::default();
     config.app.max_clients = 1;
     config.app.hello_timeout_ms = 300.0;
-    let daemon = Running::start(config, None);
+    let daemon = start(config, None);
     // The one place, held by a client that said hello (no deadline for it).
     let mut held = Client::connect(&daemon.socket, Role::Observe, "held").unwrap();
 
-    let spare = daemon.connect();
+    let spare = connect(&daemon);
     let connected = Instant::now();
     (&spare).write_all(HELLO_OBSERVE).unwrap();
     (&spare).write_all(b"{\"type\":\"status\"}\n").unwrap();
@@ -618,5 +561,5 @@ fn a_status_only_connection_is_closed_at_its_deadline() {
         );
     }
     drop(held);
-    daemon.stop();
+    stop(daemon);
 }

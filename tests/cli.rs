@@ -351,6 +351,37 @@ fn exit_status_says_whether_the_device_is_gone() {
         Some(3)
     );
     device.join().unwrap();
+    // A simulated device whose plant cannot be built is one that cannot be opened; the OS's
+    // reason reaches the user.
+    let sim_cfg = dir.path().join("missing-grid.toml");
+    std::fs::write(&sim_cfg, "[sim]\nmass_grid = \"/nonexistent/truth.toml\"\n").unwrap();
+    let out = hgcd()
+        .args(["--config", sim_cfg.to_str().unwrap()])
+        .args(["run", "--duration", "1", "--device", "sim:point-mass"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(
+        stderr.contains("/nonexistent/truth.toml") && stderr.contains("no grid file"),
+        "{stderr}"
+    );
+    // A device side that breaks the socket framing is a fault of the link, not a lost device.
+    let path = dir.path().join("garbler.sock");
+    let listener = std::os::unix::net::UnixListener::bind(&path).unwrap();
+    let device = std::thread::spawn(move || {
+        use std::io::Write;
+        let (mut stream, _) = listener.accept().unwrap();
+        stream.write_all(&[200, 1, 2, 3]).unwrap();
+        let mut sink = Vec::new();
+        let _ = std::io::Read::read_to_end(&mut stream, &mut sink);
+    });
+    let spec = format!("socket:{}", path.display());
+    assert_eq!(
+        status(&["run", "--duration", "30", "--device", &spec]),
+        Some(1)
+    );
+    device.join().unwrap();
     // Anything else: a bad device spec, a bad value on the command line; a malformed command
     // line is clap's usage error, 2.
     assert_eq!(status(&["run", "--device", "usb:1:2"]), Some(1));

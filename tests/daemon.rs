@@ -7,39 +7,41 @@
 
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::thread::JoinHandle;
 
 use nalgebra::Vector3;
 
-use hgcd::client::{Client, Reply, Role, StateSample, Status};
+use hgcd::client::{CalibrationStage, Client, Compensating, Reply, Role, StateSample, Status};
 use hgcd::config::Config;
 use hgcd::control::compensation::CompensationMode;
-use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::{GridFile, MassGrid};
 use hgcd::servo::ServoReport;
-use hgcd::sim::SimDevice;
-use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;
+use common::daemon::TestDaemon;
 use common::tap::{Gate, Tap, Writes};
 use common::{truth_field_27, wait_for, with_device_id, WAIT};
 
 /// Ticks a gated device runs between two looks at the daemon's status.
 const BATCH: u64 = 200;
 
+/// A daemon on a gated device (see the module's doc).
 struct Running {
-    dir: tempfile::TempDir,
-    socket: PathBuf,
-    signals: Signals,
+    daemon: common::daemon::Running,
     gate: Arc<Gate>,
     writes: Writes,
     /// Report period of the device, s.
     period: f64,
-    handle: Option<JoinHandle<Result<ServoReport, hgcd::daemon::RunError>>>,
+}
+
+impl std::ops::Deref for Running {
+    type Target = common::daemon::Running;
+    fn deref(&self) -> &Self::Target {
+        &self.daemon
+    }
 }
 
 impl Running {
@@ -100,8 +102,7 @@ impl Running {
     /// Let the device run free and wait for the daemon to end (by itself, or stopped).
     fn join(&mut self) -> Result<ServoReport, hgcd::daemon::RunError> {
         self.gate.open();
-        let handle = self.handle.take().expect("the daemon runs");
-        handle.join().expect("the daemon thread does not panic")
+        self.daemon.join()
     }
 }
 
@@ -157,61 +158,23 @@ fn start(config: Config, grid: Option<&GridFile>) -> Running {
     start_with_truth(config, grid, &truth_field_27())
 }
 
-fn start_with_truth(mut config: Config, grid: Option<&GridFile>, truth_grid: &MassGrid) -> Running {
-    let dir = tempfile::tempdir().unwrap();
-    let state = dir.path().join("state");
-    std::fs::create_dir_all(&state).unwrap();
-    let truth = dir.path().join("truth.toml");
-    GridFile::from(truth_grid.clone())
-        .save_atomic(&truth)
-        .unwrap();
-    config.sim.mass_grid = Some(truth);
-    config.paths.state_dir = Some(state.clone());
-    let socket = dir.path().join("hgcd.sock");
-    config.app.socket = Some(socket.clone());
-    // A frictionless point mass is a double integrator: any bias force, however small, makes it
-    // drift quadratically. Real linkages have viscous friction; 1 N·s/m is typical of desktop
-    // haptic devices. With it a 0.1 % mass error still drifts about 3 mm in 2 s: the drift test
-    // below stays sharp.
-    if config.sim.damping_n_s_per_m == 0.0 {
-        config.sim.damping_n_s_per_m = 1.0;
-    }
-    config.servo.lock_memory = false;
-    if let Some(g) = grid {
-        g.save_atomic(&state.join("sim-point-mass.toml")).unwrap();
-    }
+fn start_with_truth(config: Config, grid: Option<&GridFile>, truth_grid: &MassGrid) -> Running {
     let gate = Gate::new();
-    let tap = Tap::new(SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    ))
-    .recording()
-    .gated(gate.clone());
-    let writes = tap.writes();
     let period = config.servo_period();
-    let request = RunRequest {
-        device: "sim:point-mass".parse().unwrap(),
-        duration: None,
-        pacing: Pacing::Virtual,
-    };
-    let signals = Signals::default();
-    let s2 = signals.clone();
-    let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
-    let handle = std::thread::spawn(move || {
-        Daemon::new(config, &request).run(Box::new(tap), s2, &mut |_| {
-            let _ = ready_tx.send(());
-        })
-    });
-    // Wait for readiness (or for the daemon to fail before it).
-    let _ = ready_rx.recv_timeout(WAIT);
+    let mut writes = None;
+    let daemon = TestDaemon::new(config)
+        .truth(truth_grid)
+        .grid(grid)
+        .start_with(|sim| {
+            let tap = Tap::new(sim).recording().gated(gate.clone());
+            writes = Some(tap.writes());
+            tap
+        });
     Running {
-        dir,
-        socket,
-        signals,
+        daemon,
         gate,
-        writes,
+        writes: writes.expect("the tap was made"),
         period,
-        handle: Some(handle),
     }
 }
 
@@ -536,13 +499,13 @@ fn a_grid_for_another_device_is_refused_unless_allowed() {
     let running = start(config, Some(&foreign));
     let mut c = running.client(Role::Observe, "status");
     let status = c.status().unwrap();
-    assert_eq!(status.mode, "none");
+    assert_eq!(status.mode, Compensating::None);
     assert_eq!(status.grid, None);
     drop(c);
     running.stop().unwrap();
 }
 
-fn wait_for_mode(client: &mut Client, mode: &str) -> Status {
+fn wait_for_mode(client: &mut Client, mode: Compensating) -> Status {
     wait_for(&format!("compensation mode {mode}"), || {
         let s = client.status().unwrap();
         (s.mode == mode).then_some(s)
@@ -550,13 +513,13 @@ fn wait_for_mode(client: &mut Client, mode: &str) -> Status {
 }
 
 /// Read `client`'s replies until its calibration `event`; its message.
-fn calibration_event(client: &mut Client, event: &str) -> String {
+fn calibration_event(client: &mut Client, event: CalibrationStage) -> String {
     loop {
         if let Reply::Calibration {
             event: e, message, ..
         } = client.next_reply().unwrap()
         {
-            assert_ne!(e, "failed", "calibration failed: {message}");
+            assert_ne!(e, CalibrationStage::Failed, "calibration failed: {message}");
             if e == event {
                 return message;
             }
@@ -569,18 +532,18 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     let running = start(Config::default(), None);
     let grid_file = running.dir.path().join("state/sim-point-mass.toml");
     let mut c = running.client(Role::Observe, "calibrator");
-    assert_eq!(c.status().unwrap().mode, "none");
+    assert_eq!(c.status().unwrap().mode, Compensating::None);
     c.request_calibration().unwrap();
-    calibration_event(&mut c, "started");
+    calibration_event(&mut c, CalibrationStage::Started);
     // The device runs a batch of ticks at a time until the hub has the new grid in use.
     let mut observer = running.client(Role::Observe, "observer");
     let status = running.run_until("the calibration to end", BATCH, 200_000, || {
         let s = observer.status().unwrap();
         (!s.calibrating).then_some(s)
     });
-    let path = calibration_event(&mut c, "finished");
+    let path = calibration_event(&mut c, CalibrationStage::Finished);
     assert_eq!(Path::new(&path), grid_file);
-    assert_eq!(status.mode, "scalar");
+    assert_eq!(status.mode, Compensating::Scalar);
     assert_eq!(status.grid.as_deref(), Some(path.as_str()));
     // The handle did not drop between the end of the calibration and the swap: it is still near
     // the last vertex of the serpentine, (40, 40, 40) mm, held by the new grid.
@@ -607,7 +570,7 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     // SIGHUP: the grid file is gone, so a reload drops compensation.
     std::fs::remove_file(&grid_file).unwrap();
     running.signals.reload.store(true, Ordering::SeqCst);
-    wait_for_mode(&mut c, "none");
+    wait_for_mode(&mut c, Compensating::None);
     drop(c);
     running.stop().unwrap();
 }
@@ -689,7 +652,7 @@ fn a_calibration_whose_requester_disconnects_is_aborted_and_writes_nothing() {
     let grid_file = running.dir.path().join("state/sim-point-mass.toml");
     let mut requester = running.client(Role::Observe, "calibrator");
     requester.request_calibration().unwrap();
-    calibration_event(&mut requester, "started");
+    calibration_event(&mut requester, CalibrationStage::Started);
     running.gate.advance(BATCH);
     // Ctrl-C on `hgcd calibrate --via-daemon` closes the connection.
     drop(requester);
@@ -704,7 +667,7 @@ fn a_calibration_whose_requester_disconnects_is_aborted_and_writes_nothing() {
         let s = observer.status().unwrap();
         (!s.calibrating).then_some(s)
     });
-    assert_eq!(status.mode, "none");
+    assert_eq!(status.mode, Compensating::None);
     assert!(!grid_file.exists());
     drop(observer);
     running.stop().unwrap();
@@ -750,8 +713,10 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
         config.compensation.mode = mode;
         let running = start(config, Some(&run.grid));
         let mut client = running.client(Role::Control, "e2e");
-        let expected_mode = format!("{mode:?}").to_lowercase();
-        assert_eq!(client.status().unwrap().mode, expected_mode);
+        assert_eq!(
+            client.status().unwrap().mode,
+            Compensating::from(Some(mode))
+        );
         let s = running.state_at(&mut client, 2.0);
         let drift = dist(s.position, Vector3::from(p) * 1e-3);
         // The calibrated masses are within about 0.1 % of the truth on this field (five-fold

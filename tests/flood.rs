@@ -2,7 +2,6 @@
 //! thing tested here, so the device runs in real time; this file holds only this test, so no
 //! other test of the suite runs beside it.
 
-use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -10,51 +9,20 @@ use nalgebra::Vector3;
 
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
-use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::GridFile;
 use hgcd::servo::ServoReport;
-use hgcd::sim::SimDevice;
-use hgcd::transport::sim::SimTransport;
-use hgcd::transport::Pacing;
 
 mod common;
+use common::daemon::TestDaemon;
 use common::{truth_field_27, with_device_id};
 
 /// Run the daemon on a real-time simulated device for `seconds`; with `flood`, two clients send
 /// offsets as fast as they can the whole time (the owner, and one whose offsets are refused).
-fn run(dir: &Path, seconds: f64, flood: bool) -> (ServoReport, u64) {
-    let mut config = Config::default();
-    config.servo.lock_memory = false;
-    let state = dir.join(if flood { "flood" } else { "quiet" });
-    std::fs::create_dir_all(&state).unwrap();
-    with_device_id(truth_field_27(), "sim-point-mass")
-        .save_atomic(&state.join("sim-point-mass.toml"))
-        .unwrap();
-    let truth = dir.join("truth.toml");
-    GridFile::from(truth_field_27())
-        .save_atomic(&truth)
-        .unwrap();
-    config.sim.mass_grid = Some(truth);
-    config.sim.damping_n_s_per_m = 1.0;
-    config.paths.state_dir = Some(state.clone());
-    let socket: PathBuf = state.join("hgcd.sock");
-    config.app.socket = Some(socket.clone());
-    let transport = Box::new(SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::RealTime,
-    ));
-    let request = RunRequest {
-        device: "sim:point-mass".parse().unwrap(),
-        duration: Some(seconds),
-        pacing: Pacing::RealTime,
-    };
-    let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
-    let daemon = std::thread::spawn(move || {
-        Daemon::new(config, &request).run(transport, Signals::default(), &mut |_| {
-            let _ = ready_tx.send(());
-        })
-    });
-    ready_rx.recv().unwrap();
+fn run(seconds: f64, flood: bool) -> (ServoReport, u64) {
+    let mut daemon = TestDaemon::new(Config::default())
+        .grid(Some(&with_device_id(truth_field_27(), "sim-point-mass")))
+        .real_time_for(seconds)
+        .start();
+    let socket = daemon.socket.clone();
     let sent = Arc::new(AtomicU64::new(0));
     let done = Arc::new(AtomicBool::new(false));
     let flooders: Vec<_> = (0..if flood { 2 } else { 0 })
@@ -78,7 +46,7 @@ fn run(dir: &Path, seconds: f64, flood: bool) -> (ServoReport, u64) {
             })
         })
         .collect();
-    let report = daemon.join().unwrap().unwrap();
+    let report = daemon.join().unwrap();
     done.store(true, Ordering::Relaxed);
     for f in flooders {
         f.join().unwrap();
@@ -99,9 +67,8 @@ fn realtime_permitted() -> bool {
 
 #[test]
 fn an_offset_flood_does_not_delay_the_servo_loop() {
-    let dir = tempfile::tempdir().unwrap();
-    let (quiet, _) = run(dir.path(), 3.0, false);
-    let (flooded, sent) = run(dir.path(), 3.0, true);
+    let (quiet, _) = run(3.0, false);
+    let (flooded, sent) = run(3.0, true);
     let worst = |r: &ServoReport| r.stats.period.max_us() * 1e-3;
     eprintln!(
         "worst period quiet {:.2} ms, flooded {:.2} ms ({sent} offsets sent); lateness max {:.2} / {:.2} ms",

@@ -3,23 +3,20 @@
 
 use std::io::{ErrorKind, Read, Write};
 use std::os::unix::net::UnixListener;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
-use hgcd::daemon::{Daemon, RunRequest, Signals};
-use hgcd::grid::GridFile;
 use hgcd::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
 use hgcd::servo::{self, ExitReason, ServoOptions};
 use hgcd::sim::SimDevice;
-use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
-use hgcd::transport::Pacing;
 
 mod common;
+use common::daemon::TestDaemon;
 use common::{pd_hold, truth_field_27, with_device_id, Ticks};
 
 /// A device that sends its reports in bursts of ten per exchange, nine valid and the newest
@@ -100,43 +97,12 @@ fn a_burst_whose_newest_report_is_garbled_still_drives_the_loop() {
 /// axis (13.9 N) is clamped to `safety.max_force_n` before it leaves, and so is what is published.
 #[test]
 fn published_state_carries_the_force_sent_after_the_safety_layer() {
-    let mut config = Config::default();
-    config.servo.lock_memory = false;
-    let dir = tempfile::tempdir().unwrap();
-    let state = dir.path().join("state");
-    std::fs::create_dir_all(&state).unwrap();
-    let truth = dir.path().join("truth.toml");
-    GridFile::from(truth_field_27())
-        .save_atomic(&truth)
-        .unwrap();
-    with_device_id(truth_field_27(), "sim-point-mass")
-        .save_atomic(&state.join("sim-point-mass.toml"))
-        .unwrap();
-    config.sim.mass_grid = Some(truth);
-    config.sim.damping_n_s_per_m = 1.0;
-    config.paths.state_dir = Some(state);
-    let socket = dir.path().join("hgcd.sock");
-    config.app.socket = Some(socket.clone());
+    let config = Config::default();
     let max_force = config.safety.max_force_n;
-    let transport = Box::new(SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    ));
-    let request = RunRequest {
-        device: "sim:point-mass".parse().unwrap(),
-        duration: None,
-        pacing: Pacing::Virtual,
-    };
-    let signals = Signals::default();
-    let daemon_signals = signals.clone();
-    let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
-    let daemon = std::thread::spawn(move || {
-        Daemon::new(config, &request).run(transport, daemon_signals, &mut |_| {
-            let _ = ready_tx.send(());
-        })
-    });
-    ready_rx.recv().unwrap();
-    let mut client = Client::connect(&socket, Role::Control, "pushy").unwrap();
+    let daemon = TestDaemon::new(config)
+        .grid(Some(&with_device_id(truth_field_27(), "sim-point-mass")))
+        .start();
+    let mut client = Client::connect(&daemon.socket, Role::Control, "pushy").unwrap();
     client
         .set_read_timeout(Some(Duration::from_secs(30)))
         .unwrap();
@@ -158,6 +124,5 @@ fn published_state_carries_the_force_sent_after_the_safety_layer() {
         }
     }
     drop(client);
-    signals.stop.store(true, Ordering::SeqCst);
-    daemon.join().unwrap().unwrap();
+    daemon.stop().unwrap();
 }

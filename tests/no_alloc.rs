@@ -15,7 +15,6 @@ use nalgebra::Vector3;
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
 use hgcd::control::calibration::{Calibration, CalibrationParams};
-use hgcd::daemon::{Daemon, RunRequest, Signals};
 use hgcd::grid::GridFile;
 use hgcd::protocol::OUTPUT_REPORT_LEN;
 use hgcd::servo::{self, ServoOptions};
@@ -27,6 +26,7 @@ use hgcd::transport::socket::SocketTransport;
 use hgcd::transport::{Pacing, Transport};
 
 mod common;
+use common::daemon::TestDaemon;
 use common::tap::Tap;
 use common::{pd_hold, truth_field_27, with_device_id, Ticks};
 
@@ -136,6 +136,37 @@ fn a_simulated_device_in_virtual_time_with_a_pd_hold() {
     assert_quiet("sim", &seen, 2000);
 }
 
+/// A PD hold on the simulated device `sim:MODEL` allocates nothing per tick.
+fn quiet_pd_hold_on(model: &str) {
+    let config = config();
+    let sim = SimTransport::new(
+        SimDevice::from_config(model, &config).unwrap(),
+        Pacing::Virtual,
+    );
+    let (mut tap, seen) = counting(sim);
+    let mut options = ServoOptions::from_config(&config);
+    options.duration = Some(2.0);
+    servo::run(
+        &mut tap,
+        &mut pd_hold(),
+        &options,
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
+    assert_quiet(model, &seen, 2000);
+}
+
+#[test]
+fn the_phantom_in_virtual_time_with_a_pd_hold() {
+    quiet_pd_hold_on("phantom");
+}
+
+#[test]
+fn the_delta_in_virtual_time_with_a_pd_hold() {
+    quiet_pd_hold_on("delta");
+}
+
 #[test]
 fn a_calibration_on_a_simulated_device() {
     let mut config = config();
@@ -203,36 +234,16 @@ fn a_device_behind_the_socket_transport() {
 
 #[test]
 fn the_daemon_with_a_client_sending_offsets_and_reading_states() {
-    let mut config = config();
-    let dir = tempfile::tempdir().unwrap();
-    let state = dir.path().join("state");
-    std::fs::create_dir_all(&state).unwrap();
-    with_device_id(truth_field_27(), "sim-point-mass")
-        .save_atomic(&state.join("sim-point-mass.toml"))
-        .unwrap();
-    config.paths.state_dir = Some(state);
-    let socket = dir.path().join("hgcd.sock");
-    config.app.socket = Some(socket.clone());
-    let sim = SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    );
-    let (tap, seen) = counting(sim);
-    let request = RunRequest {
-        device: "sim:point-mass".parse().unwrap(),
-        duration: None,
-        pacing: Pacing::Virtual,
-    };
-    let signals = Signals::default();
-    let daemon_signals = signals.clone();
-    let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
-    let daemon = std::thread::spawn(move || {
-        Daemon::new(config, &request).run(Box::new(tap), daemon_signals, &mut |_| {
-            let _ = ready_tx.send(());
-        })
-    });
-    ready_rx.recv().unwrap();
-    let mut client = Client::connect(&socket, Role::Control, "offsets").unwrap();
+    let mut seen = None;
+    let daemon = TestDaemon::new(config())
+        .grid(Some(&with_device_id(truth_field_27(), "sim-point-mass")))
+        .start_with(|sim| {
+            let (tap, counts) = counting(sim);
+            seen = Some(counts);
+            tap
+        });
+    let seen = seen.expect("the tap was made");
+    let mut client = Client::connect(&daemon.socket, Role::Control, "offsets").unwrap();
     client
         .set_read_timeout(Some(Duration::from_secs(30)))
         .unwrap();
@@ -252,8 +263,7 @@ fn the_daemon_with_a_client_sending_offsets_and_reading_states() {
         let _ = client.next_state().unwrap();
     }
     drop(client);
-    signals.stop.store(true, Ordering::SeqCst);
-    daemon.join().unwrap().unwrap();
+    daemon.stop().unwrap();
     assert_quiet("daemon", &seen, 1000);
 }
 

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use nalgebra::Vector3;
 
-pub use super::protocol::{Reply, Role, StateSample, Status};
+pub use super::protocol::{CalibrationStage, Compensating, Reply, Role, StateSample, Status};
 use super::protocol::{Request, APP_PROTOCOL_VERSION, MAX_LINE_LEN};
 
 #[derive(Debug, thiserror::Error)]
@@ -43,6 +43,9 @@ pub struct Client {
 impl Client {
     /// Connect to the socket at `path` and say hello asking for `role`. The granted role may be
     /// `Observe` when another client already owns the force.
+    ///
+    /// Errors: [`ClientError::Connect`] when nobody listens there, `Refused` when the daemon
+    /// refuses the hello, `Closed`, `Io` or `Protocol` when the conversation breaks.
     pub fn connect(path: &Path, role: Role, name: &str) -> Result<Self, ClientError> {
         let stream = UnixStream::connect(path).map_err(|error| ClientError::Connect {
             path: path.display().to_string(),
@@ -95,6 +98,9 @@ impl Client {
 
     /// Render `force` (N) on top of gravity compensation until the next call. Send it at least
     /// every 50 ms (the daemon's default `stale_offset_ms`), or it ramps to zero.
+    ///
+    /// Errors: [`ClientError::Io`] when the daemon is gone. A refusal (not the owner, out of
+    /// range) arrives later as a `Reply::Error`.
     pub fn set_force(&mut self, force: Vector3<f64>) -> Result<(), ClientError> {
         self.seq += 1;
         let seq = self.seq;
@@ -110,16 +116,22 @@ impl Client {
     }
 
     /// Stream the device state at `rate_hz` (0 stops it).
+    ///
+    /// Errors: [`ClientError::Io`] when the daemon is gone.
     pub fn subscribe(&mut self, rate_hz: f64) -> Result<(), ClientError> {
         self.send(&Request::Subscribe { rate_hz })
     }
 
     /// Ask the daemon to calibrate; progress arrives as `Reply::Calibration`.
+    ///
+    /// Errors: [`ClientError::Io`] when the daemon is gone.
     pub fn request_calibration(&mut self) -> Result<(), ClientError> {
         self.send(&Request::Calibrate {})
     }
 
     /// Limit how long the next reads may block (None: forever).
+    ///
+    /// Errors: [`ClientError::Io`] for a zero duration (as `std` refuses it).
     pub fn set_read_timeout(&mut self, timeout: Option<Duration>) -> Result<(), ClientError> {
         self.reader.get_ref().set_read_timeout(timeout)?;
         Ok(())
@@ -155,6 +167,9 @@ impl Client {
     }
 
     /// Ask for and wait for the daemon's status (state samples in between are skipped).
+    ///
+    /// Errors: [`ClientError::Refused`] for a refusal, `Closed`, `Io` or `Protocol` when the
+    /// conversation breaks (a read timeout is an `Io` error of kind `WouldBlock`/`TimedOut`).
     pub fn status(&mut self) -> Result<Status, ClientError> {
         self.send(&Request::Status {})?;
         loop {

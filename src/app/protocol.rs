@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::config::CompensationMode;
 use crate::mailbox::PublishedState;
 use crate::servo::StatsSnapshot;
 
@@ -60,9 +61,9 @@ pub enum Reply {
     /// One servo tick.
     State(StateSample),
     Status(Box<Status>),
-    /// Calibration progress: `event` is started, init_done, vertex_done, finished or failed.
+    /// Calibration progress.
     Calibration {
-        event: String,
+        event: CalibrationStage,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         vertex: Option<usize>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -113,6 +114,55 @@ impl From<&PublishedState> for StateSample {
     }
 }
 
+/// The compensation a daemon applies now: `"none"`, `"scalar"` or `"vector"` on the wire.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Compensating {
+    /// No grid: the daemon renders the applications' forces only.
+    #[default]
+    None,
+    /// M(X) g v_G from the grid's masses (the paper's model).
+    Scalar,
+    /// The grid's per-vertex holding forces, interpolated.
+    Vector,
+}
+
+impl From<Option<CompensationMode>> for Compensating {
+    fn from(mode: Option<CompensationMode>) -> Self {
+        match mode {
+            None => Self::None,
+            Some(CompensationMode::Scalar) => Self::Scalar,
+            Some(CompensationMode::Vector) => Self::Vector,
+        }
+    }
+}
+
+impl std::fmt::Display for Compensating {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::None => "none",
+            Self::Scalar => "scalar",
+            Self::Vector => "vector",
+        })
+    }
+}
+
+/// Where a calibration requested over the socket is (`docs/app-protocol.md`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationStage {
+    /// The servo thread took the calibration over.
+    Started,
+    /// Gravity direction and first mass found (`mass_kg`).
+    InitDone,
+    /// Vertex `vertex` of `of` measured (`mass_kg`).
+    VertexDone,
+    /// The grid is saved (`message` is its path) and compensation uses it.
+    Finished,
+    /// The calibration stopped (`message` says why); the previous grid is untouched.
+    Failed,
+}
+
 /// What `hgcd status` shows.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Status {
@@ -120,8 +170,8 @@ pub struct Status {
     pub device_id: String,
     /// Grid file in use, if any.
     pub grid: Option<String>,
-    /// "scalar", "vector" or "none" (no compensation).
-    pub mode: String,
+    /// The compensation applied now.
+    pub mode: Compensating,
     pub calibrating: bool,
     pub clients: usize,
     /// Name of the client that owns the force, if any.
@@ -181,6 +231,9 @@ pub enum RequestError {
 }
 
 /// Parse and validate one request line (without its newline).
+///
+/// Errors: [`RequestError::Malformed`] for text that is not a request; `ForceOutOfRange` or
+/// `RateOutOfRange` for values beyond `max_force` (N per axis) or `max_rate` (Hz).
 pub fn parse_request(line: &str, max_force: f64, max_rate: f64) -> Result<Request, RequestError> {
     let request: Request =
         serde_json::from_str(line).map_err(|e| RequestError::Malformed(e.to_string()))?;
@@ -215,6 +268,31 @@ mod tests {
     use crate::protocol::fuzz;
     use proptest::prelude::*;
     use serde_json::{json, Value};
+
+    /// The names `docs/app-protocol.md` gives the modes and calibration events, and nothing else.
+    #[test]
+    fn modes_and_calibration_stages_have_their_documented_names() {
+        use CalibrationStage::*;
+        for (mode, name) in [
+            (Compensating::None, "none"),
+            (Compensating::Scalar, "scalar"),
+            (Compensating::Vector, "vector"),
+        ] {
+            assert_eq!(serde_json::to_value(mode).unwrap(), json!(name));
+            assert_eq!(mode.to_string(), name);
+        }
+        for (stage, name) in [
+            (Started, "started"),
+            (InitDone, "init_done"),
+            (VertexDone, "vertex_done"),
+            (Finished, "finished"),
+            (Failed, "failed"),
+        ] {
+            assert_eq!(serde_json::to_value(stage).unwrap(), json!(name));
+        }
+        let unknown = r#"{"type":"calibration","event":"halfway"}"#;
+        assert!(serde_json::from_str::<Reply>(unknown).is_err());
+    }
 
     #[test]
     fn requests_parse_and_validate() {

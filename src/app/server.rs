@@ -137,6 +137,8 @@ pub fn bind(path: &Path, mode: u32) -> std::io::Result<UnixListener> {
 }
 
 /// Accept clients until `stop` is set.
+///
+/// Errors: the `io::Error` of a thread that could not be started.
 pub fn spawn_listener(
     listener: UnixListener,
     path: PathBuf,
@@ -387,13 +389,18 @@ fn serve_client(
     ctx: &ServerContext,
 ) -> String {
     let mut reader = BufReader::new(stream);
-    let mut greeted = false;
-    let mut last_seq: Option<u64> = None;
+    let mut session = Session {
+        id,
+        status_only,
+        greeted: false,
+        last_seq: None,
+        ctx,
+    };
     loop {
         let line = match read_line(&mut reader, deadline) {
             Ok(Some(line)) => line,
             Ok(None) => return "disconnected".into(),
-            Err(ReadError::Deadline) if !greeted => {
+            Err(ReadError::Deadline) if !session.greeted => {
                 return fatal(ctx, id, "no hello within the time limit".into())
             }
             Err(ReadError::Deadline) => {
@@ -410,140 +417,152 @@ fn serve_client(
             Ok(r) => r,
             Err(e) => return fatal(ctx, id, e.to_string()),
         };
-        match request {
+        let handled = match request {
             Request::Hello {
                 version,
                 role,
                 name,
-            } => {
-                if greeted {
-                    return fatal(ctx, id, "hello sent twice".into());
-                }
-                if version != APP_PROTOCOL_VERSION {
-                    return fatal(
-                        ctx,
-                        id,
-                        format!("protocol version {version} not supported (daemon speaks {APP_PROTOCOL_VERSION})"),
-                    );
-                }
-                greeted = true;
+            } => session.hello(version, role, &name).map(|()| {
                 if !status_only {
+                    // A greeted client may stay as long as it likes.
                     deadline = None;
                     let _ = reader.get_ref().set_read_timeout(None);
                 }
-                let granted = {
-                    let mut reg = lock(&ctx.registry);
-                    let granted = if role == Role::Control && reg.owner.is_none() && !status_only {
-                        reg.owner = Some(id);
-                        Role::Control
-                    } else {
-                        Role::Observe
-                    };
-                    if let Some(c) = reg.clients.get_mut(&id) {
-                        if !name.is_empty() {
-                            c.name = name.chars().take(64).collect();
-                        }
-                        c.role = granted;
-                    }
-                    granted
-                };
-                if granted == Role::Control {
-                    send_command(ctx, ServoCommand::SetOwner(Some(id)));
-                }
-                reply(
-                    ctx,
-                    id,
-                    Reply::Welcome {
-                        version: APP_PROTOCOL_VERSION,
-                        role: granted,
-                        client_id: id,
-                        device: ctx.device.clone(),
-                        device_id: ctx.device_id.clone(),
-                        rate_hz: ctx.rate_hz,
-                    },
-                );
-                if status_only {
-                    reply(
-                        ctx,
-                        id,
-                        Reply::Error {
-                            message: STATUS_ONLY.into(),
-                            fatal: false,
-                        },
-                    );
-                } else if role == Role::Control && granted != Role::Control {
-                    reply(
-                        ctx,
-                        id,
-                        Reply::Error {
-                            message: "another client owns the force; you may observe".into(),
-                            fatal: false,
-                        },
-                    );
-                }
-            }
-            _ if !greeted => return fatal(ctx, id, "the first message must be hello".into()),
+            }),
+            _ if !session.greeted => Err("the first message must be hello".into()),
             Request::Status {} => {
                 let _ = ctx.hub.send(HubRequest::Status { client: id });
+                Ok(())
             }
-            _ if status_only => return fatal(ctx, id, STATUS_ONLY.into()),
-            Request::SetForce { seq, force } => {
-                if lock(&ctx.registry).owner != Some(id) {
-                    reply(
-                        ctx,
-                        id,
-                        Reply::Error {
-                            message: "this client does not own the force".into(),
-                            fatal: false,
-                        },
-                    );
-                    continue;
-                }
-                if last_seq.is_some_and(|last| seq <= last) {
-                    return fatal(
-                        ctx,
-                        id,
-                        format!(
-                            "out-of-order set_force: seq {seq} after {}",
-                            last_seq.unwrap_or(0)
-                        ),
-                    );
-                }
-                last_seq = Some(seq);
-                ctx.offsets.send(OffsetCommand {
-                    client: id,
-                    seq,
-                    force: Vector3::from(force),
-                });
-            }
+            _ if status_only => Err(STATUS_ONLY.into()),
+            Request::SetForce { seq, force } => session.set_force(seq, force),
             Request::Subscribe { rate_hz } => {
-                let divider = if rate_hz <= 0.0 {
-                    0
-                } else {
-                    (ctx.rate_hz / rate_hz).round().max(1.0) as u64
-                };
-                if let Some(c) = lock(&ctx.registry).clients.get_mut(&id) {
-                    c.state_divider = divider;
-                }
+                session.subscribe(rate_hz);
+                Ok(())
             }
             Request::Calibrate {} => {
-                let owner = lock(&ctx.registry).owner;
-                if owner.is_some_and(|o| o != id) {
-                    reply(
-                        ctx,
-                        id,
-                        Reply::Error {
-                            message: "another client owns the force: only it may start a \
-                                      calibration"
-                                .into(),
-                            fatal: false,
-                        },
-                    );
-                    continue;
-                }
-                let _ = ctx.hub.send(HubRequest::Calibrate { client: id });
+                session.calibrate();
+                Ok(())
             }
+        };
+        if let Err(reason) = handled {
+            return fatal(ctx, id, reason);
         }
+    }
+}
+
+/// One client's side of the conversation. Each request handler returns `Err(reason)` when the
+/// client broke the protocol and must be closed.
+struct Session<'a> {
+    id: u64,
+    status_only: bool,
+    greeted: bool,
+    /// `seq` of the last accepted `set_force` (they must increase).
+    last_seq: Option<u64>,
+    ctx: &'a ServerContext,
+}
+
+impl Session<'_> {
+    fn refuse(&self, message: &str) {
+        reply(
+            self.ctx,
+            self.id,
+            Reply::Error {
+                message: message.into(),
+                fatal: false,
+            },
+        );
+    }
+
+    /// `hello`: check the version, grant a role (control only if nobody owns the force), welcome.
+    fn hello(&mut self, version: u32, role: Role, name: &str) -> Result<(), String> {
+        if self.greeted {
+            return Err("hello sent twice".into());
+        }
+        if version != APP_PROTOCOL_VERSION {
+            return Err(format!(
+                "protocol version {version} not supported (daemon speaks {APP_PROTOCOL_VERSION})"
+            ));
+        }
+        self.greeted = true;
+        let ctx = self.ctx;
+        let granted = {
+            let mut reg = lock(&ctx.registry);
+            let granted = if role == Role::Control && reg.owner.is_none() && !self.status_only {
+                reg.owner = Some(self.id);
+                Role::Control
+            } else {
+                Role::Observe
+            };
+            if let Some(c) = reg.clients.get_mut(&self.id) {
+                if !name.is_empty() {
+                    c.name = name.chars().take(64).collect();
+                }
+                c.role = granted;
+            }
+            granted
+        };
+        if granted == Role::Control {
+            send_command(ctx, ServoCommand::SetOwner(Some(self.id)));
+        }
+        reply(
+            ctx,
+            self.id,
+            Reply::Welcome {
+                version: APP_PROTOCOL_VERSION,
+                role: granted,
+                client_id: self.id,
+                device: ctx.device.clone(),
+                device_id: ctx.device_id.clone(),
+                rate_hz: ctx.rate_hz,
+            },
+        );
+        if self.status_only {
+            self.refuse(STATUS_ONLY);
+        } else if role == Role::Control && granted != Role::Control {
+            self.refuse("another client owns the force; you may observe");
+        }
+        Ok(())
+    }
+
+    /// `set_force`: only from the owner, in increasing `seq`; handed to the servo thread.
+    fn set_force(&mut self, seq: u64, force: [f64; 3]) -> Result<(), String> {
+        if lock(&self.ctx.registry).owner != Some(self.id) {
+            self.refuse("this client does not own the force");
+            return Ok(());
+        }
+        if let Some(last) = self.last_seq.filter(|&last| seq <= last) {
+            return Err(format!("out-of-order set_force: seq {seq} after {last}"));
+        }
+        self.last_seq = Some(seq);
+        self.ctx.offsets.send(OffsetCommand {
+            client: self.id,
+            seq,
+            force: Vector3::from(force),
+        });
+        Ok(())
+    }
+
+    /// `subscribe`: every n-th tick's state (0 stops the stream).
+    fn subscribe(&self, rate_hz: f64) {
+        let divider = if rate_hz <= 0.0 {
+            0
+        } else {
+            (self.ctx.rate_hz / rate_hz).round().max(1.0) as u64
+        };
+        if let Some(c) = lock(&self.ctx.registry).clients.get_mut(&self.id) {
+            c.state_divider = divider;
+        }
+    }
+
+    /// `calibrate`: refused while another client owns the force; otherwise the hub decides.
+    fn calibrate(&self) {
+        let owner = lock(&self.ctx.registry).owner;
+        if owner.is_some_and(|o| o != self.id) {
+            self.refuse("another client owns the force: only it may start a calibration");
+            return;
+        }
+        let _ = self.ctx.hub.send(HubRequest::Calibrate { client: self.id });
     }
 }
 

@@ -35,6 +35,8 @@ pub enum ModelError {
 
 impl GravityModel {
     /// The model of a grid file: its lattice, and in vector mode its per-vertex force vectors.
+    ///
+    /// Errors: [`ModelError::NoForceVectors`] in vector mode for a grid without them.
     pub fn new(
         file: GridFile,
         mode: CompensationMode,

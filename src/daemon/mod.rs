@@ -18,7 +18,7 @@ use crossbeam_channel::{Receiver, Sender};
 use thiserror::Error;
 use tracing::{error, info, warn};
 
-use crate::app::protocol::{Reply, StateSample, Status};
+use crate::app::protocol::{CalibrationStage, Compensating, Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{self, grid_file};
@@ -57,12 +57,9 @@ pub struct Signals {
 pub enum RunError {
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error("opening {spec}")]
-    Open {
-        spec: String,
-        #[source]
-        source: TransportError,
-    },
+    /// The device cannot be opened (the error names it).
+    #[error(transparent)]
+    Open(TransportError),
     #[error(
         "{}: refusing to run with this grid (recalibrate, remove the file, or set \
          compensation.allow_uncompensated = true)",
@@ -156,11 +153,8 @@ pub fn load_model(
     }
 }
 
-fn mode_name(model: &Option<Box<GravityModel>>) -> String {
-    match model {
-        Some(m) => format!("{:?}", m.mode).to_lowercase(),
-        None => "none".into(),
-    }
+fn mode_name(model: &Option<Box<GravityModel>>) -> Compensating {
+    model.as_ref().map(|m| m.mode).into()
 }
 
 /// A running daemon's hub state.
@@ -190,9 +184,9 @@ impl Hub {
         }
     }
 
-    fn calibration_reply(&self, event: &str, message: String) -> Reply {
+    fn calibration_reply(&self, event: CalibrationStage, message: String) -> Reply {
         Reply::Calibration {
-            event: event.into(),
+            event,
             vertex: None,
             of: None,
             mass_kg: None,
@@ -245,7 +239,10 @@ impl Hub {
                 if self.calibration.is_some() {
                     self.reply(
                         client,
-                        self.calibration_reply("failed", "a calibration is already running".into()),
+                        self.calibration_reply(
+                            CalibrationStage::Failed,
+                            "a calibration is already running".into(),
+                        ),
                     );
                     return;
                 }
@@ -257,7 +254,10 @@ impl Hub {
                         let room = persist::check_room(&self.grid_path, plan, &self.device);
                         if let Err(e) = room {
                             let message = chain(&e);
-                            self.reply(client, self.calibration_reply("failed", message));
+                            self.reply(
+                                client,
+                                self.calibration_reply(CalibrationStage::Failed, message),
+                            );
                             return;
                         }
                         let start = ServoCommand::StartCalibration(Box::new(calibration));
@@ -265,18 +265,24 @@ impl Hub {
                             info!("calibration requested by application client {client}");
                             self.calibration = Some((client, rx));
                             self.status.calibrating = true;
-                            self.reply(client, self.calibration_reply("started", String::new()));
+                            self.reply(
+                                client,
+                                self.calibration_reply(CalibrationStage::Started, String::new()),
+                            );
                         } else {
                             self.reply(
                                 client,
                                 self.calibration_reply(
-                                    "failed",
+                                    CalibrationStage::Failed,
                                     "the servo loop is not taking commands (device silent?)".into(),
                                 ),
                             );
                         }
                     }
-                    Err(e) => self.reply(client, self.calibration_reply("failed", e.to_string())),
+                    Err(e) => self.reply(
+                        client,
+                        self.calibration_reply(CalibrationStage::Failed, e.to_string()),
+                    ),
                 }
             }
         }
@@ -301,7 +307,7 @@ impl Hub {
         for event in rx.try_iter() {
             let reply = match event {
                 CalibrationEvent::InitDone { initial_mass, .. } => Reply::Calibration {
-                    event: "init_done".into(),
+                    event: CalibrationStage::InitDone,
                     vertex: None,
                     of: None,
                     mass_kg: Some(initial_mass),
@@ -310,7 +316,7 @@ impl Hub {
                 CalibrationEvent::VertexDone {
                     vertex, of, mass, ..
                 } => Reply::Calibration {
-                    event: "vertex_done".into(),
+                    event: CalibrationStage::VertexDone,
                     vertex: Some(vertex),
                     of: Some(of),
                     mass_kg: Some(mass),
@@ -359,7 +365,7 @@ impl Hub {
                             self.reply(
                                 c,
                                 self.calibration_reply(
-                                    "finished",
+                                    CalibrationStage::Finished,
                                     self.grid_path.display().to_string(),
                                 ),
                             );
@@ -369,7 +375,7 @@ impl Hub {
                         self.command(ServoCommand::ReleaseHold);
                         error!("calibration failed: {e}; the previous grid stays in use");
                         if let Some(c) = client {
-                            self.reply(c, self.calibration_reply("failed", e));
+                            self.reply(c, self.calibration_reply(CalibrationStage::Failed, e));
                         }
                     }
                 }
@@ -462,6 +468,10 @@ impl Daemon {
 
     /// Run until a stop signal, the duration, or the end of the servo loop. `ready` is called
     /// once the socket listens and the servo thread runs (systemd readiness).
+    ///
+    /// Errors: [`RunError::Grid`] or `File`/`Model` for a stored grid it must not use, `Listen`
+    /// when the socket cannot be served, `Spawn` or `ServoPanicked` for the servo thread, `Servo`
+    /// when the device fails under it.
     pub fn run(
         mut self,
         transport: Box<dyn Transport>,
@@ -515,7 +525,7 @@ impl Daemon {
             status: Status {
                 device: self.device.to_string(),
                 device_id: self.device.device_id(),
-                grid: (mode != "none").then(|| grid_path.display().to_string()),
+                grid: (mode != Compensating::None).then(|| grid_path.display().to_string()),
                 mode,
                 ..Status::default()
             },
@@ -634,17 +644,16 @@ impl SystemdWatchdog {
 }
 
 /// `hgcd run`: open the device and run the daemon.
+///
+/// Errors: [`RunError::Config`] for an invalid config, [`RunError::Open`] when the device cannot
+/// be opened, then as [`Daemon::run`].
 pub fn run(
     config: &Config,
     request: &RunRequest,
     signals: Signals,
 ) -> Result<ServoReport, RunError> {
-    let transport = transport::open(&request.device, config, request.pacing).map_err(|source| {
-        RunError::Open {
-            spec: request.device.to_string(),
-            source,
-        }
-    })?;
+    let transport =
+        transport::open(&request.device, config, request.pacing).map_err(RunError::Open)?;
     Daemon::new(config.clone(), request).run(transport, signals, &mut |_| {
         let _ = sd_notify::notify(
             false,

@@ -105,6 +105,8 @@ impl FoawAxis {
     /// metres), `max_window` the largest window in periods
     /// (`1..=MAX_WINDOW`; 1 degenerates to the finite difference) and `period`
     /// the sample period `T` in seconds.
+    ///
+    /// Errors: [`FoawError`] naming the first parameter out of its range.
     pub fn new(
         variant: FoawVariant,
         noise_bound: f64,
@@ -382,7 +384,7 @@ pub struct Foaw {
 }
 
 impl Foaw {
-    /// See [`FoawAxis::new`].
+    /// See [`FoawAxis::new`], whose errors it returns.
     pub fn new(
         variant: FoawVariant,
         noise_bound: f64,
@@ -879,38 +881,59 @@ mod tests {
         (0.02 * (TAU * t).sin(), 0.02 * TAU * (TAU * t).cos())
     }
 
-    /// Fraction of samples whose window equals the exact one, and the RMS
-    /// velocity error (m/s) after the first 100 samples, for the trajectory
-    /// plus an offset, measured with ±1.5 quanta of uniform noise and
-    /// quantised to `q`, with `d` = 2 quanta.
+    /// Positions in quanta `q`, 4000 samples of the trajectory plus an offset,
+    /// measured with ±1.5 quanta of uniform noise drawn from `seed`.
+    fn quantised(q: f64, offset: f64, path: fn(f64) -> (f64, f64), seed: u64) -> Vec<i64> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let noise = Uniform::new_inclusive(-1.5, 1.5);
+        (0..4000)
+            .map(|k| ((offset + path(k as f64 * T).0) / q + rng.sample(noise)).round() as i64)
+            .collect()
+    }
+
+    /// Fraction of samples whose window equals the exact one on
+    /// [`quantised`] positions (seed 19), with `d` = 2 quanta.
     fn against_exact(
         variant: FoawVariant,
         window: usize,
         q: f64,
         offset: f64,
         path: fn(f64) -> (f64, f64),
-    ) -> (f64, f64) {
-        let mut rng = ChaCha8Rng::seed_from_u64(19);
-        let noise = Uniform::new_inclusive(-1.5, 1.5);
-        let m: Vec<i64> = (0..4000)
-            .map(|k| ((offset + path(k as f64 * T).0) / q + rng.sample(noise)).round() as i64)
-            .collect();
+    ) -> f64 {
+        let m = quantised(q, offset, path, 19);
         let mut f = axis(variant, 2.0 * q, window);
-        let (mut same, mut sq) = (0, 0.0);
+        let mut same = 0;
         let mut hist = vec![0; window + 1];
         for (k, &mk) in m.iter().enumerate() {
-            let est = f.update(mk as f64 * q);
+            f.update(mk as f64 * q);
             // The estimator pre-fills its history with the first sample.
             for (i, hi) in hist.iter_mut().enumerate() {
                 *hi = m[k.saturating_sub(i)];
             }
             same += usize::from(f.window() == exact_window(variant, &hist, 2));
+        }
+        same as f64 / m.len() as f64
+    }
+
+    /// RMS velocity error (m/s) after the first 100 samples, on [`quantised`]
+    /// positions at 2 µm around 0 with `d` = 2 quanta.
+    fn velocity_rms(
+        variant: FoawVariant,
+        window: usize,
+        path: fn(f64) -> (f64, f64),
+        seed: u64,
+    ) -> f64 {
+        const Q: f64 = 2e-6;
+        let m = quantised(Q, 0.0, path, seed);
+        let mut f = axis(variant, 2.0 * Q, window);
+        let mut sq = 0.0;
+        for (k, &mk) in m.iter().enumerate() {
+            let est = f.update(mk as f64 * Q);
             if k >= 100 {
                 sq += (est - path(k as f64 * T).1).powi(2);
             }
         }
-        let n = m.len() as f64;
-        (same as f64 / n, (sq / (n - 100.0)).sqrt())
+        (sq / (m.len() - 100) as f64).sqrt()
     }
 
     /// Encoders quantise positions, and with `d` a whole number of quanta many
@@ -928,7 +951,7 @@ mod tests {
             for window in [16, 32] {
                 for (q, offset) in [(2e-6, 0.0), (2e-6, 0.1), (0.25e-6, 0.0), (0.25e-6, 0.1)] {
                     for path in [sine as fn(f64) -> (f64, f64), reach_and_hold] {
-                        let (same, _) = against_exact(v, window, q, offset, path);
+                        let same = against_exact(v, window, q, offset, path);
                         assert!(
                             same >= 0.99,
                             "{v:?} window {window}, q {q}, offset {offset}: {:.2} % exact",
@@ -942,39 +965,62 @@ mod tests {
 
     /// Accepting ties lengthens the windows to what the method intends:
     /// longer windows average more noise out, and lag more under
-    /// acceleration. Velocity RMS error against the true derivative, same
-    /// inputs as above at 2 µm around 0, in mm/s, measured before the fix ->
-    /// after it (windows 16 and 32 agree to within 0.004 mm/s):
+    /// acceleration. Velocity RMS error against the true derivative in mm/s,
+    /// on the inputs above at 2 µm around 0, each the mean over noise seeds
+    /// 0..50 of one seed's RMS error (± the standard deviation over seeds).
+    /// "Before" is the estimator of commit 78e0dea, the last before the tie
+    /// fix, run on the same inputs; "change" is after minus before per seed
+    /// (mean ± standard deviation), with the number of seeds that got worse:
     ///
-    /// | variant  | reach and hold   | 1 Hz sine        |
-    /// | -------- | ---------------- | ---------------- |
-    /// | end-fit  | 1.492 -> 1.161   | 1.852 -> 1.706   |
-    /// | best-fit | 1.305 -> 1.305   | 1.960 -> 1.967   |
+    /// | variant  | path           | before          | after           | change                   |
+    /// | -------- | -------------- | --------------- | --------------- | ------------------------ |
+    /// | end-fit  | reach and hold | 1.4857 ± 0.0395 | 1.1648 ± 0.0307 | -0.3210 ± 0.0219,  0/50  |
+    /// | end-fit  | 1 Hz sine      | 1.8812 ± 0.0390 | 1.7141 ± 0.0293 | -0.1671 ± 0.0172,  0/50  |
+    /// | best-fit | reach and hold | 1.2952 ± 0.0109 | 1.2937 ± 0.0103 | -0.0015 ± 0.0065, 24/50  |
+    /// | best-fit | 1 Hz sine      | 1.9499 ± 0.0127 | 1.9537 ± 0.0127 | +0.0038 ± 0.0057, 38/50  |
     ///
-    /// End-fit, whose ties were most often rejected, gains 8-22 %. Best-fit
-    /// is unchanged on the reaches (1.3051 -> 1.3048) and 0.34 % worse on the
-    /// sine: there its windows were already long, and the extra length adds
-    /// lag at the 0.79 m/s² peaks. That case is bounded at +0.5 %; every
-    /// other must be no worse than before.
+    /// Window 16; window 32 gives the same changes to within 0.002 mm/s (its
+    /// figures are in the cases below). End-fit, whose ties were most often
+    /// rejected, gains 9 % on the sine and 22 % on the reaches; it must gain
+    /// at least 5 %, which fails if ties are rejected again. Best-fit gains
+    /// 0.12 % on the reaches and is 0.19 % worse on the sine: systematic, not
+    /// one seed's noise (seed 19 alone: +0.34 %; seeds 100..300: +0.17 %,
+    /// worse on 145 of 200). It is not a defect of best-fit's window test: on
+    /// every sample of every seed its windows equal those of exact arithmetic
+    /// (before the fix, 94.6 % of the sine's did), and every window that
+    /// changed grew. On the sine best-fit's error is mostly lag (the
+    /// least-squares slope is the velocity at the middle of the window), and
+    /// the windows that grew (5.4 % of the sine's samples; mean window
+    /// 8.38 -> 8.46) add more lag than they remove noise: their share of the
+    /// mean square error, split into the error of the same fit to the
+    /// noiseless trajectory (lag) and the rest (noise), goes from
+    /// 0.157 + 0.084 to 0.234 + 0.005 (mm/s)², and in all, the two parts
+    /// being correlated, from 0.218 to 0.233. Rejecting ties, by roundoff,
+    /// shortened those windows at random, which happened to help where lag
+    /// dominates. That case is therefore bounded at +0.5 %, not at "no
+    /// worse"; best-fit on the reaches must be no worse.
     #[test]
     fn accepting_ties_keeps_velocity_error() {
         use FoawVariant::{BestFit, EndFit};
         type Path = fn(f64) -> (f64, f64);
+        const SEEDS: std::ops::Range<u64> = 0..50;
         let cases: [(FoawVariant, &str, Path, usize, f64, f64); 8] = [
-            (EndFit, "reach", reach_and_hold, 16, 1.4924, 1.0),
-            (EndFit, "reach", reach_and_hold, 32, 1.4912, 1.0),
-            (EndFit, "sine", sine, 16, 1.8521, 1.0),
-            (EndFit, "sine", sine, 32, 1.8521, 1.0),
-            (BestFit, "reach", reach_and_hold, 16, 1.3051, 1.0),
-            (BestFit, "reach", reach_and_hold, 32, 1.3048, 1.0),
-            (BestFit, "sine", sine, 16, 1.9602, 1.005),
-            (BestFit, "sine", sine, 32, 1.9614, 1.005),
+            (EndFit, "reach", reach_and_hold, 16, 1.4857, 0.95),
+            (EndFit, "reach", reach_and_hold, 32, 1.4844, 0.95),
+            (EndFit, "sine", sine, 16, 1.8812, 0.95),
+            (EndFit, "sine", sine, 32, 1.8812, 0.95),
+            (BestFit, "reach", reach_and_hold, 16, 1.2952, 1.0),
+            (BestFit, "reach", reach_and_hold, 32, 1.2952, 1.0),
+            (BestFit, "sine", sine, 16, 1.9499, 1.005),
+            (BestFit, "sine", sine, 32, 1.9512, 1.005),
         ];
-        for (v, name, path, window, before, allowed) in cases {
-            let after = 1e3 * against_exact(v, window, 2e-6, 0.0, path).1;
+        for (v, name, path, window, before, bound) in cases {
+            let sum: f64 = SEEDS.map(|s| velocity_rms(v, window, path, s)).sum();
+            let after = 1e3 * sum / SEEDS.count() as f64;
             assert!(
-                after <= before * allowed,
-                "{v:?} {name} window {window}: {after:.4} mm/s, before {before:.4} mm/s"
+                after <= before * bound,
+                "{v:?} {name} window {window}: {after:.4} mm/s, before {before:.4} mm/s, \
+                 bound {bound} times before"
             );
         }
     }

@@ -189,6 +189,8 @@ struct Records<'a> {
 
 impl GridFile {
     /// Check every value against the format's rules (`docs/grid-format.md` §3).
+    ///
+    /// Errors: the first [`Problem`] found, in the order of the format's table.
     pub fn check(&self) -> Result<(), Problem> {
         self.grid.check()?;
         self.vertices.check(self.grid.vertex_count())
@@ -389,11 +391,12 @@ fn clip(s: &str, max: usize) -> String {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::grid::lattice::tests::sample;
 
-    fn calibrated() -> GridFile {
+    /// A grid file with every record filled in, as a calibration writes it.
+    pub(crate) fn calibrated() -> GridFile {
         let mut file = GridFile::from(sample());
         file.device = Some(DeviceRecord {
             id: "sim-point-mass".into(),

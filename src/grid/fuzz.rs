@@ -10,34 +10,18 @@ use std::path::Path;
 use nalgebra::Vector3;
 use proptest::prelude::*;
 
-use super::file::{CalibrationRecord, DeviceRecord, GridFile, VertexRecords};
+use super::file::tests::calibrated;
+use super::file::GridFile;
 use super::lattice::tests::sample;
 use super::GridError;
 
 /// A valid file with every table the format knows and an unknown one.
 fn valid_text() -> String {
-    let mut file = GridFile::from(sample());
-    file.device = Some(DeviceRecord {
-        id: "sim-point-mass".into(),
-        spec: Some("sim:point-mass".into()),
-    });
-    file.calibration = Some(CalibrationRecord {
-        created: Some("2026-11-21T23:29:02Z".parse().unwrap()),
-        hgcd_version: Some("0.1.0".into()),
-        spacing_mm: Some(40.0),
-        half_size: Some(1),
-        n_init: Some(30),
-        rest_point_mm: Some([0.0, -0.005, 0.0]),
-        left_out_vertices: Some(vec![[-2, -2, -2], [2, 2, 2]]),
-        ..CalibrationRecord::default()
-    });
-    let n = file.grid.vertex_count();
-    file.vertices = VertexRecords {
-        force_vectors: (0..n).map(|i| [1e-3 * i as f64, -2e-3, 1.2]).collect(),
-        iterations: vec![2; n],
-        final_error_mm: vec![0.0071; n],
-        friction_n: vec![[0.05, 0.04, 0.06]; n],
-    };
+    let mut file = calibrated();
+    if let Some(c) = &mut file.calibration {
+        c.n_init = Some(30);
+        c.left_out_vertices = Some(vec![[-2, -2, -2], [2, 2, 2]]);
+    }
     let mut text = file.to_toml_string();
     text.push_str("\n[future]\nkey = \"value\"\nwhen = 1979-05-27\n");
     text

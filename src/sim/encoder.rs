@@ -1,65 +1,64 @@
-//! Position measurement as a device's encoders make it.
+//! Position measurement as a device makes it: noise at the handle, then the plant's own sensors.
 
 use nalgebra::Vector3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
+use super::Plant;
 use crate::config::SimConfig;
 
-/// Position measurement: Gaussian noise then quantisation to the encoder resolution.
+/// Position measurement: Gaussian noise at the handle, then quantisation by the plant's encoders
+/// ([`Plant::sensed_position`]).
 #[derive(Clone, Debug)]
 pub struct Encoder {
-    resolution: f64,
     noise: Option<Normal<f64>>,
     rng: ChaCha8Rng,
 }
 
 impl Encoder {
-    /// `resolution` and `noise_std` in m (0 disables either); deterministic for a given seed.
-    pub fn new(resolution: f64, noise_std: f64, seed: u64) -> Self {
+    /// `noise_std` in m (0 disables noise); deterministic for a given seed.
+    pub fn new(noise_std: f64, seed: u64) -> Self {
         Self {
-            resolution,
             noise: (noise_std > 0.0).then(|| Normal::new(0.0, noise_std).expect("finite std")),
             rng: ChaCha8Rng::seed_from_u64(seed),
         }
     }
 
     pub fn from_config(sim: &SimConfig) -> Self {
-        Self::new(sim.encoder_resolution(), sim.noise(), sim.seed)
+        Self::new(sim.noise(), sim.seed)
     }
 
-    /// The position the device would report for the true position `x`.
-    pub fn measure(&mut self, x: &Vector3<f64>) -> Vector3<f64> {
-        let mut out = *x;
-        if let Some(noise) = &self.noise {
+    /// The position the device reports for the state of `plant`.
+    pub fn measure(&mut self, plant: &dyn Plant) -> Vector3<f64> {
+        let mut noise = Vector3::zeros();
+        if let Some(n) = &self.noise {
             for axis in 0..3 {
-                out[axis] += noise.sample(&mut self.rng);
+                noise[axis] = n.sample(&mut self.rng);
             }
         }
-        if self.resolution > 0.0 {
-            out = out.map(|c| (c / self.resolution).round() * self.resolution);
-        }
-        out
+        plant.sensed_position(&noise)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sim::PointMass;
 
     #[test]
     fn encoder_quantises_and_is_deterministic() {
-        let mut a = Encoder::new(5e-6, 2e-6, 7);
-        let mut b = Encoder::new(5e-6, 2e-6, 7);
-        let x = Vector3::new(0.0123456, -0.001, 0.0);
+        let mut plant = PointMass::from_config(&SimConfig::default()).unwrap();
+        plant.resolution = 5e-6;
+        let mut a = Encoder::new(2e-6, 7);
+        let mut b = Encoder::new(2e-6, 7);
         for _ in 0..100 {
-            let ma = a.measure(&x);
-            assert_eq!(ma, b.measure(&x));
+            let ma = a.measure(&plant);
+            assert_eq!(ma, b.measure(&plant));
             for axis in 0..3 {
                 let steps = ma[axis] / 5e-6;
                 assert!((steps - steps.round()).abs() < 1e-6);
-                assert!((ma[axis] - x[axis]).abs() < 2e-5);
+                assert!((ma[axis] - plant.position()[axis]).abs() < 2e-5);
             }
         }
     }

@@ -4,9 +4,8 @@
 
 use nalgebra::Vector3;
 
-use super::{Encoder, Plant, PointMass};
+use super::{delta, phantom, Encoder, Plant, PointMass, SimError};
 use crate::config::Config;
-use crate::grid::GridError;
 use crate::protocol::{InputReport, OutputReport, ProtocolError, Status, INPUT_REPORT_LEN};
 
 /// Emulated device firmware: one report period at a time.
@@ -61,12 +60,25 @@ impl SimDevice {
         }
     }
 
-    /// The device a config describes (`[sim]` section, report rate from `[servo]`). `model` has
-    /// been checked by [`crate::config::DeviceSpec`]; `point-mass` is the only model so far.
-    pub fn from_config(model: &str, config: &Config) -> Result<Self, GridError> {
-        debug_assert!(crate::config::SIM_MODELS.contains(&model));
+    /// The device `sim:MODEL` a config describes (`[sim]` section, report rate from `[servo]`).
+    /// Fails on a model not in [`crate::config::SIM_MODELS`], a mass grid that does not load, or
+    /// a start position a linkage cannot reach.
+    pub fn from_config(model: &str, config: &Config) -> Result<Self, SimError> {
         let sim = &config.sim;
-        let plant: Box<dyn Plant> = Box::new(PointMass::from_config(sim)?);
+        let unreachable = |model| SimError::Unreachable {
+            model,
+            position_mm: sim.start_position_mm,
+        };
+        let plant: Box<dyn Plant> = match model {
+            "point-mass" => Box::new(PointMass::from_config(sim)?),
+            "phantom" => Box::new(phantom::from_config(sim).map_err(|_| unreachable("phantom"))?),
+            "delta" => Box::new(delta::from_config(sim).map_err(|_| unreachable("delta"))?),
+            _ => {
+                return Err(SimError::UnknownModel {
+                    model: model.into(),
+                })
+            }
+        };
         let mut device = Self::new(
             plant,
             Encoder::from_config(sim),
@@ -77,11 +89,6 @@ impl SimDevice {
         );
         device.stop_reporting_after = sim.stop_reporting_after_s;
         Ok(device)
-    }
-
-    /// Fault injection: stop sending input reports once the device clock passes `t` s.
-    pub fn stop_reporting_after(&mut self, t: Option<f64>) {
-        self.stop_reporting_after = t;
     }
 
     /// Report period, s.
@@ -169,7 +176,7 @@ impl SimDevice {
             .with(Status::FORCE_SATURATED, self.saturated)
             .with(Status::DEVICE_WATCHDOG, self.watchdog_tripped);
         let (lo, hi) = self.plant.workspace();
-        let measured = self.encoder.measure(&self.plant.position());
+        let measured = self.encoder.measure(self.plant.as_ref());
         let report = InputReport {
             sequence: self.sequence,
             timestamp_us: self.clock_us as u32,

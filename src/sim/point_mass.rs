@@ -28,6 +28,8 @@ pub struct PointMass {
     pub inertia: Option<f64>,
     /// A probe mass fixed to the end effector, kg (adds to M(X) in weight and to the inertia).
     pub payload: f64,
+    /// Resolution of its Cartesian encoders, m (0: no quantisation).
+    pub resolution: f64,
     lo: Vector3<f64>,
     hi: Vector3<f64>,
     x: Vector3<f64>,
@@ -48,6 +50,7 @@ impl PointMass {
             friction: 0.0,
             inertia: None,
             payload: 0.0,
+            resolution: 0.0,
             lo,
             hi,
             x: start.sup(&lo).inf(&hi),
@@ -73,6 +76,7 @@ impl PointMass {
         plant.payload = sim.probe_mass_kg;
         plant.friction = sim.coulomb_friction_n;
         plant.inertia = sim.inertia_kg;
+        plant.resolution = sim.encoder_resolution();
         Ok(plant)
     }
 
@@ -127,6 +131,14 @@ impl Plant for PointMass {
     }
     fn holding_force(&self) -> Vector3<f64> {
         self.field.gravity_direction * (self.mass() * self.field.g)
+    }
+    fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64> {
+        let x = self.x + noise;
+        if self.resolution > 0.0 {
+            x.map(|c| (c / self.resolution).round() * self.resolution)
+        } else {
+            x
+        }
     }
 }
 
@@ -262,5 +274,18 @@ mod tests {
             p.step(&Vector3::zeros(), 1e-4);
         }
         assert_eq!(p.position(), Vector3::zeros());
+    }
+
+    #[test]
+    fn cartesian_encoders_quantise_to_their_resolution() {
+        let mut p = PointMass::from_config(&SimConfig::default()).unwrap();
+        p.resolution = 5e-6;
+        p.x = Vector3::new(0.0123456, -0.001, 0.0);
+        let m = p.sensed_position(&Vector3::new(1e-6, 0.0, -4e-6));
+        for axis in 0..3 {
+            let steps = m[axis] / 5e-6;
+            assert!((steps - steps.round()).abs() < 1e-6);
+        }
+        assert!((m - Vector3::new(0.012345, -0.001, -0.000005)).amax() < 1e-12);
     }
 }

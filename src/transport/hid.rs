@@ -44,7 +44,11 @@ impl HidDeviceEntry {
 
 /// Every HID device visible to this process.
 pub fn list_devices() -> Result<Vec<HidDeviceEntry>, TransportError> {
-    let api = HidApi::new().map_err(|e| TransportError::Io(format!("hidapi: {e}")))?;
+    let api = HidApi::new().map_err(|source| TransportError::Hid {
+        spec: "hid".into(),
+        doing: "starting hidapi".into(),
+        source,
+    })?;
     Ok(api
         .device_list()
         .map(|d| HidDeviceEntry {
@@ -150,11 +154,11 @@ impl HidTransport {
             Some(s) => format!("hid:{vid:04x}:{pid:04x}:{s}"),
             None => format!("hid:{vid:04x}:{pid:04x}"),
         };
-        let open_err = |reason: String| TransportError::Open {
+        let api = HidApi::new().map_err(|source| TransportError::Hid {
             spec: spec.clone(),
-            reason,
-        };
-        let api = HidApi::new().map_err(|e| open_err(format!("hidapi: {e}")))?;
+            doing: "starting hidapi".into(),
+            source,
+        })?;
         let (path, found_serial): (CString, Option<String>) = api
             .device_list()
             .find(|d| {
@@ -169,25 +173,15 @@ impl HidTransport {
                     .map(str::to_string);
                 (d.path().to_owned(), serial)
             })
-            .ok_or_else(|| {
-                open_err(
-                    "no such device is plugged in (run `hgcd devices` to list what hgcd can see)"
-                        .into(),
-                )
-            })?;
+            .ok_or_else(|| TransportError::NotFound { spec: spec.clone() })?;
         let open = |what: &str| {
-            api.open_path(&path).map_err(|e| {
-                let text = e.to_string();
-                let hint = if text.contains("ermission") || text.contains("EACCES") {
-                    " — permission denied: install udev/70-hgcd.rules and add yourself to group \
-                     `hgcd` (see docs/install.md)"
-                } else {
-                    ""
-                };
-                open_err(format!("{what} {}: {text}{hint}", path.to_string_lossy()))
+            api.open_path(&path).map_err(|source| TransportError::Hid {
+                spec: spec.clone(),
+                doing: format!("{what} {}", path.to_string_lossy()),
+                source,
             })
         };
-        let lock = lock_device(&path).map_err(open_err)?;
+        let lock = lock_device(&spec, &path)?;
         let reader = open("opening")?;
         let writer_dev = open("opening a second handle on")?;
         let writer = OutputWriter::spawn(move |report| {
@@ -196,7 +190,11 @@ impl HidTransport {
                 .map(|_| ())
                 .map_err(std::io::Error::other)
         })
-        .map_err(|e| open_err(format!("cannot start writer thread: {e}")))?;
+        .map_err(|source| TransportError::Open {
+            spec: spec.clone(),
+            doing: "starting its writer thread".into(),
+            source,
+        })?;
         Ok(Self {
             _lock: lock,
             resolved: DeviceSpec::Hid {
@@ -215,23 +213,20 @@ impl HidTransport {
 
 /// Take an exclusive advisory lock (flock) on the device node, so that a second hgcd process (a
 /// direct `hgcd calibrate` while the daemon runs) cannot drive the same device.
-fn lock_device(path: &CString) -> Result<std::fs::File, String> {
+fn lock_device(spec: &str, path: &CString) -> Result<std::fs::File, TransportError> {
     use std::os::unix::io::AsRawFd;
-    let node = std::path::PathBuf::from(path.to_string_lossy().into_owned());
-    let file = std::fs::File::open(&node).map_err(|e| {
-        let hint = if e.kind() == std::io::ErrorKind::PermissionDenied {
-            " — install udev/70-hgcd.rules and add yourself to group `hgcd` (see docs/install.md)"
-        } else {
-            ""
-        };
-        format!("opening {}: {e}{hint}", node.display())
+    let node = path.to_string_lossy().into_owned();
+    let file = std::fs::File::open(&node).map_err(|source| TransportError::Open {
+        spec: spec.into(),
+        doing: format!("opening {node}"),
+        source,
     })?;
     // SAFETY: flock on a descriptor we own.
     if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
-        return Err(format!(
-            "{} is in use by another hgcd process (the daemon? use `hgcd calibrate --via-daemon`)",
-            node.display()
-        ));
+        return Err(TransportError::Busy {
+            spec: spec.into(),
+            node,
+        });
     }
     Ok(file)
 }
@@ -243,13 +238,16 @@ impl Transport for HidTransport {
         timeout: Duration,
     ) -> Result<Option<usize>, TransportError> {
         if self.writer.failed() {
-            return Err(TransportError::Disconnected(format!(
-                "{}: write failed",
-                self.spec
-            )));
+            return Err(TransportError::Disconnected {
+                spec: self.spec.clone(),
+                source: std::io::Error::other("writing an output report failed"),
+            });
         }
         let ms = timeout.as_millis().clamp(1, i32::MAX as u128) as i32;
-        let map = |e: hidapi::HidError| TransportError::Disconnected(format!("{}: {e}", self.spec));
+        let map = |e: hidapi::HidError| TransportError::Disconnected {
+            spec: self.spec.clone(),
+            source: std::io::Error::other(e),
+        };
         let mut report = [0u8; MAX_REPORT_LEN];
         let n = self.reader.read_timeout(&mut report, ms).map_err(map)?;
         if n == 0 {

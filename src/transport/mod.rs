@@ -12,26 +12,88 @@ use thiserror::Error;
 
 use crate::config::{Config, DeviceSpec};
 use crate::protocol::{InputReport, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
+use crate::sim::SimError;
 
 /// How fast a device clock may run slow against the host's unless its transport says otherwise
 /// ([`Transport::clock_drift`]): 200 ppm, twice a crystal's usual tolerance.
 pub const CLOCK_DRIFT: f64 = 2e-4;
 
-/// Why a transport failed.
+/// Why a transport failed. Every variant names the device (`spec`); the OS or library error that
+/// caused it, where there is one, is kept as the [`source`](std::error::Error::source).
 #[derive(Debug, Error)]
 pub enum TransportError {
-    #[error("cannot open device {spec}: {reason}")]
-    Open { spec: String, reason: String },
-    #[error("device disconnected: {0}")]
-    Disconnected(String),
-    #[error("device I/O error: {0}")]
-    Io(String),
+    /// No plugged-in device matches the spec.
+    #[error(
+        "cannot open device {spec}: no such device is plugged in \
+         (run `hgcd devices` to list what hgcd can see)"
+    )]
+    NotFound { spec: String },
+    /// The device node, socket or a helper thread could not be opened or started.
+    #[error("cannot open device {spec}: {doing}{}", access_hint(.source))]
+    Open {
+        spec: String,
+        /// What hgcd was doing, e.g. "opening /dev/hidraw3".
+        doing: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// hidapi could not start or could not open the device.
+    #[error("cannot open device {spec}: {doing}")]
+    Hid {
+        spec: String,
+        doing: String,
+        #[source]
+        source: hidapi::HidError,
+    },
+    /// Another process holds the device's lock.
+    #[error(
+        "cannot open device {spec}: {node} is in use by another hgcd process \
+         (the daemon? use `hgcd calibrate --via-daemon`)"
+    )]
+    Busy { spec: String, node: String },
+    /// The simulated device's configuration cannot be used (`[sim]`: its model, start
+    /// position or `sim.mass_grid`).
+    #[error("cannot open device {spec}: its simulated plant cannot be built")]
+    Simulation {
+        spec: String,
+        #[source]
+        source: SimError,
+    },
+    /// The device went away: unplugged, its socket peer closed, or its writer failed.
+    #[error("device {spec} disconnected")]
+    Disconnected {
+        spec: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The socket peer broke the framing (`docs/hid-protocol.md`, "Socket framing"): the stream
+    /// cannot be resynchronised.
+    #[error("device {spec} sent a frame of length {length} (must be 1 to {MAX_REPORT_LEN})")]
+    Framing { spec: String, length: usize },
+}
+
+impl TransportError {
+    /// Whether the device cannot be opened or is gone (as opposed to a fault of the link itself):
+    /// `hgcd` exits with its own status for these, so udev can start it again on replug.
+    pub fn device_unavailable(&self) -> bool {
+        !matches!(self, Self::Framing { .. })
+    }
+}
+
+/// The remedy for a permission error, appended to its message.
+fn access_hint(e: &std::io::Error) -> &'static str {
+    if e.kind() == std::io::ErrorKind::PermissionDenied {
+        " (permission denied: install udev/70-hgcd.rules and add yourself to group `hgcd`, \
+         see docs/install.md)"
+    } else {
+        ""
+    }
 }
 
 /// One device connection, as the servo loop uses it.
 pub trait Transport: Send {
     /// Wait at most `timeout` for the next input report. Returns the newest *valid* report
-    /// available (older queued ones are skipped, as after an overrun; see [`Burst`]), a garbled
+    /// available (older queued ones are skipped, as after an overrun; see `Burst`), a garbled
     /// one only when nothing valid came, `Ok(None)` when nothing came in time.
     fn read_input(
         &mut self,
@@ -132,14 +194,42 @@ pub fn open(
             serial.as_deref(),
         )?)),
         DeviceSpec::Sim { model } => {
-            let device = crate::sim::SimDevice::from_config(model, config).map_err(|e| {
-                TransportError::Open {
+            let device = crate::sim::SimDevice::from_config(model, config).map_err(|source| {
+                TransportError::Simulation {
                     spec: spec.to_string(),
-                    reason: e.to_string(),
+                    source,
                 }
             })?;
             Ok(Box::new(sim::SimTransport::new(device, pacing)))
         }
         DeviceSpec::Socket { path } => Ok(Box::new(socket::SocketTransport::connect(path)?)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::error::Error as _;
+
+    #[test]
+    fn errors_keep_their_cause_and_name_the_remedy() {
+        let denied = TransportError::Open {
+            spec: "hid:1234:0006".into(),
+            doing: "opening /dev/hidraw3".into(),
+            source: std::io::Error::from(std::io::ErrorKind::PermissionDenied),
+        };
+        assert!(denied.to_string().contains("udev/70-hgcd.rules"));
+        let cause = denied.source().unwrap().downcast_ref::<std::io::Error>();
+        assert_eq!(
+            cause.map(std::io::Error::kind),
+            Some(std::io::ErrorKind::PermissionDenied)
+        );
+        assert!(denied.device_unavailable());
+        let framing = TransportError::Framing {
+            spec: "socket:/tmp/d".into(),
+            length: 200,
+        };
+        assert!(!framing.device_unavailable());
+        assert!(framing.to_string().contains("length 200"));
     }
 }

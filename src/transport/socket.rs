@@ -15,40 +15,47 @@ use crate::sys::wait_readable;
 /// Host side of the socket transport.
 pub struct SocketTransport {
     stream: UnixStream,
-    path: String,
+    /// `socket:PATH`, as errors name the device.
+    spec: String,
     /// Bytes received but not yet consumed (at most one partial frame plus one whole one).
     pending: [u8; 2 * (MAX_REPORT_LEN + 1)],
     filled: usize,
     start: Instant,
-    dropped_writes: u64,
     garbled_skipped: u64,
 }
 
 impl SocketTransport {
     pub fn connect(path: &Path) -> Result<Self, TransportError> {
-        let stream = UnixStream::connect(path).map_err(|e| TransportError::Open {
-            spec: format!("socket:{}", path.display()),
-            reason: format!("{e} (is the device-side program listening there?)"),
+        let spec = format!("socket:{}", path.display());
+        let stream = UnixStream::connect(path).map_err(|source| TransportError::Open {
+            spec: spec.clone(),
+            doing: "connecting (is the device-side program listening there?)".into(),
+            source,
         })?;
         // Non-blocking: a full socket buffer never stalls the servo loop, and waiting for input
         // uses ppoll(2), whose timeout is precise (SO_RCVTIMEO rounds to scheduler ticks).
         stream
             .set_nonblocking(true)
-            .map_err(|e| TransportError::Io(e.to_string()))?;
+            .map_err(|source| TransportError::Open {
+                spec: spec.clone(),
+                doing: "making the socket non-blocking".into(),
+                source,
+            })?;
         Ok(Self {
             stream,
-            path: path.display().to_string(),
+            spec,
             pending: [0; 2 * (MAX_REPORT_LEN + 1)],
             filled: 0,
             start: Instant::now(),
-            dropped_writes: 0,
             garbled_skipped: 0,
         })
     }
 
-    /// Output reports dropped because the peer was not reading.
-    pub fn dropped_writes(&self) -> u64 {
-        self.dropped_writes
+    fn disconnected(&self, source: std::io::Error) -> TransportError {
+        TransportError::Disconnected {
+            spec: self.spec.clone(),
+            source,
+        }
     }
 
     /// Take one complete frame from `pending` into `buf`, if there is one.
@@ -61,9 +68,10 @@ impl SocketTransport {
         }
         let n = self.pending[0] as usize;
         if n == 0 || n > MAX_REPORT_LEN {
-            return Err(TransportError::Io(format!(
-                "bad frame length {n} from socket peer"
-            )));
+            return Err(TransportError::Framing {
+                spec: self.spec.clone(),
+                length: n,
+            });
         }
         if self.filled < n + 1 {
             return Ok(None);
@@ -94,12 +102,7 @@ impl Transport for SocketTransport {
                 .stream
                 .read(&mut self.pending[self.filled..self.filled + space])
             {
-                Ok(0) => {
-                    return Err(TransportError::Disconnected(format!(
-                        "{} closed",
-                        self.path
-                    )))
-                }
+                Ok(0) => return Err(self.disconnected(peer_closed())),
                 Ok(n) => self.filled += n,
                 Err(e) if e.kind() == ErrorKind::WouldBlock => {
                     // Nothing queued: return what we have, or wait for more.
@@ -113,10 +116,10 @@ impl Transport for SocketTransport {
                         return Ok(None);
                     }
                     wait_readable(&self.stream, deadline - now)
-                        .map_err(|e| TransportError::Io(e.to_string()))?;
+                        .map_err(|e| self.disconnected(e))?;
                 }
                 Err(e) if e.kind() == ErrorKind::Interrupted => {}
-                Err(e) => return Err(TransportError::Disconnected(e.to_string())),
+                Err(e) => return Err(self.disconnected(e)),
             }
         }
     }
@@ -128,26 +131,13 @@ impl Transport for SocketTransport {
         let mut sent = 0;
         while sent < frame.len() {
             match self.stream.write(&frame[sent..]) {
-                Ok(0) => {
-                    return Err(TransportError::Disconnected(format!(
-                        "{} closed",
-                        self.path
-                    )))
-                }
+                Ok(0) => return Err(self.disconnected(peer_closed())),
                 Ok(n) => sent += n,
                 // Nothing sent: drop this report (the next one supersedes it).
-                Err(e) if sent == 0 && e.kind() == ErrorKind::WouldBlock => {
-                    self.dropped_writes += 1;
-                    return Ok(());
-                }
+                Err(e) if sent == 0 && e.kind() == ErrorKind::WouldBlock => return Ok(()),
                 Err(e) if e.kind() == ErrorKind::Interrupted => {}
                 // Half a frame on the wire would desynchronise the stream: give up on the peer.
-                Err(e) => {
-                    return Err(TransportError::Disconnected(format!(
-                        "{}: {e} after a partial frame",
-                        self.path
-                    )))
-                }
+                Err(e) => return Err(self.disconnected(e)),
             }
         }
         Ok(())
@@ -162,6 +152,14 @@ impl Transport for SocketTransport {
     }
 
     fn describe(&self) -> String {
-        format!("socket {}", self.path)
+        self.spec.clone()
     }
+}
+
+/// The cause of a disconnection when the peer closed its end.
+fn peer_closed() -> std::io::Error {
+    std::io::Error::new(
+        ErrorKind::UnexpectedEof,
+        "the device side closed the connection",
+    )
 }

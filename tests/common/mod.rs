@@ -2,6 +2,7 @@
 //! under test, file listings, bounded waits, and the tap transport ([`tap`]).
 #![allow(dead_code)]
 
+pub mod daemon;
 pub mod tap;
 
 use std::path::Path;

@@ -230,10 +230,16 @@ impl Gate {
             self.changed.notify_all();
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
-                return Err(TransportError::Io(format!(
-                    "test gate: no report let through for {GATE_WAIT:?} (the test stopped \
-                     driving the device)"
-                )));
+                return Err(TransportError::Disconnected {
+                    spec: "test gate".into(),
+                    source: std::io::Error::new(
+                        std::io::ErrorKind::TimedOut,
+                        format!(
+                            "no report let through for {GATE_WAIT:?} (the test stopped driving \
+                             the device)"
+                        ),
+                    ),
+                });
             }
             s = self
                 .changed

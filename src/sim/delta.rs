@@ -1,0 +1,501 @@
+//! `sim:delta`: an Omega.3 / Falcon style delta: three rotary arms on a fixed base, each carrying
+//! a parallelogram of two rods down to a platform that only translates. Link lengths and encoders
+//! are the Novint Falcon's (libnifalcon's `FalconGeometry.h`, after Stamper's thesis); the masses,
+//! friction and motors are estimates of a Falcon-class device. Every number and approximation is
+//! listed in docs/simulated-devices.md.
+//!
+//! The device frame has z up along the delta's axis, the base above the handle, and its origin at
+//! the home pose: the handle on the axis `home_depth` below the plane of the arm pivots, in the
+//! middle of the workspace. Leg 0 points away from the user (−x), legs 1 and 2 to the user's
+//! right and left front, so the device is symmetric in y. Joint i is arm i's angle below the
+//! horizontal (positive: the elbow down).
+
+use nalgebra::{Matrix3, Vector3};
+
+use super::linkage::{Drives, Environment, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use crate::config::SimConfig;
+
+/// Geometry and masses of the delta (SI units).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Delta {
+    /// Arm length (pivot to elbow), m.
+    pub arm: f64,
+    /// Parallelogram rod length (elbow to platform), m.
+    pub rod: f64,
+    /// Radius of the arm pivots about the axis, m.
+    pub base_radius: f64,
+    /// Radius of the rods' platform joints about the platform centre, m.
+    pub platform_radius: f64,
+    /// Height of the arm pivots above the handle at home, m.
+    pub home_depth: f64,
+    /// Platform with the grip, kg (moves with the handle).
+    pub m_platform: f64,
+    /// One leg's parallelogram (two rods and their end bars), kg: half rides on the elbow, half
+    /// on the platform.
+    pub m_rods: f64,
+    /// One arm with its capstan sector, kg, and its centre of mass from the pivot, m.
+    pub m_arm: f64,
+    pub arm_com: f64,
+    /// One arm's inertia about its centre of mass, about the pivot axis, kg m².
+    pub i_arm: f64,
+    /// Mechanical stops of every arm (lower, upper), rad.
+    pub limits: (f64, f64),
+    /// Directions of the three legs in the horizontal plane (away from the user, right front,
+    /// left front).
+    pub legs: [Vector3<f64>; 3],
+}
+
+impl Delta {
+    /// The nominal device: Falcon geometry, Falcon-class masses.
+    pub fn nominal() -> Self {
+        Self {
+            arm: 0.060,
+            rod: 0.1025,
+            base_radius: 0.037233758,
+            platform_radius: 0.014,
+            home_depth: 0.090,
+            m_platform: 0.045,
+            m_rods: 0.010,
+            m_arm: 0.030,
+            arm_com: 0.020,
+            i_arm: 2.0e-5,
+            limits: ((-65f64).to_radians(), 100f64.to_radians()),
+            legs: [180.0f64, -60.0, 60.0].map(|deg| {
+                let (s, c) = deg.to_radians().sin_cos();
+                Vector3::new(c, s, 0.0)
+            }),
+        }
+    }
+
+    /// The nominal device with its masses and centres of mass varied as one unit.
+    pub fn unit(variation: &mut UnitVariation) -> Self {
+        let d = Self::nominal();
+        Self {
+            m_platform: variation.vary(d.m_platform),
+            m_rods: variation.vary(d.m_rods),
+            m_arm: variation.vary(d.m_arm),
+            arm_com: variation.vary(d.arm_com),
+            i_arm: variation.vary(d.i_arm),
+            ..d
+        }
+    }
+
+    /// Kinematics of the point `along` from pivot `i` along arm i (only θ_i moves it).
+    fn arm_point(&self, i: usize, q: &Vector3<f64>, qd: &Vector3<f64>, along: f64) -> Point {
+        let u = self.legs[i];
+        let (s, c) = q[i].sin_cos();
+        let mut jacobian = Matrix3::zeros();
+        jacobian.set_column(i, &((-u * s - Vector3::z() * c) * along));
+        Point {
+            position: self.pivot(i) + (u * c - Vector3::z() * s) * along,
+            jacobian,
+            bias: (-u * c + Vector3::z() * s) * (along * qd[i] * qd[i]),
+        }
+    }
+
+    /// Pivot of arm i, device frame.
+    fn pivot(&self, i: usize) -> Vector3<f64> {
+        self.legs[i] * self.base_radius + Vector3::z() * self.home_depth
+    }
+
+    /// The platform centre for joints q: the lower intersection of the three spheres of radius
+    /// `rod` about the elbows shifted in by the platform radius. Out of reach (the spheres do not
+    /// meet) it returns the nearest point the construction gives (rods stretched), which the joint
+    /// limits keep the plant from reaching.
+    fn platform(&self, q: &Vector3<f64>) -> Vector3<f64> {
+        let u = &self.legs;
+        let centre = |i: usize| {
+            let (s, c) = q[i].sin_cos();
+            self.pivot(i) + (u[i] * c - Vector3::z() * s) * self.arm - u[i] * self.platform_radius
+        };
+        let (c0, c1, c2) = (centre(0), centre(1), centre(2));
+        let d = (c1 - c0).norm();
+        let ex = (c1 - c0) / d;
+        let i = ex.dot(&(c2 - c0));
+        let ey = (c2 - c0 - ex * i).normalize();
+        let ez = ex.cross(&ey);
+        let j = ey.dot(&(c2 - c0));
+        // Equal radii: x = d/2, y = (i² + j² − 2 i x) / (2 j).
+        let x = d / 2.0;
+        let y = (i * i + j * j - 2.0 * i * x) / (2.0 * j);
+        let z = (self.rod * self.rod - x * x - y * y).max(0.0).sqrt();
+        // The solution below the elbows.
+        let down = if ez.z > 0.0 { -z } else { z };
+        c0 + ex * x + ey * y + ez * down
+    }
+}
+
+impl Mechanism for Delta {
+    fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point {
+        let p = self.platform(q);
+        let u = &self.legs;
+        // Each rod keeps its length: s_i · (ṗ − ė_i) = 0 with s_i the rod vector, e_i the elbow.
+        let mut a = Matrix3::zeros();
+        let mut d = Vector3::zeros();
+        let mut second = Vector3::zeros();
+        let mut elbow_rate = [Vector3::zeros(); 3];
+        let mut rods = [Vector3::zeros(); 3];
+        for i in 0..3 {
+            let (s, c) = q[i].sin_cos();
+            let elbow = self.pivot(i) + (u[i] * c - Vector3::z() * s) * self.arm;
+            let de = (-u[i] * s - Vector3::z() * c) * self.arm;
+            let dde = (-u[i] * c + Vector3::z() * s) * self.arm;
+            let rod = p + u[i] * self.platform_radius - elbow;
+            a.set_row(i, &rod.transpose());
+            d[i] = rod.dot(&de);
+            second[i] = rod.dot(&dde) * qd[i] * qd[i];
+            elbow_rate[i] = de * qd[i];
+            rods[i] = rod;
+        }
+        let a_inv = a.try_inverse().unwrap_or_else(Matrix3::zeros);
+        let jacobian = a_inv * Matrix3::from_diagonal(&d);
+        let pd = jacobian * qd;
+        // Twice differentiated: s_i · p̈ = s_i · e_i'' terms − |ṡ_i|².
+        for i in 0..3 {
+            second[i] -= (pd - elbow_rate[i]).norm_squared();
+        }
+        Point {
+            position: p,
+            jacobian,
+            bias: a_inv * second,
+        }
+    }
+
+    fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
+        let mut q = Vector3::zeros();
+        for (i, u) in self.legs.iter().enumerate() {
+            // The rod's platform end relative to the pivot: radial, lateral and vertical parts.
+            let rel = x + u * self.platform_radius - self.pivot(i);
+            let radial = rel.dot(u);
+            let lateral = rel.dot(&Vector3::z().cross(u));
+            let up = rel.z;
+            // |(radial − a cos θ, lateral, up + a sin θ)| = rod: A cos θ + B sin θ + C = 0.
+            let a = -2.0 * radial * self.arm;
+            let b = 2.0 * up * self.arm;
+            let c = radial * radial + lateral * lateral + up * up + self.arm * self.arm
+                - self.rod * self.rod;
+            let r = a.hypot(b);
+            if c.abs() > r {
+                return None;
+            }
+            // The branch with the elbow out, continuous with the home pose.
+            let theta = b.atan2(a) + (-c / r).acos();
+            q[i] = (theta + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+                - std::f64::consts::PI;
+        }
+        Some(q)
+    }
+
+    fn masses(
+        &self,
+        q: &Vector3<f64>,
+        qd: &Vector3<f64>,
+        handle: &Point,
+        visit: &mut dyn FnMut(f64, &Point),
+    ) {
+        visit(self.m_platform + 1.5 * self.m_rods, handle);
+        for i in 0..3 {
+            visit(0.5 * self.m_rods, &self.arm_point(i, q, qd, self.arm));
+            visit(self.m_arm, &self.arm_point(i, q, qd, self.arm_com));
+        }
+    }
+
+    fn rotations(&self, _q: &Vector3<f64>, _qd: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
+        // The arms turn about their fixed pivot axes; the rods' own rotation is neglected.
+        (Matrix3::from_diagonal_element(self.i_arm), Vector3::zeros())
+    }
+
+    fn joint_limits(&self) -> (Vector3<f64>, Vector3<f64>) {
+        (
+            Vector3::repeat(self.limits.0),
+            Vector3::repeat(self.limits.1),
+        )
+    }
+}
+
+/// The drives of a Falcon-class delta: capstan from a 14.25 mm motor shaft to a 110 mm arm drum
+/// (ratio 7.72); 320-slot encoder wheels read in quadrature (1280 counts per motor turn); motor,
+/// rotor and friction figures are estimates for 555-size brushed motors (docs/simulated-devices.md).
+pub fn nominal_drives() -> Drives {
+    Drives {
+        ratio: Vector3::repeat(0.110 / 0.01425),
+        rotor_inertia: Vector3::repeat(3.0e-6),
+        peak_torque: Vector3::repeat(0.055),
+        counts_per_rev: Vector3::repeat(4.0 * 320.0),
+        coulomb: Vector3::repeat(0.004),
+        viscous: Vector3::repeat(0.0002),
+    }
+}
+
+/// The `sim:delta` plant a `[sim]` section describes.
+pub fn from_config(sim: &SimConfig) -> Result<Linkage<Delta>, Unreachable> {
+    let mut variation = UnitVariation::new(sim.unit_seed);
+    let delta = Delta::unit(&mut variation);
+    let nominal = nominal_drives();
+    let drives = Drives {
+        coulomb: variation.vary3(nominal.coulomb),
+        viscous: variation.vary3(nominal.viscous),
+        ..nominal
+    };
+    Linkage::new(
+        delta,
+        drives,
+        Environment::from_config(sim),
+        &sim.start_position(),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::Plant;
+
+    const G: f64 = 9.81;
+
+    fn env(friction_scale: f64, payload: f64) -> Environment {
+        Environment {
+            gravity: Vector3::new(0.0, 0.0, -G),
+            payload,
+            friction_scale,
+        }
+    }
+
+    fn delta_at(x_mm: [f64; 3], env: Environment) -> Linkage<Delta> {
+        let x = Vector3::from(x_mm) * 1e-3;
+        Linkage::new(Delta::nominal(), nominal_drives(), env, &x).unwrap()
+    }
+
+    /// Handle positions over the ±40 mm cube, mm.
+    fn cube(steps: u32) -> impl Iterator<Item = [f64; 3]> {
+        let at = move |n: u32| -40.0 + 80.0 * f64::from(n) / f64::from(steps);
+        (0..=steps).flat_map(move |i| {
+            (0..=steps).flat_map(move |j| (0..=steps).map(move |k| [at(i), at(j), at(k)]))
+        })
+    }
+
+    #[test]
+    fn inverse_kinematics_inverts_forward_kinematics_and_home_is_the_origin() {
+        let delta = Delta::nominal();
+        let zero = Vector3::zeros();
+        let home = delta.joints_at(&zero).unwrap();
+        assert!(delta.handle(&home, &zero).position.norm() < 1e-12);
+        // Symmetric: every arm at the same angle, about 23° below horizontal.
+        assert!((home.amax() - home.amin()).abs() < 1e-12);
+        assert!((home[0].to_degrees() - 23.4).abs() < 0.1, "{home:?}");
+        for x in cube(4) {
+            let x = Vector3::from(x) * 1e-3;
+            let q = delta.joints_at(&x).unwrap();
+            assert!(
+                (delta.handle(&q, &zero).position - x).amax() < 1e-12,
+                "{x:?}"
+            );
+        }
+        assert!(delta.joints_at(&Vector3::new(0.0, 0.0, -0.2)).is_none());
+    }
+
+    #[test]
+    fn jacobians_and_velocity_products_match_finite_differences() {
+        let delta = Delta::nominal();
+        let qd = Vector3::new(0.9, -1.3, 0.6);
+        let zero = Vector3::zeros();
+        let h = 1e-6;
+        let points = |q: &Vector3<f64>, qd: &Vector3<f64>| {
+            let handle = delta.handle(q, qd);
+            let mut all = vec![handle];
+            delta.masses(q, qd, &handle, &mut |_, p| all.push(*p));
+            all
+        };
+        for x in cube(2) {
+            let q = delta.joints_at(&(Vector3::from(x) * 1e-3)).unwrap();
+            for (n, p) in points(&q, &qd).iter().enumerate() {
+                let at = |q: &Vector3<f64>| points(q, &zero)[n];
+                for j in 0..3 {
+                    let mut e = Vector3::zeros();
+                    e[j] = h;
+                    let column = (at(&(q + e)).position - at(&(q - e)).position) / (2.0 * h);
+                    assert!(
+                        (column - p.jacobian.column(j)).amax() < 1e-8,
+                        "point {n} at {x:?}"
+                    );
+                }
+                let jdot = (at(&(q + qd * h)).jacobian - at(&(q - qd * h)).jacobian) / (2.0 * h);
+                assert!((jdot * qd - p.bias).amax() < 1e-6, "point {n} at {x:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn gravity_torque_is_the_gradient_of_the_potential_energy_for_any_gravity() {
+        let tilted = Environment {
+            gravity: -Vector3::new(0.17, -0.05, 1.0).normalize() * G,
+            payload: 0.03,
+            friction_scale: 1.0,
+        };
+        let mut plant = delta_at([0.0; 3], tilted);
+        for x in cube(2) {
+            let q = plant
+                .mechanism()
+                .joints_at(&(Vector3::from(x) * 1e-3))
+                .unwrap();
+            let mut fd = Vector3::zeros();
+            for j in 0..3 {
+                let h = 1e-6;
+                let mut e = Vector3::zeros();
+                e[j] = h;
+                plant.set_state(q + e, Vector3::zeros());
+                let up = plant.potential_energy();
+                plant.set_state(q - e, Vector3::zeros());
+                fd[j] = (up - plant.potential_energy()) / (2.0 * h);
+            }
+            plant.set_state(q, Vector3::zeros());
+            assert!((plant.gravity_torque() - fd).amax() < 1e-8, "{x:?}");
+        }
+    }
+
+    #[test]
+    fn gravity_pulls_the_handle_down_along_the_axis_at_home_and_tilts_it_off_axis() {
+        let home = delta_at([0.0; 3], env(1.0, 0.0));
+        let f = -home.holding_force();
+        assert!(f.xy().norm() < 1e-12, "{f:?}");
+        // More than the platform and the rods' platform halves weigh: the arms add their share.
+        let d = Delta::nominal();
+        assert!(f.z < -(d.m_platform + 1.5 * d.m_rods) * G);
+        assert!((f.z + 0.880).abs() < 0.005, "{f:?}");
+        let (mut least, mut most, mut steepest, mut sideways) =
+            (f64::INFINITY, 0.0f64, 0.0f64, 0.0f64);
+        for x in cube(10) {
+            let f = -delta_at(x, env(1.0, 0.0)).holding_force();
+            least = least.min(f.norm());
+            most = most.max(f.norm());
+            steepest = steepest.max((-f.z / f.norm()).acos().to_degrees());
+            sideways = sideways.max(f.xy().norm());
+        }
+        // docs/simulated-devices.md: 0.75 to 1.18 N, up to 18.5° from vertical, 0.27 N sideways.
+        assert!((0.74..0.77).contains(&least), "{least}");
+        assert!((1.16..1.20).contains(&most), "{most}");
+        assert!((17.0..20.0).contains(&steepest), "{steepest}");
+        assert!((0.26..0.29).contains(&sideways), "{sideways}");
+    }
+
+    #[test]
+    fn the_calibration_cube_lies_inside_the_joint_limits() {
+        let (lo, hi) = Delta::nominal().limits;
+        for x in cube(8) {
+            let q = Delta::nominal()
+                .joints_at(&(Vector3::from(x) * 1e-3))
+                .unwrap();
+            assert!(q.min() > lo + 0.05 && q.max() < hi - 0.05, "{x:?}: {q:?}");
+        }
+    }
+
+    #[test]
+    fn frictionless_motion_conserves_energy() {
+        // Largest energy error over 0.15 s of free motion (thrown up, falling back), relative to
+        // the largest kinetic energy on the way.
+        let drift = |dt: f64| {
+            let mut plant = delta_at([0.0; 3], env(0.0, 0.03));
+            plant.set_state(plant.joints(), Vector3::new(-3.0, -2.0, -1.0));
+            let start = plant.kinetic_energy() + plant.potential_energy();
+            let (lo, hi) = plant.mechanism().limits;
+            let (mut worst, mut scale) = (0.0f64, 0.0f64);
+            for _ in 0..(0.15 / dt).round() as usize {
+                plant.step(&Vector3::zeros(), dt);
+                let q = plant.joints();
+                assert!(q.min() > lo && q.max() < hi, "hit a stop: {q:?}");
+                scale = scale.max(plant.kinetic_energy());
+                worst =
+                    worst.max((plant.kinetic_energy() + plant.potential_energy() - start).abs());
+            }
+            worst / scale
+        };
+        let (coarse, fine) = (drift(1e-4), drift(2.5e-5));
+        assert!(coarse < 2e-3, "{coarse}");
+        assert!(fine < coarse / 3.0, "{fine} vs {coarse}");
+    }
+
+    #[test]
+    fn the_holding_force_holds_a_frictionless_delta_still_for_seconds() {
+        for x in [[0.0, 0.0, 0.0], [30.0, -25.0, 35.0], [-40.0, 40.0, -40.0]] {
+            let mut plant = delta_at(x, env(0.0, 0.03));
+            let start = plant.position();
+            let hold = plant.holding_force();
+            for _ in 0..30_000 {
+                plant.step(&hold, 1e-4);
+            }
+            assert!(
+                (plant.position() - start).norm() < 1e-6,
+                "{x:?}: {:?}",
+                plant.position()
+            );
+        }
+    }
+
+    #[test]
+    fn drives_give_about_9_n_and_0_03_mm_at_home() {
+        let home = delta_at([0.0; 3], env(1.0, 0.0));
+        let j = home
+            .mechanism()
+            .handle(&home.joints(), &Vector3::zeros())
+            .jacobian;
+        let drives = nominal_drives();
+        let peak = drives.peak_joint_torque();
+        // The largest force along each axis before one motor saturates.
+        let most = |axis: usize| {
+            (0..3)
+                .map(|i| peak[i] / j[(axis, i)].abs())
+                .fold(f64::INFINITY, f64::min)
+        };
+        assert!((9.0..9.2).contains(&most(0)), "{}", most(0));
+        assert!(most(1) > 9.0 && most(2) > 9.0);
+        // One count moves the handle by |J column| × step.
+        let step = drives.joint_resolution()[0];
+        for i in 0..3 {
+            let at_handle = j.column(i).norm() * step;
+            assert!((0.02e-3..0.04e-3).contains(&at_handle), "{at_handle}");
+        }
+        for x in [[0.0, 0.0, 0.0], [13.7, -21.1, 33.3], [-38.0, 5.5, -12.0]] {
+            let plant = delta_at(x, env(1.0, 0.0));
+            let sensed = plant.sensed_position(&Vector3::zeros());
+            assert!((sensed - plant.position()).amax() < 0.04e-3, "{x:?}");
+        }
+    }
+
+    #[test]
+    fn rough_handling_anywhere_in_reach_stays_finite_and_inside_the_stops() {
+        // Pushes of up to 9 N in changing directions drive the handle to the edges of its
+        // workspace, against the stops and the stretched legs; the state stays finite.
+        for friction in [0.0, 1.0] {
+            let mut plant = delta_at([0.0; 3], env(friction, 0.03));
+            let (lo, hi) = plant.workspace();
+            let (qlo, qhi) = plant.mechanism().limits;
+            for n in 0..100_000u32 {
+                let k = f64::from(n / 2_000);
+                let push = Vector3::new((1.7 * k).sin(), (2.3 * k).cos(), (0.9 * k).sin()) * 9.0;
+                plant.step(&push, 1e-4);
+                let (x, q) = (plant.position(), plant.joints());
+                assert!(x.iter().chain(q.iter()).all(|c| c.is_finite()), "step {n}");
+                assert!((0..3).all(|a| x[a] >= lo[a] && x[a] <= hi[a]), "{x:?}");
+                assert!(q.min() >= qlo && q.max() <= qhi);
+            }
+        }
+    }
+
+    #[test]
+    fn units_differ_by_a_few_percent_and_seed_zero_is_the_nominal_delta() {
+        assert_eq!(Delta::unit(&mut UnitVariation::new(0)), Delta::nominal());
+        let force = |seed: u64| {
+            let sim = SimConfig {
+                unit_seed: seed,
+                ..SimConfig::default()
+            };
+            from_config(&sim).unwrap().holding_force()
+        };
+        let (nominal, one, two) = (force(0), force(1), force(2));
+        assert_eq!(nominal, delta_at([0.0; 3], env(1.0, 0.0)).holding_force());
+        for f in [one, two] {
+            let change = (f - nominal).norm() / nominal.norm();
+            assert!((0.002..0.05).contains(&change), "{change}");
+        }
+        assert_ne!(one, two);
+    }
+}

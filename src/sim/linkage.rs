@@ -1,0 +1,418 @@
+//! Linkage plants: a mechanism simulated in the space of its three actuated joints q,
+//!
+//!   M(q) q̈ + h(q, q̇) + τ_g(q) + τ_f = sat(Jᵀ F),
+//!
+//! with the handle where forward kinematics puts it. A [`Mechanism`] supplies the geometry and the
+//! masses (handle kinematics, lumped masses, the links' rotational inertia); [`Linkage`] does the
+//! rest the same
+//! way for every mechanism: inertia and velocity-product terms from those bodies, gravity from
+//! their potential energy for any gravity vector, motor torque limits, joint friction with
+//! stick-slip, hard joint stops and joint encoders.
+
+use nalgebra::{Matrix3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::Plant;
+use crate::config::SimConfig;
+
+/// Kinematics of one point of a mechanism at (q, q̇): where it is, ∂x/∂q, and the part of its
+/// acceleration that does not come from q̈ (ẍ = J q̈ + bias, bias = J̇ q̇).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Point {
+    pub position: Vector3<f64>,
+    pub jacobian: Matrix3<f64>,
+    pub bias: Vector3<f64>,
+}
+
+/// The geometry and masses of a mechanism (kinematics only: no friction, motors or sensors).
+/// Positions are in the device frame, m, with the handle at the origin at q = 0.
+pub trait Mechanism: Send + 'static {
+    /// The handle's kinematics (the point forces act on and the device reports).
+    fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point;
+    /// Joint angles that put the handle at `x`, in the mechanism's working assembly mode; `None`
+    /// out of reach.
+    fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>>;
+    /// Visit every lumped mass (kg) with its kinematics: the masses carry both weight and inertia.
+    /// `handle` is [`Mechanism::handle`] at the same state, for masses that ride on the handle.
+    fn masses(
+        &self,
+        q: &Vector3<f64>,
+        qd: &Vector3<f64>,
+        handle: &Point,
+        visit: &mut dyn FnMut(f64, &Point),
+    );
+    /// What the links' rotation about their own centres of mass adds to the joint-space
+    /// dynamics: (inertia, kg m²; velocity-product torques, N m), from the kinetic energy
+    /// ½ ωᵀ I ω of each link.
+    fn rotations(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>);
+    /// Mechanical stops: (lower, upper) joint angle, rad.
+    fn joint_limits(&self) -> (Vector3<f64>, Vector3<f64>);
+}
+
+/// What drives and senses each joint: motor, transmission, encoder and joint friction.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Drives {
+    /// Transmission ratio, motor angle per joint angle (capstan drums).
+    pub ratio: Vector3<f64>,
+    /// Rotor inertia, kg m² at the motor shaft.
+    pub rotor_inertia: Vector3<f64>,
+    /// Peak motor torque, N m at the motor shaft.
+    pub peak_torque: Vector3<f64>,
+    /// Encoder counts per motor revolution (after quadrature decoding).
+    pub counts_per_rev: Vector3<f64>,
+    /// Coulomb friction at the joint, N m; it is also the static (breakaway) level.
+    pub coulomb: Vector3<f64>,
+    /// Viscous friction at the joint, N m s/rad.
+    pub viscous: Vector3<f64>,
+}
+
+impl Drives {
+    /// Peak joint torque, N m.
+    pub fn peak_joint_torque(&self) -> Vector3<f64> {
+        self.peak_torque.component_mul(&self.ratio)
+    }
+
+    /// Joint angle per encoder count, rad.
+    pub fn joint_resolution(&self) -> Vector3<f64> {
+        Vector3::repeat(std::f64::consts::TAU)
+            .component_div(&self.counts_per_rev.component_mul(&self.ratio))
+    }
+}
+
+/// Deterministic few-percent differences between nominally identical units (`sim.unit_seed`).
+pub struct UnitVariation(Option<ChaCha8Rng>);
+
+impl UnitVariation {
+    /// Largest relative change of one parameter.
+    pub const SPREAD: f64 = 0.03;
+
+    /// Seed 0 is the nominal unit: [`UnitVariation::vary`] then changes nothing.
+    pub fn new(unit_seed: u64) -> Self {
+        Self((unit_seed != 0).then(|| ChaCha8Rng::seed_from_u64(unit_seed)))
+    }
+
+    /// `value` scaled by a factor drawn uniformly in 1 ± [`UnitVariation::SPREAD`].
+    pub fn vary(&mut self, value: f64) -> f64 {
+        match &mut self.0 {
+            None => value,
+            Some(rng) => value * (1.0 + rng.gen_range(-Self::SPREAD..=Self::SPREAD)),
+        }
+    }
+
+    /// Each component varied on its own.
+    pub fn vary3(&mut self, v: Vector3<f64>) -> Vector3<f64> {
+        v.map(|c| self.vary(c))
+    }
+}
+
+/// The environment a linkage works in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Environment {
+    /// Gravitational acceleration vector in the device frame, m/s² (−g v_G).
+    pub gravity: Vector3<f64>,
+    /// Probe mass fixed to the handle, kg.
+    pub payload: f64,
+    /// Multiplies every friction coefficient (0: frictionless).
+    pub friction_scale: f64,
+}
+
+impl Environment {
+    /// Gravity (`sim.g` against `sim.gravity_direction`), payload and friction scale of `[sim]`.
+    pub fn from_config(sim: &SimConfig) -> Self {
+        Self {
+            gravity: -Vector3::from(sim.gravity_direction).normalize() * sim.g,
+            payload: sim.probe_mass_kg,
+            friction_scale: sim.friction_scale,
+        }
+    }
+}
+
+/// Why a linkage cannot start where it was asked to.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Unreachable;
+
+/// A mechanism with drives, in an environment, and its state.
+#[derive(Clone, Debug)]
+pub struct Linkage<M: Mechanism> {
+    mechanism: M,
+    drives: Drives,
+    env: Environment,
+    /// Joint-space inertia of the motor rotors, kg m².
+    rotor_inertia: Vector3<f64>,
+    peak: Vector3<f64>,
+    resolution: Vector3<f64>,
+    lower: Vector3<f64>,
+    upper: Vector3<f64>,
+    workspace: (Vector3<f64>, Vector3<f64>),
+    q: Vector3<f64>,
+    /// Joint velocities; a component that is exactly zero marks a joint held (stuck by static
+    /// friction or resting on a stop) until the torque on it leaves its static band.
+    qd: Vector3<f64>,
+}
+
+/// Joint-space dynamics at one state.
+struct Dynamics {
+    inertia: Matrix3<f64>,
+    /// Velocity-product (Coriolis and centrifugal) torques.
+    bias: Vector3<f64>,
+    /// ∂U/∂q, U the potential energy: the torque that holds the mechanism against gravity.
+    gravity: Vector3<f64>,
+}
+
+impl<M: Mechanism> Linkage<M> {
+    /// At rest with the handle at `start` (m), or [`Unreachable`] when the handle cannot be there.
+    pub fn new(
+        mechanism: M,
+        drives: Drives,
+        env: Environment,
+        start: &Vector3<f64>,
+    ) -> Result<Self, Unreachable> {
+        let (lower, upper) = mechanism.joint_limits();
+        let q = mechanism.joints_at(start).ok_or(Unreachable)?;
+        if (0..3).any(|j| q[j] < lower[j] || q[j] > upper[j]) {
+            return Err(Unreachable);
+        }
+        let workspace = reachable_box(&mechanism, &lower, &upper);
+        Ok(Self {
+            rotor_inertia: drives
+                .rotor_inertia
+                .component_mul(&drives.ratio.component_mul(&drives.ratio)),
+            peak: drives.peak_joint_torque(),
+            resolution: drives.joint_resolution(),
+            mechanism,
+            drives,
+            env,
+            lower,
+            upper,
+            workspace,
+            q,
+            qd: Vector3::zeros(),
+        })
+    }
+
+    pub fn mechanism(&self) -> &M {
+        &self.mechanism
+    }
+
+    /// Joint angles, rad.
+    pub fn joints(&self) -> Vector3<f64> {
+        self.q
+    }
+
+    /// Joint velocities, rad/s.
+    pub fn joint_velocities(&self) -> Vector3<f64> {
+        self.qd
+    }
+
+    /// Put the mechanism at joint angles `q` moving at `qd` (tests).
+    pub fn set_state(&mut self, q: Vector3<f64>, qd: Vector3<f64>) {
+        self.q = q;
+        self.qd = qd;
+    }
+
+    /// ∂U/∂q at the current joints, payload included, N m: the joint torques that hold the
+    /// mechanism still against gravity.
+    pub fn gravity_torque(&self) -> Vector3<f64> {
+        self.dynamics(&self.mechanism.handle(&self.q, &self.qd))
+            .gravity
+    }
+
+    /// Kinetic energy, J.
+    pub fn kinetic_energy(&self) -> f64 {
+        let d = self.dynamics(&self.mechanism.handle(&self.q, &self.qd));
+        0.5 * self.qd.dot(&(d.inertia * self.qd))
+    }
+
+    /// Potential energy in gravity, J (zero level at the device origin).
+    pub fn potential_energy(&self) -> f64 {
+        let g = self.env.gravity;
+        let zero = Vector3::zeros();
+        let handle = self.mechanism.handle(&self.q, &zero);
+        let mut u = -self.env.payload * g.dot(&handle.position);
+        self.mechanism.masses(&self.q, &zero, &handle, &mut |m, p| {
+            u -= m * g.dot(&p.position)
+        });
+        u
+    }
+
+    /// Inertia, velocity-product and gravity terms at the current state; `handle` is the
+    /// handle's kinematics there (the payload rides on it).
+    fn dynamics(&self, handle: &Point) -> Dynamics {
+        let g = self.env.gravity;
+        let (inertia, bias) = self.mechanism.rotations(&self.q, &self.qd);
+        let mut d = Dynamics {
+            inertia: inertia + Matrix3::from_diagonal(&self.rotor_inertia),
+            bias,
+            gravity: Vector3::zeros(),
+        };
+        let mut add_mass = |m: f64, p: &Point| {
+            let jt = p.jacobian.transpose();
+            d.inertia += jt * p.jacobian * m;
+            d.bias += jt * p.bias * m;
+            d.gravity -= jt * g * m;
+        };
+        if self.env.payload > 0.0 {
+            add_mass(self.env.payload, handle);
+        }
+        self.mechanism
+            .masses(&self.q, &self.qd, handle, &mut add_mass);
+        d
+    }
+
+    /// How far the torque `phi` a held joint `j` needs lies outside what holds it: static friction
+    /// both ways, and a stop without limit in the direction it pushes.
+    fn excess(&self, j: usize, phi: f64) -> f64 {
+        let band = self.drives.coulomb[j] * self.env.friction_scale;
+        if self.q[j] <= self.lower[j] {
+            (-band - phi).max(0.0)
+        } else if self.q[j] >= self.upper[j] {
+            (phi - band).max(0.0)
+        } else {
+            (phi.abs() - band).max(0.0)
+        }
+    }
+}
+
+/// q̈ with the joints in `held` kept still: the rows and columns of held joints are replaced by
+/// identity so their acceleration is zero and the others see them as fixed.
+fn solve_held(m: &Matrix3<f64>, rhs: &Vector3<f64>, held: &[bool; 3]) -> Vector3<f64> {
+    let mut a = *m;
+    let mut b = *rhs;
+    for j in 0..3 {
+        if held[j] {
+            a.set_row(j, &Vector3::zeros().transpose());
+            a.set_column(j, &Vector3::zeros());
+            a[(j, j)] = 1.0;
+            b[j] = 0.0;
+        }
+    }
+    match a.cholesky() {
+        Some(c) => c.solve(&b),
+        None => a.lu().solve(&b).unwrap_or_else(Vector3::zeros),
+    }
+}
+
+/// The box the handle can reach within the joint limits, from forward kinematics on a lattice of
+/// joint angles, padded by 5 mm so no reachable point lies outside it.
+fn reachable_box<M: Mechanism>(
+    mechanism: &M,
+    lower: &Vector3<f64>,
+    upper: &Vector3<f64>,
+) -> (Vector3<f64>, Vector3<f64>) {
+    const STEPS: usize = 12;
+    let mut lo = Vector3::repeat(f64::INFINITY);
+    let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+    let zero = Vector3::zeros();
+    for i in 0..=STEPS {
+        for j in 0..=STEPS {
+            for k in 0..=STEPS {
+                let s = Vector3::new(i as f64, j as f64, k as f64) / STEPS as f64;
+                let q = lower + (upper - lower).component_mul(&s);
+                let x = mechanism.handle(&q, &zero).position;
+                if x.iter().all(|c| c.is_finite()) {
+                    lo = lo.inf(&x);
+                    hi = hi.sup(&x);
+                }
+            }
+        }
+    }
+    (lo.add_scalar(-0.005), hi.add_scalar(0.005))
+}
+
+impl<M: Mechanism> Plant for Linkage<M> {
+    fn step(&mut self, force: &Vector3<f64>, dt: f64) {
+        let handle = self.mechanism.handle(&self.q, &self.qd);
+        let actuator = (handle.jacobian.transpose() * force)
+            .zip_map(&self.peak, |t, peak| t.clamp(-peak, peak));
+        let d = self.dynamics(&handle);
+        let scale = self.env.friction_scale;
+        // Every torque but the holding reaction of held joints; sliding joints feel Coulomb
+        // friction against their motion.
+        let mut free =
+            actuator - d.bias - d.gravity - self.drives.viscous.component_mul(&self.qd) * scale;
+        let mut held = [false; 3];
+        for j in 0..3 {
+            if self.qd[j] == 0.0 {
+                held[j] = true;
+            } else {
+                free[j] -= self.drives.coulomb[j] * scale * self.qd[j].signum();
+            }
+        }
+        // Release, one at a time, the held joint whose needed holding torque is furthest outside
+        // its band; it starts to slide against kinetic friction.
+        let qdd = loop {
+            let qdd = solve_held(&d.inertia, &free, &held);
+            let phi = d.inertia * qdd - free;
+            let mut worst = None;
+            let mut worst_excess = 0.0;
+            for j in (0..3).filter(|&j| held[j]) {
+                let e = self.excess(j, phi[j]);
+                if e > worst_excess {
+                    worst = Some(j);
+                    worst_excess = e;
+                }
+            }
+            match worst {
+                None => break qdd,
+                Some(j) => {
+                    held[j] = false;
+                    free[j] += self.drives.coulomb[j] * scale * phi[j].signum();
+                }
+            }
+        };
+        for j in 0..3 {
+            let before = self.qd[j];
+            let after = if held[j] { 0.0 } else { before + qdd[j] * dt };
+            // Coulomb friction stops a sliding joint; it stays held until the torque breaks away.
+            let stopped =
+                before != 0.0 && after * before <= 0.0 && self.drives.coulomb[j] * scale > 0.0;
+            self.qd[j] = if stopped { 0.0 } else { after };
+        }
+        self.q += self.qd * dt;
+        // Hard stops: the motion into a stop is absorbed (an inelastic contact).
+        for j in 0..3 {
+            if self.q[j] < self.lower[j] || self.q[j] > self.upper[j] {
+                self.q[j] = self.q[j].clamp(self.lower[j], self.upper[j]);
+                self.qd[j] = 0.0;
+            }
+        }
+    }
+
+    fn position(&self) -> Vector3<f64> {
+        self.mechanism.handle(&self.q, &Vector3::zeros()).position
+    }
+
+    fn velocity(&self) -> Vector3<f64> {
+        self.mechanism.handle(&self.q, &self.qd).jacobian * self.qd
+    }
+
+    fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
+        self.workspace
+    }
+
+    fn holding_force(&self) -> Vector3<f64> {
+        // NaN only at a singular pose, which the joint limits keep the mechanisms away from.
+        let handle = self.mechanism.handle(&self.q, &Vector3::zeros());
+        let tau = self.dynamics(&handle).gravity;
+        handle
+            .jacobian
+            .transpose()
+            .lu()
+            .solve(&tau)
+            .unwrap_or_else(|| Vector3::repeat(f64::NAN))
+    }
+
+    fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64> {
+        let zero = Vector3::zeros();
+        let mut q = self.q;
+        if *noise != zero {
+            let j = self.mechanism.handle(&q, &zero).jacobian;
+            q += j.lu().solve(noise).unwrap_or(zero);
+        }
+        let counts = q.component_div(&self.resolution).map(f64::round);
+        self.mechanism
+            .handle(&counts.component_mul(&self.resolution), &zero)
+            .position
+    }
+}

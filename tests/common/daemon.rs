@@ -1,0 +1,143 @@
+//! One way to start a daemon in a test: the simulated point mass, in a temporary directory of
+//! its own (state dir, socket, truth field), behind whatever transport wrapper the test needs.
+
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::thread::JoinHandle;
+
+use hgcd::config::Config;
+use hgcd::daemon::{Daemon, RunError, RunRequest, Signals};
+use hgcd::grid::{GridFile, MassGrid};
+use hgcd::servo::ServoReport;
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
+use hgcd::transport::{Pacing, Transport};
+
+use super::{truth_field_27, WAIT};
+
+/// What to start: a config, the device's stored grid, the plant's truth field, the pacing.
+pub struct TestDaemon {
+    config: Config,
+    grid: Option<GridFile>,
+    truth: MassGrid,
+    pacing: Pacing,
+    duration: Option<f64>,
+}
+
+impl TestDaemon {
+    /// A daemon on `sim:point-mass` in virtual time, no stored grid, truth field
+    /// [`truth_field_27`]. A frictionless point mass is a double integrator: any bias force,
+    /// however small, makes it drift quadratically, so unless the config says otherwise the plant
+    /// gets 1 N·s/m of viscous friction, typical of desktop haptic devices.
+    pub fn new(mut config: Config) -> Self {
+        if config.sim.damping_n_s_per_m == 0.0 {
+            config.sim.damping_n_s_per_m = 1.0;
+        }
+        config.servo.lock_memory = false;
+        Self {
+            config,
+            grid: None,
+            truth: truth_field_27(),
+            pacing: Pacing::Virtual,
+            duration: None,
+        }
+    }
+
+    /// Store `grid` as the device's calibration before the daemon starts.
+    pub fn grid(mut self, grid: Option<&GridFile>) -> Self {
+        self.grid = grid.cloned();
+        self
+    }
+
+    /// The plant's apparent-mass field.
+    pub fn truth(mut self, truth: &MassGrid) -> Self {
+        self.truth = truth.clone();
+        self
+    }
+
+    /// Run the simulated device in real time for `seconds`.
+    pub fn real_time_for(mut self, seconds: f64) -> Self {
+        self.pacing = Pacing::RealTime;
+        self.duration = Some(seconds);
+        self
+    }
+
+    /// Start it on the bare simulated device.
+    pub fn start(self) -> Running {
+        self.start_with(|sim| sim)
+    }
+
+    /// Start it on the transport `wrap` makes of the simulated device (a tap, a counter), and
+    /// return once it serves its socket (or has failed before: then `join` says why).
+    pub fn start_with<T: Transport + 'static>(
+        mut self,
+        wrap: impl FnOnce(SimTransport) -> T,
+    ) -> Running {
+        let dir = tempfile::tempdir().unwrap();
+        let state = dir.path().join("state");
+        std::fs::create_dir_all(&state).unwrap();
+        let truth = dir.path().join("truth.toml");
+        GridFile::from(self.truth).save_atomic(&truth).unwrap();
+        self.config.sim.mass_grid = Some(truth);
+        if let Some(grid) = &self.grid {
+            grid.save_atomic(&state.join("sim-point-mass.toml"))
+                .unwrap();
+        }
+        self.config.paths.state_dir = Some(state);
+        let socket = dir.path().join("hgcd.sock");
+        self.config.app.socket = Some(socket.clone());
+        let transport = Box::new(wrap(SimTransport::new(
+            SimDevice::from_config("point-mass", &self.config).unwrap(),
+            self.pacing,
+        )));
+        let request = RunRequest {
+            device: "sim:point-mass".parse().unwrap(),
+            duration: self.duration,
+            pacing: self.pacing,
+        };
+        let signals = Signals::default();
+        let daemon_signals = signals.clone();
+        let config = self.config;
+        let (ready_tx, ready_rx) = crossbeam_channel::bounded(1);
+        let handle = std::thread::spawn(move || {
+            Daemon::new(config, &request).run(transport, daemon_signals, &mut |_| {
+                let _ = ready_tx.send(());
+            })
+        });
+        let _ = ready_rx.recv_timeout(WAIT);
+        Running {
+            dir,
+            socket,
+            signals,
+            handle: Some(handle),
+        }
+    }
+}
+
+/// A daemon running on its own thread; stopped when dropped.
+pub struct Running {
+    pub dir: tempfile::TempDir,
+    pub socket: PathBuf,
+    pub signals: Signals,
+    handle: Option<JoinHandle<Result<ServoReport, RunError>>>,
+}
+
+impl Running {
+    /// Ask the daemon to stop (as SIGTERM does) and wait for it; its servo report.
+    pub fn stop(mut self) -> Result<ServoReport, RunError> {
+        self.signals.stop.store(true, Ordering::SeqCst);
+        self.join()
+    }
+
+    /// Wait for the daemon to end by itself (or after `stop`).
+    pub fn join(&mut self) -> Result<ServoReport, RunError> {
+        let handle = self.handle.take().expect("the daemon runs");
+        handle.join().expect("the daemon thread does not panic")
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        self.signals.stop.store(true, Ordering::SeqCst);
+    }
+}
