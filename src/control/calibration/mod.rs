@@ -43,6 +43,7 @@ use nalgebra::Vector3;
 
 use super::pd::LinearisedGains;
 use crate::config::Config;
+use crate::estimate::FoawVariant;
 
 /// Calibration parameters in SI units.
 #[derive(Clone, Debug, PartialEq)]
@@ -78,6 +79,12 @@ pub struct CalibrationParams {
     pub max_force: f64,
     /// Report period of the device, s (bounds the hold's bandwidth).
     pub period: f64,
+    /// The velocity filter the servo loop uses (`[estimate]`): calibration runs its own copy,
+    /// whose noise bound it raises to the encoder step it measures.
+    pub foaw_variant: FoawVariant,
+    /// m.
+    pub noise_bound: f64,
+    pub max_window: usize,
 }
 
 impl CalibrationParams {
@@ -102,6 +109,9 @@ impl CalibrationParams {
             workspace: config.device.workspace(),
             max_force: config.safety.max_force_n,
             period: config.servo_period(),
+            foaw_variant: config.estimate.foaw_variant,
+            noise_bound: config.estimate.noise_bound(),
+            max_window: config.estimate.max_window,
         }
     }
 }

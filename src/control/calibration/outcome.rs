@@ -40,6 +40,9 @@ pub struct InitialMeasurement {
     pub inertia: Vector3<f64>,
     /// Standard deviation of the reported position at rest, m.
     pub noise: f64,
+    /// The largest step between consecutive readings at rest: the encoder's step, or a few
+    /// standard deviations of noise without one, m.
+    pub step: f64,
     /// Hold stiffness built from these, N/m per axis.
     pub stiffness: Vector3<f64>,
 }

@@ -46,12 +46,10 @@ impl Ramp {
     }
 }
 
-/// A position along one axis, smoothed over the last [`SLIP_WINDOW`] samples, with the forces
-/// commanded at those samples.
+/// A position along one axis, smoothed over the last [`SLIP_WINDOW`] samples.
 #[derive(Clone, Copy, Debug)]
 struct Window {
     positions: [f64; SLIP_WINDOW],
-    forces: [Vector3<f64>; SLIP_WINDOW],
     len: usize,
     next: usize,
 }
@@ -60,25 +58,19 @@ impl Window {
     fn new() -> Self {
         Self {
             positions: [0.0; SLIP_WINDOW],
-            forces: [Vector3::zeros(); SLIP_WINDOW],
             len: 0,
             next: 0,
         }
     }
 
-    fn push(&mut self, position: f64, force: Vector3<f64>) {
+    fn push(&mut self, position: f64) {
         self.positions[self.next] = position;
-        self.forces[self.next] = force;
         self.next = (self.next + 1) % SLIP_WINDOW;
         self.len = (self.len + 1).min(SLIP_WINDOW);
     }
 
     fn position(&self) -> f64 {
         self.positions[..self.len].iter().sum::<f64>() / self.len as f64
-    }
-
-    fn force(&self) -> Vector3<f64> {
-        self.forces[..self.len].iter().sum::<Vector3<f64>>() / self.len as f64
     }
 }
 
@@ -129,18 +121,38 @@ impl Crossing {
     }
 }
 
-/// The stick band along one axis: the commanded forces at its two edges.
+/// The stick band along one axis: the commanded forces at its two edges, and how the handle
+/// moved when it slipped at each (from rest to rest, m).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct Band {
     pub axis: usize,
     pub upper: Vector3<f64>,
     pub lower: Vector3<f64>,
+    pub upper_slip: Vector3<f64>,
+    pub lower_slip: Vector3<f64>,
 }
 
 impl Band {
     /// The middle of the band along its axis: the holding force's component there, N.
     pub fn middle(&self) -> f64 {
         0.5 * (self.upper[self.axis] + self.lower[self.axis])
+    }
+
+    /// What the band says about the holding force c: n·c = b. A handle slips along the normal of
+    /// the stick band's boundary where its force meets it (joint friction: along the joint that
+    /// gives; a ball of friction: away from its centre), and the band is symmetric about c, so
+    /// with n the difference of the two slips' directions, n·c = n·(upper + lower)/2. Along a
+    /// ball's chord n is the probe's axis; across a box's two faces it is their normal, however
+    /// the chord cuts them. Without a clear slip (n too small), the axis itself.
+    pub fn constraint(&self) -> (Vector3<f64>, f64) {
+        let mid = 0.5 * (self.upper + self.lower);
+        let unit = |v: Vector3<f64>| v.try_normalize(1e-12).unwrap_or_else(Vector3::zeros);
+        let mut n = unit(unit(self.upper_slip) - unit(self.lower_slip));
+        if n[self.axis] < 0.5 {
+            n = Vector3::zeros();
+            n[self.axis] = 1.0;
+        }
+        (n, n.dot(&mid))
     }
 
     /// Half the band's width along its axis: the friction there, N (0 without friction; the
@@ -178,9 +190,21 @@ pub(super) struct BandProbe {
     offset: f64,
     /// Smallest progress (sign × smoothed position) since the crossing started, m.
     low: f64,
+    /// How far above `low` a single reading may lie and still count as not moved, m (half an
+    /// encoder step and some noise).
+    still: f64,
+    /// The force commanded at the last reading that had not moved: the edge, once the slip is
+    /// confirmed (a slip is confirmed only after `slip`, which an encoder step or noise may make
+    /// take a while).
+    departure: Vector3<f64>,
     window: Window,
     upper: Vector3<f64>,
     lower: Vector3<f64>,
+    /// The smoothed position where the crossing started from rest, and the moves of the Up and
+    /// Down crossings' slips, m.
+    start_position: Vector3<f64>,
+    upper_slip: Vector3<f64>,
+    lower_slip: Vector3<f64>,
     /// After a slip: the added force is held until the handle is at rest again, so that every
     /// crossing starts from rest (a heavy handle would otherwise start the next one still
     /// moving, and the two crossings would not mirror each other).
@@ -194,14 +218,19 @@ struct Pause {
     next: Option<Crossing>,
     count: usize,
     previous: Option<f64>,
+    /// Sum of the smoothed positions of the current block, and the previous block's mean.
+    sum: Vector3<f64>,
+    previous_mean: Vector3<f64>,
 }
 
 impl BandProbe {
-    pub fn new(axis: usize, ramp: Ramp, slip: f64, now: f64) -> Self {
+    pub fn new(axis: usize, ramp: Ramp, slip: f64, still: f64, now: f64) -> Self {
         Self {
             axis,
             ramp,
             slip,
+            still,
+            departure: Vector3::zeros(),
             crossing: Crossing::Reach,
             start_offset: 0.0,
             start_time: now,
@@ -210,6 +239,9 @@ impl BandProbe {
             window: Window::new(),
             upper: Vector3::zeros(),
             lower: Vector3::zeros(),
+            start_position: Vector3::zeros(),
+            upper_slip: Vector3::zeros(),
+            lower_slip: Vector3::zeros(),
             pause: None,
         }
     }
@@ -227,24 +259,47 @@ impl BandProbe {
         self.offset
     }
 
-    /// Feed the tick's state and the force commanded at it (with the offset of this tick).
-    pub fn observe(&mut self, s: &DeviceState, commanded: &Vector3<f64>) -> Step<Band> {
-        self.window.push(s.position[self.axis], *commanded);
+    /// Feed the tick's state, the smoothed position and the force commanded at this tick (with
+    /// its offset).
+    pub fn observe(
+        &mut self,
+        s: &DeviceState,
+        smoothed: &Vector3<f64>,
+        commanded: &Vector3<f64>,
+    ) -> Step<Band> {
+        self.window.push(s.position[self.axis]);
+        if self.low == f64::INFINITY {
+            self.start_position = *smoothed;
+        }
         if let Some(mut pause) = self.pause {
-            // At rest once two consecutive block means agree within a third of a slip.
+            // At rest once two consecutive block means agree within a third of a slip; where it
+            // rests is the mean over both blocks.
             pause.count += 1;
+            pause.sum += smoothed;
             if pause.count >= SLIP_WINDOW {
                 pause.count = 0;
                 let mean = self.window.position();
+                let block = pause.sum / SLIP_WINDOW as f64;
+                pause.sum = Vector3::zeros();
                 if pause
                     .previous
                     .is_some_and(|p| (mean - p).abs() < self.slip / 3.0)
                 {
+                    let rest = 0.5 * (block + pause.previous_mean);
+                    let moved = rest - self.start_position;
+                    self.start_position = rest;
+                    match self.crossing {
+                        Crossing::Up => self.upper_slip = moved,
+                        Crossing::Down => self.lower_slip = moved,
+                        Crossing::Reach => {}
+                    }
                     let Some(next) = pause.next else {
                         return Step::Done(Band {
                             axis: self.axis,
                             upper: self.upper,
                             lower: self.lower,
+                            upper_slip: self.upper_slip,
+                            lower_slip: self.lower_slip,
                         });
                     };
                     self.pause = None;
@@ -255,6 +310,7 @@ impl BandProbe {
                     return Step::Running;
                 }
                 pause.previous = Some(mean);
+                pause.previous_mean = block;
             }
             self.pause = Some(pause);
             return Step::Running;
@@ -262,6 +318,9 @@ impl BandProbe {
         let sign = self.crossing.sign();
         let progress = sign * self.window.position();
         self.low = self.low.min(progress);
+        if sign * s.position[self.axis] <= self.low + self.still {
+            self.departure = *commanded;
+        }
         if progress - self.low <= self.slip {
             return if (self.offset - self.start_offset).abs() > self.ramp.limit {
                 Step::Blocked { sign }
@@ -269,7 +328,7 @@ impl BandProbe {
                 Step::Running
             };
         }
-        let edge = self.window.force();
+        let edge = self.departure;
         let next = match self.crossing {
             Crossing::Reach => Some(Crossing::Up),
             Crossing::Up => {
@@ -285,6 +344,8 @@ impl BandProbe {
             next,
             count: 0,
             previous: None,
+            sum: Vector3::zeros(),
+            previous_mean: Vector3::zeros(),
         });
         Step::Running
     }
@@ -325,8 +386,7 @@ impl Push {
     /// Feed a tick: done (with the push that moved the handle, N) once it has moved along the
     /// direction; blocked once the push passes the ramp's limit without moving it.
     pub fn observe(&mut self, s: &DeviceState) -> Step<f64> {
-        self.window
-            .push(s.position.dot(&self.direction), Vector3::zeros());
+        self.window.push(s.position.dot(&self.direction));
         let progress = self.window.position();
         self.low = self.low.min(progress);
         if progress - self.low > self.slip {
@@ -419,13 +479,14 @@ mod tests {
             growth: 0.2,
             limit: 3.0,
         };
-        let mut probe = BandProbe::new(0, ramp, 5e-6, 0.0);
+        let mut probe = BandProbe::new(0, ramp, 5e-6, 2e-6, 0.0);
         let (mut x, mut v) = (0.0f64, 0.0f64);
         let dt = 1e-3;
         for n in 0..20_000 {
             let t = n as f64 * dt;
             let force = -k * x - 2.0 * (k * m).sqrt() * v + probe.offset(t);
-            match probe.observe(&state(t, x), &Vector3::new(force, 0.0, 0.0)) {
+            let smoothed = Vector3::new(x, 0.0, 0.0);
+            match probe.observe(&state(t, x), &smoothed, &Vector3::new(force, 0.0, 0.0)) {
                 Step::Done(band) => return band,
                 Step::Blocked { .. } => panic!("blocked"),
                 Step::Running => {}

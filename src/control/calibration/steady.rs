@@ -71,16 +71,23 @@ impl SteadyState {
     }
 }
 
+/// Changes of a reading smaller than this are no encoder step, m.
+const MIN_STEP: f64 = 1e-6;
+
 /// The position noise a device reports, from second differences: x_k − 2x_{k−1} + x_{k−2} of
 /// white noise of standard deviation σ has variance 6σ², while a smooth motion (a handle still
 /// settling, or ringing slowly) adds next to nothing at the report rate. Averaged over about the
-/// last `window` samples.
+/// last `window` samples. Beside it, the encoder's step: the smallest change between consecutive
+/// readings seen (the largest axis's change of each; a change of less than a micrometre counts as
+/// none), which a handle at rest need not show, but one coming to rest does.
 #[derive(Clone, Debug)]
 pub(super) struct NoiseMeter {
     window: usize,
     previous: [Vector3<f64>; 2],
     count: usize,
     mean_square: Vector3<f64>,
+    /// Smallest step seen, m (infinite: none yet).
+    step: f64,
 }
 
 impl NoiseMeter {
@@ -90,6 +97,7 @@ impl NoiseMeter {
             previous: [Vector3::zeros(); 2],
             count: 0,
             mean_square: Vector3::zeros(),
+            step: f64::INFINITY,
         }
     }
 
@@ -99,6 +107,12 @@ impl NoiseMeter {
             let weight = 1.0 / (self.count - 1).min(self.window) as f64;
             self.mean_square += (d.component_mul(&d) - self.mean_square) * weight;
         }
+        if self.count >= 1 {
+            let change = (x - self.previous[1]).amax();
+            if change >= MIN_STEP {
+                self.step = self.step.min(change);
+            }
+        }
         self.previous = [self.previous[1], *x];
         self.count += 1;
     }
@@ -106,6 +120,16 @@ impl NoiseMeter {
     /// The largest per-axis standard deviation, m.
     pub(super) fn sigma(&self) -> f64 {
         (self.mean_square.max() / 6.0).sqrt()
+    }
+
+    /// The encoder's step, m: the smallest change between consecutive readings seen; 0 if the
+    /// readings never changed by a micrometre or more.
+    pub(super) fn step(&self) -> f64 {
+        if self.step.is_finite() {
+            self.step
+        } else {
+            0.0
+        }
     }
 }
 
@@ -152,5 +176,12 @@ mod tests {
             meter.push(&Vector3::new(ring + noise, 0.0, 0.0));
         }
         assert!((meter.sigma() - 2e-6).abs() < 0.3e-6, "{}", meter.sigma());
+        // Readings on a 29 µm grid flickering between two steps, while the handle creeps on.
+        let mut meter = NoiseMeter::new(30);
+        for k in 0..200 {
+            let x = 2.9e-5 * ((k % 7 == 0) as u8 as f64) + 2.9e-5 * ((k / 50) as f64);
+            meter.push(&Vector3::new(0.0, x, 0.0));
+        }
+        assert!((meter.step() - 2.9e-5).abs() < 1e-12, "{}", meter.step());
     }
 }
