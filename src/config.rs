@@ -558,8 +558,9 @@ impl Default for CalibrationConfig {
 #[derive(Clone, Debug, Default, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct CompensationConfig {
-    /// "scalar" (paper: M(X) g v_G) or "vector" (interpolated calibrated force vectors).
-    pub mode: CompensationMode,
+    /// "scalar" (paper: M(X) g v_G) or "vector" (interpolated calibrated force vectors); unset:
+    /// vector when the grid has force vectors (every grid calibration writes does), else scalar.
+    pub mode: Option<CompensationMode>,
     /// Outside the grid: "hold-nearest" (nearest cell's face values) or "zero".
     pub outside_grid: OutsideGrid,
     /// Run without compensation when the grid is corrupt or made for another device (a missing

@@ -710,7 +710,7 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
         config.sim.start_position_mm = p;
         config.sim.damping_n_s_per_m = 1.0;
         // Vector mode interpolates the holding forces the calibration measured.
-        config.compensation.mode = mode;
+        config.compensation.mode = Some(mode);
         let running = start(config, Some(&run.grid));
         let mut client = running.client(Role::Control, "e2e");
         assert_eq!(
