@@ -141,6 +141,8 @@ pub const RANGES: &[(&str, Range)] = &[
     ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
     ("sim.device_watchdog_ms", Range::new(1.0, 1000.0, "ms")),
     ("sim.stop_reporting_after_s", Range::new(0.0, 1e6, "s")),
+    ("sim.obstacle_min_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("sim.obstacle_max_mm", Range::new(-1000.0, 1000.0, "mm")),
     ("calibration.spacing_mm", Range::new(1.0, 500.0, "mm")),
     ("calibration.half_size", Range::new(1.0, 10.0, "")),
     ("calibration.centre_mm", Range::new(-1000.0, 1000.0, "mm")),
@@ -469,6 +471,9 @@ pub struct SimConfig {
     pub device_watchdog_ms: f64,
     /// Fault injection: the device stops reporting after this much device time, s.
     pub stop_reporting_after_s: Option<f64>,
+    /// point-mass: a box the handle cannot enter (an obstacle), mm; both corners or neither.
+    pub obstacle_min_mm: Option<[f64; 3]>,
+    pub obstacle_max_mm: Option<[f64; 3]>,
 }
 
 impl Default for SimConfig {
@@ -494,6 +499,8 @@ impl Default for SimConfig {
             substep_hz: 10_000.0,
             device_watchdog_ms: 50.0,
             stop_reporting_after_s: None,
+            obstacle_min_mm: None,
+            obstacle_max_mm: None,
         }
     }
 }
@@ -705,6 +712,11 @@ impl SimConfig {
         self.encoder_resolution_mm * 1e-3
     }
 
+    /// The obstacle box (smallest corner, largest corner), m, if both corners are given.
+    pub fn obstacle(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        Some(mm_box(self.obstacle_min_mm?, self.obstacle_max_mm?))
+    }
+
     /// Standard deviation of the position noise, m (0: none).
     pub fn noise(&self) -> f64 {
         self.noise_mm * 1e-3
@@ -877,6 +889,30 @@ impl Config {
         if let Some(t) = sim.stop_reporting_after_s {
             in_range("sim.stop_reporting_after_s", t)?;
         }
+        if let Some(lo) = sim.obstacle_min_mm {
+            each_in_range("sim.obstacle_min_mm", lo)?;
+        }
+        if let Some(hi) = sim.obstacle_max_mm {
+            each_in_range("sim.obstacle_max_mm", hi)?;
+        }
+        match (sim.obstacle_min_mm, sim.obstacle_max_mm) {
+            (None, None) => {}
+            (Some(lo), Some(hi)) => {
+                ordered_box("sim.obstacle_min_mm", "sim.obstacle_max_mm", lo, hi)?
+            }
+            (Some(_), None) => {
+                return Err(invalid(
+                    "sim.obstacle_max_mm",
+                    "missing: an obstacle needs both corners (sim.obstacle_min_mm is given)",
+                ))
+            }
+            (None, Some(_)) => {
+                return Err(invalid(
+                    "sim.obstacle_min_mm",
+                    "missing: an obstacle needs both corners (sim.obstacle_max_mm is given)",
+                ))
+            }
+        }
 
         let c = &self.calibration;
         in_range("calibration.spacing_mm", c.spacing_mm)?;
@@ -1026,7 +1062,7 @@ mod tests {
     }
 
     /// How the shipped file writes a key's value: array, integer or float (absent keys are the
-    /// optional floats).
+    /// optional ones, shown commented out).
     #[derive(Clone, Copy, PartialEq)]
     enum Shape {
         Float,
@@ -1037,9 +1073,13 @@ mod tests {
     fn shape(key: &str) -> Shape {
         let shipped: toml::Table = include_str!("../config/hgcd.toml").parse().unwrap();
         let (section, name) = key.split_once('.').unwrap();
+        let commented_array = include_str!("../config/hgcd.toml")
+            .lines()
+            .any(|line| line.starts_with(&format!("# {name} = [")));
         match shipped[section].get(name) {
             Some(toml::Value::Array(_)) => Shape::Array,
             Some(toml::Value::Integer(_)) => Shape::Integer,
+            None if commented_array => Shape::Array,
             _ => Shape::Float,
         }
     }
@@ -1220,6 +1260,16 @@ mod tests {
             assert!(line.contains(says), "{line}");
             assert_eq!(line.lines().count(), 1, "{line}");
         };
+        refused(
+            "[sim]\nobstacle_min_mm = [30.0, 30.0, 30.0]\n",
+            "sim.obstacle_max_mm",
+            "an obstacle needs both corners",
+        );
+        refused(
+            "[sim]\nobstacle_min_mm = [30.0, 30.0, 30.0]\nobstacle_max_mm = [80.0, 20.0, 80.0]\n",
+            "sim.obstacle_max_mm",
+            "on the y axis",
+        );
         // At 100 Hz two report periods are 20 ms.
         refused(
             "[servo]\nrate_hz = 100.0\nwatchdog_ms = 15.0\n",

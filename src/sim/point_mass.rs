@@ -26,6 +26,9 @@ pub struct PointMass {
     pub friction: f64,
     /// Moving mass m without the payload, kg; `None`: |M(X)| (at least 1 g).
     pub inertia: Option<f64>,
+    /// A box inside the workspace the handle cannot enter (smallest corner, largest), m: an
+    /// obstacle, stopping the handle on the face it reaches.
+    pub obstacle: Option<(Vector3<f64>, Vector3<f64>)>,
     /// A probe mass fixed to the end effector, kg (adds to M(X) in weight and to the inertia).
     pub payload: f64,
     /// Resolution of its Cartesian encoders, m (0: no quantisation).
@@ -49,6 +52,7 @@ impl PointMass {
             damping,
             friction: 0.0,
             inertia: None,
+            obstacle: None,
             payload: 0.0,
             resolution: 0.0,
             lo,
@@ -76,6 +80,7 @@ impl PointMass {
         plant.payload = sim.probe_mass_kg;
         plant.friction = sim.coulomb_friction_n;
         plant.inertia = sim.inertia_kg;
+        plant.obstacle = sim.obstacle();
         plant.resolution = sim.encoder_resolution();
         Ok(plant)
     }
@@ -109,7 +114,23 @@ impl Plant for PointMass {
         } else {
             trial * (1.0 - braking / speed)
         };
+        let before = self.x;
         self.x += self.v * dt;
+        if let Some((lo, hi)) = self.obstacle {
+            let inside = (0..3).all(|a| self.x[a] > lo[a] && self.x[a] < hi[a]);
+            // Entering the box, the handle stops on the face it crossed: of the axes it was
+            // outside the box along before the step, the one it went least deep along.
+            let crossed = (0..3)
+                .filter(|&a| before[a] <= lo[a] || before[a] >= hi[a])
+                .min_by(|&a, &b| {
+                    let depth = |k: usize| (self.x[k] - lo[k]).min(hi[k] - self.x[k]);
+                    depth(a).total_cmp(&depth(b))
+                });
+            if let (true, Some(a)) = (inside, crossed) {
+                self.x[a] = if before[a] <= lo[a] { lo[a] } else { hi[a] };
+                self.v[a] = 0.0;
+            }
+        }
         for axis in 0..3 {
             if self.x[axis] < self.lo[axis] {
                 self.x[axis] = self.lo[axis];
@@ -287,5 +308,31 @@ mod tests {
             assert!((steps - steps.round()).abs() < 1e-6);
         }
         assert!((m - Vector3::new(0.012345, -0.001, -0.000005)).amax() < 1e-12);
+    }
+
+    #[test]
+    fn an_obstacle_stops_the_handle_on_the_face_it_reaches() {
+        // A 0.12 kg handle falls onto a box below it, and slides along x into the side of
+        // another.
+        let mut p = frictional(0.12, None, 0.0);
+        p.obstacle = Some((
+            Vector3::new(-0.01, -0.01, -0.03),
+            Vector3::new(0.01, 0.01, -0.02),
+        ));
+        for _ in 0..10_000 {
+            p.step(&Vector3::zeros(), 1e-4);
+        }
+        assert!((p.position() - Vector3::new(0.0, 0.0, -0.02)).norm() < 1e-12);
+        let mut p = frictional(0.12, None, 0.0);
+        p.obstacle = Some((
+            Vector3::new(0.005, -0.01, -0.01),
+            Vector3::new(0.02, 0.01, 0.01),
+        ));
+        let push = p.holding_force() + Vector3::new(0.5, 0.0, 0.0);
+        for _ in 0..10_000 {
+            p.step(&push, 1e-4);
+        }
+        assert!((p.position() - Vector3::new(0.005, 0.0, 0.0)).norm() < 1e-12);
+        assert_eq!(p.velocity().x, 0.0);
     }
 }

@@ -121,8 +121,9 @@ enum Friction {
 /// plus this margin, m.
 const REACH_BANDS: f64 = 2.5;
 const REACH_MARGIN: f64 = 2e-5;
-/// Rounds of band measurements at one vertex, at most; a round that changes the force by less
-/// than a quarter of the band plus this much ends the vertex, N.
+/// Rounds of band measurements at one vertex, at least and at most; once a round changes the
+/// force by less than this share of the band plus this much, the vertex ends (N).
+const MIN_ROUNDS: u32 = 2;
 const MAX_ROUNDS: u32 = 3;
 /// The three constraint normals must span at least this volume (1 for orthogonal ones).
 const MIN_CONSTRAINT_VOLUME: f64 = 0.3;
@@ -294,13 +295,17 @@ pub struct Calibration {
     rounds: u32,
     /// Distance from the vertex of the previous rest off it, m.
     previous_offset: Option<f64>,
+    /// Rests near the vertex so far.
+    near_rests: u32,
     /// The force at the first rest near the vertex (the paper's one-sided measurement), N.
     one_sided: Option<Vector3<f64>>,
     /// The rest the band is measured at, m, and the band's half-widths, N.
     rest: Vector3<f64>,
     band_friction: Vector3<f64>,
     /// The force the previous round found, when this round followed it directly.
-    last_round: Option<Vector3<f64>>,
+    /// The forces the rounds before this one found, summed, and how many, when this round
+    /// followed them directly.
+    earlier_rounds: (Vector3<f64>, u32),
     /// The round's constraints on the holding force, one per axis ([`Band::constraint`]).
     constraints: [(Vector3<f64>, f64); 3],
 
@@ -366,11 +371,12 @@ impl Calibration {
             iteration: 0,
             rounds: 0,
             previous_offset: None,
+            near_rests: 0,
             one_sided: None,
             rest: Vector3::zeros(),
             band_friction: Vector3::zeros(),
             constraints: [(Vector3::zeros(), 0.0); 3],
-            last_round: None,
+            earlier_rounds: (Vector3::zeros(), 0),
             results: vec![None; count],
         })
     }
@@ -794,6 +800,7 @@ impl Calibration {
         self.iteration = 0;
         self.rounds = 0;
         self.previous_offset = None;
+        self.near_rests = 0;
         self.one_sided = None;
         self.detector = self.vertex_detector();
         self.emit(CalibrationEvent::VertexStarted {
@@ -937,7 +944,8 @@ impl Calibration {
             self.one_sided.get_or_insert(applied);
             self.estimate = applied;
             self.rest = rest;
-            self.last_round = None;
+            self.near_rests += 1;
+            self.earlier_rounds = (Vector3::zeros(), 0);
             return self.start_round(s);
         }
         let distance = offset.norm();
@@ -1009,9 +1017,14 @@ impl Calibration {
     fn start_round(&mut self, s: &DeviceState) -> ControlOutput {
         let t = s.time;
         let Some(a) = self.next_band_axis(None) else {
-            // No friction anywhere: the force applied at this rest is the load.
+            // No friction anywhere: the force applied at this rest is the load. It is taken at
+            // the second rest near the vertex, which follows a correction too small to leave a
+            // transient (the paper's "n_M samples within ε_M", read as twice in a row).
             let vertex = self.plan.path[self.vertex];
             let error = (vertex.position - self.rest).norm();
+            if self.near_rests < 2 {
+                return self.update(s, self.estimate, error);
+            }
             return self.vertex_done(s, vertex, error);
         };
         self.phase = Phase::Band {
@@ -1095,12 +1108,11 @@ impl Calibration {
             force: self.estimate,
             error,
         });
-        if settled || self.rounds >= MAX_ROUNDS {
-            // The last two rounds measured the same band independently: their mean halves
-            // what the slips' timing scatters.
-            if let Some(previous) = self.last_round {
-                self.estimate = 0.5 * (self.estimate + previous);
-            }
+        if (settled && self.rounds >= MIN_ROUNDS) || self.rounds >= MAX_ROUNDS {
+            // The rounds measured the same band independently: their mean shrinks what the
+            // slips' timing and the position noise scatter.
+            let (sum, count) = self.earlier_rounds;
+            self.estimate = (sum + self.estimate) / f64::from(count + 1);
             if !self.friction_kind.contains(&Friction::Slight) {
                 return self.vertex_done(s, vertex, error);
             }
@@ -1121,7 +1133,8 @@ impl Calibration {
         // more: measure again where it is unless it has gone far.
         let offset = vertex.position - self.smoothed;
         if (0..3).all(|a| offset[a].abs() <= ROUND_REACH * self.reach_tolerance(a)) {
-            self.last_round = Some(self.estimate);
+            self.earlier_rounds.0 += self.estimate;
+            self.earlier_rounds.1 += 1;
             return self.start_round(s);
         }
         self.settle_from(s.time);

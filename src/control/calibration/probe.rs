@@ -21,6 +21,9 @@ use crate::control::DeviceState;
 /// Samples averaged to tell a slip from position noise, and to read the force at the slip.
 const SLIP_WINDOW: usize = 8;
 
+/// Samples the hold at rest averages its position over (see [`Smoother`]).
+const SMOOTHING: usize = 8;
+
 /// How a ramp of added force grows: at a constant `rate` (N/s) over its first `steady` N, so that
 /// crossings of the expected band all cross their edges alike, then at a rate growing as
 /// e^(t/growth), so that a wider band or an obstacle is crossed in a bounded time. A crossing
@@ -74,11 +77,11 @@ impl Window {
     }
 }
 
-/// The mean of the last [`SLIP_WINDOW`] positions: what a hold at rest pulls on, so that the
+/// The mean of the last [`SMOOTHING`] positions: what a hold at rest pulls on, so that the
 /// encoder's steps and noise do not shake a stuck handle.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Smoother {
-    samples: [Vector3<f64>; SLIP_WINDOW],
+    samples: [Vector3<f64>; SMOOTHING],
     len: usize,
     next: usize,
 }
@@ -86,7 +89,7 @@ pub(super) struct Smoother {
 impl Smoother {
     pub fn new() -> Self {
         Self {
-            samples: [Vector3::zeros(); SLIP_WINDOW],
+            samples: [Vector3::zeros(); SMOOTHING],
             len: 0,
             next: 0,
         }
@@ -95,8 +98,8 @@ impl Smoother {
     /// Add a sample; the mean of the newest ones.
     pub fn push(&mut self, x: &Vector3<f64>) -> Vector3<f64> {
         self.samples[self.next] = *x;
-        self.next = (self.next + 1) % SLIP_WINDOW;
-        self.len = (self.len + 1).min(SLIP_WINDOW);
+        self.next = (self.next + 1) % SMOOTHING;
+        self.len = (self.len + 1).min(SMOOTHING);
         self.samples[..self.len].iter().sum::<Vector3<f64>>() / self.len as f64
     }
 }
