@@ -411,6 +411,42 @@ fn a_vertex_that_needs_more_time_than_allowed_fails_with_vertex_timeout() {
 }
 
 #[test]
+fn a_sphere_smaller_than_the_noise_fails_with_vertex_timeout_not_a_panic() {
+    // ε_M = 5 µm, below the simulated encoder's step: no steady state at a vertex. Its creep
+    // limit (ε_M / 10 = 0.5 µm) is below the 1 µm floor the noise sets, which panicked the
+    // servo thread ("min > max" in a clamp) until the limit took the smaller of the two.
+    let dir = tempfile::tempdir().unwrap();
+    let (outcome, events) = run_calibration(&config(
+        dir.path(),
+        "[calibration]\neps_m_mm = 0.005\nvertex_timeout_s = 2.0\n",
+    ));
+    let Err(CalibrationFailure::VertexTimeout { vertex, .. }) = outcome else {
+        panic!("{outcome:?}");
+    };
+    assert_eq!(vertex.index, [-1, -1, -1]);
+    assert_eq!(vertices_done(&events), 0);
+}
+
+#[test]
+fn a_handle_resting_on_a_support_inside_the_grid_fails_as_held() {
+    // A floor at z = −10 mm, inside the grid's box, with the handle on it: pushed down it does
+    // not move, however hard (up to a quarter of safety.max_force_n), so something holds it.
+    let dir = tempfile::tempdir().unwrap();
+    let (outcome, _) = run_calibration(&config(
+        dir.path(),
+        "workspace_min_mm = [-80.0, -80.0, -10.0]\nstart_position_mm = [0.0, 0.0, -10.0]\n\
+         [calibration]\nvertex_timeout_s = 3.0\n",
+    ));
+    assert_eq!(
+        outcome,
+        Err(CalibrationFailure::Held {
+            axis: 'z',
+            push_n: 2.0
+        })
+    );
+}
+
+#[test]
 fn a_vertex_that_needs_more_updates_than_allowed_fails_with_too_many_iterations() {
     let dir = tempfile::tempdir().unwrap();
     // Vertex 1 weighs 50 g against the 219 g found at the start: the hold rests 6 mm off it,

@@ -817,7 +817,8 @@ impl Calibration {
         let n = self.params.n_m;
         let eps = self.params.eps_m;
         let creep = (CREEP_SIGMAS * self.initial.noise * (2.0 / n as f64).sqrt())
-            .clamp(MIN_CREEP, eps / 10.0);
+            .max(MIN_CREEP)
+            .min(eps / 10.0);
         SteadyState::with_creep(n, eps, creep)
     }
 
