@@ -155,6 +155,16 @@ pub fn calibrate(
         (ExitReason::Fault(fault), None) => return Err(CalibrateError::Fault(fault)),
         (exit, None) => return Err(CalibrateError::EndedEarly(exit)),
     };
+    if !result.unreachable.is_empty() {
+        let names: Vec<String> = result.unreachable.iter().map(|v| v.to_string()).collect();
+        warn!(
+            "{} of {} vertices could not be reached (the handle did not yield to a push toward \
+             them) and were filled from their neighbours: {}",
+            names.len(),
+            result.vertices.len(),
+            names.join("; ")
+        );
+    }
     let grid = grid_file(&result, config, &request.device);
     grid.save_atomic(&path).map_err(CalibrateError::Save)?;
     info!("grid written to {}", path.display());
