@@ -176,6 +176,16 @@ pub fn calibrate_on(
         (ExitReason::Fault(fault), None) => return Err(CalibrateError::Fault(fault)),
         (exit, None) => return Err(CalibrateError::EndedEarly(exit)),
     };
+    if !result.unreachable.is_empty() {
+        let names: Vec<String> = result.unreachable.iter().map(|v| v.to_string()).collect();
+        warn!(
+            "{} of {} vertices could not be reached (the handle did not yield to a push toward \
+             them) and were filled from their neighbours: {}",
+            names.len(),
+            result.vertices.len(),
+            names.join("; ")
+        );
+    }
     let mut grid = grid_file(&result, config, &device.spec);
     device.stamp(&mut grid);
     grid.save_atomic(&path).map_err(CalibrateError::Save)?;

@@ -125,7 +125,8 @@ pub const RANGES: &[(&str, Range)] = &[
         "estimate.max_window",
         Range::new(1.0, crate::estimate::foaw::MAX_WINDOW as f64, "periods"),
     ),
-    ("sim.mass_kg", Range::new(0.001, 10.0, "kg")),
+    ("sim.mass_kg", Range::new(-10.0, 10.0, "kg")),
+    ("sim.inertia_kg", Range::new(0.001, 10.0, "kg")),
     ("sim.g", Range::new(1.0, 30.0, "m/s^2")),
     ("sim.gravity_direction", Range::new(-1000.0, 1000.0, "")),
     ("sim.workspace_min_mm", Range::new(-1000.0, 1000.0, "mm")),
@@ -135,11 +136,14 @@ pub const RANGES: &[(&str, Range)] = &[
     ("sim.encoder_resolution_mm", Range::new(0.0, 1.0, "mm")),
     ("sim.noise_mm", Range::new(0.0, 1.0, "mm")),
     ("sim.damping_n_s_per_m", Range::new(0.0, 100.0, "N*s/m")),
+    ("sim.coulomb_friction_n", Range::new(0.0, 10.0, "N")),
     ("sim.probe_mass_kg", Range::new(0.0, 1.0, "kg")),
     ("sim.friction_scale", Range::new(0.0, 10.0, "")),
     ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
     ("sim.device_watchdog_ms", Range::new(1.0, 1000.0, "ms")),
     ("sim.stop_reporting_after_s", Range::new(0.0, 1e6, "s")),
+    ("sim.obstacle_min_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("sim.obstacle_max_mm", Range::new(-1000.0, 1000.0, "mm")),
     ("calibration.spacing_mm", Range::new(1.0, 500.0, "mm")),
     ("calibration.half_size", Range::new(1.0, 10.0, "")),
     ("calibration.centre_mm", Range::new(-1000.0, 1000.0, "mm")),
@@ -476,8 +480,12 @@ pub struct SimConfig {
     pub serial: String,
     /// Mass field from an `hgcd-grid/1` file (its gravity_direction and g then apply); empty: uniform.
     pub mass_grid: Option<PathBuf>,
-    /// Uniform apparent mass when no grid is given, kg.
+    /// Uniform apparent mass when no grid is given, kg: negative for an over-balanced handle that
+    /// gravity (through its counterweight) pushes along v_G.
     pub mass_kg: f64,
+    /// Moving mass the actuators accelerate, kg; unset: the magnitude of the apparent mass (at
+    /// least 1 g). The probe mass adds to it.
+    pub inertia_kg: Option<f64>,
     /// Gravitational acceleration, m/s².
     pub g: f64,
     /// Unit direction of the compensating force (opposite to gravity) when no grid is given.
@@ -495,6 +503,9 @@ pub struct SimConfig {
     pub noise_mm: f64,
     /// Viscous friction, N·s/m.
     pub damping_n_s_per_m: f64,
+    /// Coulomb friction at the handle, N: the handle sticks while the net force on it is at most
+    /// this, and slides against this much force otherwise.
+    pub coulomb_friction_n: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
     pub probe_mass_kg: f64,
     /// Linkage plants: which unit of the model (0: the nominal published one; any other value a
@@ -508,6 +519,9 @@ pub struct SimConfig {
     pub device_watchdog_ms: f64,
     /// Fault injection: the device stops reporting after this much device time, s.
     pub stop_reporting_after_s: Option<f64>,
+    /// point-mass: a box the handle cannot enter (an obstacle), mm; both corners or neither.
+    pub obstacle_min_mm: Option<[f64; 3]>,
+    pub obstacle_max_mm: Option<[f64; 3]>,
 }
 
 impl Default for SimConfig {
@@ -517,6 +531,7 @@ impl Default for SimConfig {
             serial: String::new(),
             mass_grid: None,
             mass_kg: 0.12,
+            inertia_kg: None,
             g: 9.81,
             gravity_direction: [0.0, 0.0, 1.0],
             workspace_min_mm: [-80.0; 3],
@@ -526,12 +541,15 @@ impl Default for SimConfig {
             encoder_resolution_mm: 0.005,
             noise_mm: 0.002,
             damping_n_s_per_m: 0.0,
+            coulomb_friction_n: 0.0,
             probe_mass_kg: 0.0,
             unit_seed: 0,
             friction_scale: 1.0,
             substep_hz: 10_000.0,
             device_watchdog_ms: 50.0,
             stop_reporting_after_s: None,
+            obstacle_min_mm: None,
+            obstacle_max_mm: None,
         }
     }
 }
@@ -596,8 +614,9 @@ impl Default for CalibrationConfig {
 #[derive(Clone, Debug, Default, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct CompensationConfig {
-    /// "scalar" (paper: M(X) g v_G) or "vector" (interpolated calibrated force vectors).
-    pub mode: CompensationMode,
+    /// "scalar" (paper: M(X) g v_G) or "vector" (interpolated calibrated force vectors); unset:
+    /// vector when the grid has force vectors (every grid calibration writes does), else scalar.
+    pub mode: Option<CompensationMode>,
     /// Outside the grid: "hold-nearest" (nearest cell's face values) or "zero".
     pub outside_grid: OutsideGrid,
     /// Run without compensation when the grid is corrupt or made for another device (a missing
@@ -799,6 +818,11 @@ impl SimConfig {
         self.encoder_resolution_mm * 1e-3
     }
 
+    /// The obstacle box (smallest corner, largest corner), m, if both corners are given.
+    pub fn obstacle(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        Some(mm_box(self.obstacle_min_mm?, self.obstacle_max_mm?))
+    }
+
     /// Standard deviation of the position noise, m (0: none).
     pub fn noise(&self) -> f64 {
         self.noise_mm * 1e-3
@@ -942,6 +966,9 @@ impl Config {
 
         let sim = &self.sim;
         in_range("sim.mass_kg", sim.mass_kg)?;
+        if let Some(m) = sim.inertia_kg {
+            in_range("sim.inertia_kg", m)?;
+        }
         in_range("sim.g", sim.g)?;
         each_in_range("sim.gravity_direction", sim.gravity_direction)?;
         if Vector3::from(sim.gravity_direction).norm() < 1e-6 {
@@ -961,6 +988,7 @@ impl Config {
         in_range("sim.encoder_resolution_mm", sim.encoder_resolution_mm)?;
         in_range("sim.noise_mm", sim.noise_mm)?;
         in_range("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
+        in_range("sim.coulomb_friction_n", sim.coulomb_friction_n)?;
         in_range("sim.probe_mass_kg", sim.probe_mass_kg)?;
         in_range("sim.friction_scale", sim.friction_scale)?;
         in_range("sim.substep_hz", sim.substep_hz)?;
@@ -988,6 +1016,30 @@ impl Config {
                     sim.serial
                 ),
             ));
+        }
+        if let Some(lo) = sim.obstacle_min_mm {
+            each_in_range("sim.obstacle_min_mm", lo)?;
+        }
+        if let Some(hi) = sim.obstacle_max_mm {
+            each_in_range("sim.obstacle_max_mm", hi)?;
+        }
+        match (sim.obstacle_min_mm, sim.obstacle_max_mm) {
+            (None, None) => {}
+            (Some(lo), Some(hi)) => {
+                ordered_box("sim.obstacle_min_mm", "sim.obstacle_max_mm", lo, hi)?
+            }
+            (Some(_), None) => {
+                return Err(invalid(
+                    "sim.obstacle_max_mm",
+                    "missing: an obstacle needs both corners (sim.obstacle_min_mm is given)",
+                ))
+            }
+            (None, Some(_)) => {
+                return Err(invalid(
+                    "sim.obstacle_min_mm",
+                    "missing: an obstacle needs both corners (sim.obstacle_max_mm is given)",
+                ))
+            }
         }
 
         let c = &self.calibration;
@@ -1269,8 +1321,8 @@ mod tests {
         format!("[{section}]\n{name} = {value}\n")
     }
 
-    /// How the shipped file writes a key's value, commented out or not: array, integer or float
-    /// (absent keys are the optional floats).
+    /// How the shipped file writes a key's value: array, integer or float (absent keys are the
+    /// optional ones, shown commented out).
     #[derive(Clone, Copy, PartialEq)]
     enum Shape {
         Float,
@@ -1295,9 +1347,13 @@ mod tests {
             .collect();
         let shipped: toml::Table = uncommented.join("\n").parse().unwrap();
         let (section, name) = key.split_once('.').unwrap();
+        let commented_array = include_str!("../config/hgcd.toml")
+            .lines()
+            .any(|line| line.starts_with(&format!("# {name} = [")));
         match shipped[section].get(name) {
             Some(toml::Value::Array(_)) => Shape::Array,
             Some(toml::Value::Integer(_)) => Shape::Integer,
+            None if commented_array => Shape::Array,
             _ => Shape::Float,
         }
     }
@@ -1559,6 +1615,16 @@ mod tests {
             assert!(line.contains(says), "{line}");
             assert_eq!(line.lines().count(), 1, "{line}");
         };
+        refused(
+            "[sim]\nobstacle_min_mm = [30.0, 30.0, 30.0]\n",
+            "sim.obstacle_max_mm",
+            "an obstacle needs both corners",
+        );
+        refused(
+            "[sim]\nobstacle_min_mm = [30.0, 30.0, 30.0]\nobstacle_max_mm = [80.0, 20.0, 80.0]\n",
+            "sim.obstacle_max_mm",
+            "on the y axis",
+        );
         // At 100 Hz two report periods are 20 ms.
         refused(
             "[servo]\nrate_hz = 100.0\nwatchdog_ms = 15.0\n",

@@ -35,17 +35,28 @@ impl Display {
     pub fn show(&mut self, event: &CalibrationEvent) {
         let line = match event {
             CalibrationEvent::InitStarted => {
-                "initialisation: holding the handle with k_init to find gravity".to_string()
+                "initialisation: holding the handle with k_init, then pushing it to measure its \
+                 load, friction and moving mass"
+                    .to_string()
             }
             CalibrationEvent::InitDone {
                 gravity_direction: v,
                 initial_mass,
+                friction: f,
+                inertia: m,
             } => format!(
-                "gravity direction v_G = ({:.4}, {:.4}, {:.4}), rough mass M̂0 = {:.1} g",
+                "load along ({:.4}, {:.4}, {:.4}) of {:.1} g; friction ({:.3}, {:.3}, {:.3}) N; \
+                 moving mass ({:.0}, {:.0}, {:.0}) g",
                 v.x,
                 v.y,
                 v.z,
-                initial_mass * 1e3
+                initial_mass * 1e3,
+                f.x,
+                f.y,
+                f.z,
+                m.x * 1e3,
+                m.y * 1e3,
+                m.z * 1e3
             ),
             CalibrationEvent::VertexStarted { vertex, of, at } => {
                 // The plan the device's workspace gave (the bar began with the config's).
@@ -57,12 +68,14 @@ impl Display {
             CalibrationEvent::Iteration {
                 vertex,
                 iteration,
-                mass,
+                force: f,
                 error,
             } => format!(
-                "vertex {}: iteration {iteration}, M = {:.2} g, error {:.1} µm",
+                "vertex {}: iteration {iteration}, F = ({:.4}, {:.4}, {:.4}) N, error {:.1} µm",
                 vertex + 1,
-                mass * 1e3,
+                f.x,
+                f.y,
+                f.z,
                 error * 1e6
             ),
             CalibrationEvent::GainsReduced { vertex, scale } => format!(
@@ -72,17 +85,37 @@ impl Display {
             CalibrationEvent::VertexDone {
                 vertex,
                 of,
-                mass,
+                force: f,
                 iterations,
+                ..
             } => {
                 if let Some(bar) = &self.bar {
                     bar.set_position(*vertex as u64 + 1);
                 }
                 format!(
-                    "vertex {}/{} done: M = {:.2} g after {iterations} updates",
+                    "vertex {}/{} done: F = ({:.4}, {:.4}, {:.4}) N after {iterations} updates",
                     vertex + 1,
                     of,
-                    mass * 1e3
+                    f.x,
+                    f.y,
+                    f.z
+                )
+            }
+            CalibrationEvent::VertexUnreachable {
+                vertex,
+                of,
+                at,
+                distance,
+            } => {
+                if let Some(bar) = &self.bar {
+                    bar.set_position(*vertex as u64 + 1);
+                }
+                format!(
+                    "vertex {}/{}: {at} is unreachable: the handle stays {:.1} mm away and does \
+                     not yield to a push; its values will be filled from its neighbours",
+                    vertex + 1,
+                    of,
+                    distance * 1e3
                 )
             }
             CalibrationEvent::Finished => "calibration finished".to_string(),
@@ -195,15 +228,31 @@ pub fn vertex_count(config: &Config) -> usize {
 pub fn summary(run: &CalibrationRun) -> String {
     let r = &run.result;
     let v = r.gravity_direction;
+    let i = &r.initial;
     let mut out = format!(
         "grid written to {}\n\
-         gravity direction v_G = ({:.4}, {:.4}, {:.4}); rough mass M̂0 = {:.1} g\n\
+         gravity direction v_G = ({:.4}, {:.4}, {:.4}); rough mass |load| / g = {:.1} g\n\
+         at the start: load ({:.4}, {:.4}, {:.4}) N, friction ({:.3}, {:.3}, {:.3}) N, moving \
+         mass ({:.0}, {:.0}, {:.0}) g, noise {:.1} µm; hold stiffness ({:.3}, {:.3}, {:.3}) N/mm\n\
          {} vertices ({}×{}×{}), {:.1} s device time, {:.2} s wall time\n",
         run.path.display(),
         v.x,
         v.y,
         v.z,
         r.initial_mass * 1e3,
+        i.load.x,
+        i.load.y,
+        i.load.z,
+        i.friction.x,
+        i.friction.y,
+        i.friction.z,
+        i.inertia.x * 1e3,
+        i.inertia.y * 1e3,
+        i.inertia.z * 1e3,
+        i.noise * 1e6,
+        i.stiffness.x * 1e-3,
+        i.stiffness.y * 1e-3,
+        i.stiffness.z * 1e-3,
         r.vertices.len(),
         r.dims[0],
         r.dims[1],
@@ -212,12 +261,15 @@ pub fn summary(run: &CalibrationRun) -> String {
         run.wall_time
     );
     out.push_str(
-        "  vertex (n, m, p)   position mm              mass g   updates  final error µm\n",
+        "  vertex (n, m, p)   position mm              mass g   force N                       \
+         friction N  updates  final error µm\n",
     );
     for vr in &r.vertices {
         let p = vr.vertex.position * 1e3;
+        let f = vr.force;
         out.push_str(&format!(
-            "  ({:>2}, {:>2}, {:>2})       ({:>6.1}, {:>6.1}, {:>6.1})   {:>7.2}   {:>6}   {:>8.1}\n",
+            "  ({:>2}, {:>2}, {:>2})       ({:>6.1}, {:>6.1}, {:>6.1})   {:>7.2}   ({:>7.4}, {:>7.4}, {:>7.4})   \
+             {:>8.3}   {:>6}   {:>8.1}{}\n",
             vr.vertex.index[0],
             vr.vertex.index[1],
             vr.vertex.index[2],
@@ -225,8 +277,17 @@ pub fn summary(run: &CalibrationRun) -> String {
             p.y,
             p.z,
             vr.mass * 1e3,
+            f.x,
+            f.y,
+            f.z,
+            vr.friction.max(),
             vr.iterations,
-            vr.final_error * 1e6
+            vr.final_error * 1e6,
+            if vr.reached {
+                ""
+            } else {
+                "  unreachable: filled from neighbours"
+            }
         ));
     }
     for lo in &r.left_out {

@@ -195,7 +195,7 @@ fn ctrl_c_mid_run_aborts_and_leaves_the_old_grid_untouched() {
 #[test]
 fn a_device_that_goes_silent_mid_run_stops_the_calibration_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let (cfg, _) = setup(dir.path(), "stop_reporting_after_s = 5.0\n");
+    let (cfg, _) = setup(dir.path(), "stop_reporting_after_s = 15.0\n");
     let config = Config::load(&cfg).unwrap();
     let output = dir.path().join("dev.toml");
     let request = CalibrateRequest {
@@ -290,27 +290,54 @@ const STOP_AT_30_MM: &str = "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration
     workspace_max_mm = [70.0, 70.0, 70.0]\n";
 
 #[test]
-fn a_vertex_behind_a_mechanical_stop_is_unreachable_and_named() {
+fn vertices_behind_a_mechanical_stop_are_marked_unreachable_and_filled_from_their_neighbours() {
+    // Issue 14, item 3: unreachable vertices do not throw the others away. The whole top layer
+    // (z = +40 mm) lies 10 mm beyond the stop; the 18 vertices below it are calibrated.
     let dir = tempfile::tempdir().unwrap();
     let (outcome, events) = run_calibration(&config(dir.path(), STOP_AT_30_MM));
-    let Err(CalibrationFailure::Unreachable {
-        vertex,
-        distance_mm,
-    }) = outcome
-    else {
-        panic!("{outcome:?}");
-    };
-    // The first vertex of the top layer (z = +40 mm), after the 18 of the layers below it.
-    assert_eq!(vertex.index, [-1, -1, 1]);
+    let result = outcome.unwrap();
     assert_eq!(vertices_done(&events), 18);
-    // The stop holds the handle 10 mm below the vertex, whatever the mass.
-    assert!((distance_mm - 10.0).abs() < 0.1, "{distance_mm} mm");
+    let unreachable: Vec<_> = events
+        .iter()
+        .filter_map(|e| match e {
+            CalibrationEvent::VertexUnreachable { at, distance, .. } => Some((*at, *distance)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(unreachable.len(), 9);
+    for (at, distance) in &unreachable {
+        assert_eq!(at.index[2], 1, "{at}");
+        // The stop holds the handle 10 mm below the vertex, whatever the push.
+        assert!((distance - 0.010).abs() < 1e-4, "{distance} m");
+    }
+    assert_eq!(result.unreachable.len(), 9);
+    let truth = truth_field_125();
+    let at = |i: usize, j: usize, k: usize| &result.vertices[i + 3 * (j + 3 * k)];
+    for k in 0..3 {
+        for j in 0..3 {
+            for i in 0..3 {
+                let v = at(i, j, k);
+                if k < 2 {
+                    assert!(v.reached);
+                    let expected = truth.gravity_force(&v.vertex.position);
+                    let err = (v.force - expected).norm() / expected.norm();
+                    assert!(err < 0.01, "{}: {err}", v.vertex);
+                } else {
+                    // Filled (docs/grid-format.md §4): its only calibrated face neighbour is
+                    // the vertex below it.
+                    assert!(!v.reached);
+                    assert_eq!(v.force, at(i, j, 1).force);
+                    assert_eq!(v.mass, at(i, j, 1).mass);
+                }
+            }
+        }
+    }
 }
 
 #[test]
 fn a_failed_calibration_tells_the_user_why_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let (cfg, _) = setup(dir.path(), STOP_AT_30_MM);
+    let (cfg, _) = setup(dir.path(), "[calibration]\nvertex_timeout_s = 1.0\n");
     let (outcome, _) = run_calibration(&Config::load(&cfg).unwrap());
     let failure = outcome.unwrap_err();
     let out_file = dir.path().join("grid.toml");
@@ -323,26 +350,25 @@ fn a_failed_calibration_tells_the_user_why_and_writes_nothing() {
 }
 
 #[test]
-fn a_handle_too_light_to_sag_fails_with_its_sag_and_the_lightest_mass_that_would_pass() {
-    // 10 g on 0.5 N/mm sags m g / k_init = 0.196 mm: below the 0.3 mm (3 ε_init) that tells a
-    // free handle from a held one.
+fn a_handle_too_light_to_sag_is_calibrated_by_pushing_it() {
+    // 10 g on the paper's 0.5 N/mm sags m g / k_init = 0.196 mm: the paper's initialisation,
+    // and hgcd's before issue 17, took it for a handle still held and gave up ("sagged only
+    // 0.196 mm"). Its load is now found by pushing it both ways along each axis.
     let mut config = Config::default();
     config.sim.mass_kg = 0.01;
-    config.calibration.vertex_timeout_s = 2.0;
     let (outcome, _) = run_calibration(&config);
-    let Err(CalibrationFailure::NoSag { sag_mm, min_mass_g }) = outcome else {
-        panic!("{outcome:?}");
-    };
-    let k_init = 500.0;
+    let result = outcome.unwrap();
+    let weight = 0.01 * 9.81;
+    // The load found at the start is a first estimate (the bands there are pushed quickly).
     assert!(
-        (sag_mm - 0.01 * 9.81 / k_init * 1e3).abs() < 0.005,
-        "{sag_mm} mm"
+        (result.initial_mass - 0.01).abs() < 0.0025,
+        "{}",
+        result.initial_mass
     );
-    // 3 ε_init k_init / g: the mass that sags exactly the minimum.
-    assert!(
-        (min_mass_g - 3e-4 * k_init / 9.81 * 1e3).abs() < 1e-9,
-        "{min_mass_g} g"
-    );
+    for v in &result.vertices {
+        let err = (v.force - Vector3::new(0.0, 0.0, weight)).norm();
+        assert!(err < 0.02 * weight, "{}: {}", v.vertex, v.force);
+    }
 }
 
 #[test]
@@ -369,29 +395,64 @@ fn position_noise_beyond_eps_init_keeps_the_initialisation_from_any_steady_state
 #[test]
 fn a_vertex_that_needs_more_time_than_allowed_fails_with_vertex_timeout() {
     let dir = tempfile::tempdir().unwrap();
-    // The first vertex (−40, −40, −40) mm weighs 50 g after a 212 g start: it needs 5 updates,
-    // over 2 s.
+    // The first vertex (−40, −40, −40) mm weighs 50 g, against 219 g at the start: its move,
+    // an update, a settle, a round of bands and the check take over a second.
     let (outcome, events) = run_calibration(&config(
         dir.path(),
         "[calibration]\nvertex_timeout_s = 1.0\n",
     ));
     let Err(CalibrationFailure::VertexTimeout {
-        vertex,
-        timeout,
-        iterations,
+        vertex, timeout, ..
     }) = outcome
     else {
         panic!("{outcome:?}");
     };
     assert_eq!(vertex.index, [-1, -1, -1]);
     assert_eq!(timeout, 1.0);
-    assert!(iterations < 5, "{iterations}");
     assert_eq!(vertices_done(&events), 0);
+}
+
+#[test]
+fn a_sphere_smaller_than_the_noise_fails_with_vertex_timeout_not_a_panic() {
+    // ε_M = 5 µm, below the simulated encoder's step: no steady state at a vertex. Its creep
+    // limit (ε_M / 10 = 0.5 µm) is below the 1 µm floor the noise sets, which panicked the
+    // servo thread ("min > max" in a clamp) until the limit took the smaller of the two.
+    let dir = tempfile::tempdir().unwrap();
+    let (outcome, events) = run_calibration(&config(
+        dir.path(),
+        "[calibration]\neps_m_mm = 0.005\nvertex_timeout_s = 2.0\n",
+    ));
+    let Err(CalibrationFailure::VertexTimeout { vertex, .. }) = outcome else {
+        panic!("{outcome:?}");
+    };
+    assert_eq!(vertex.index, [-1, -1, -1]);
+    assert_eq!(vertices_done(&events), 0);
+}
+
+#[test]
+fn a_handle_resting_on_a_support_inside_the_grid_fails_as_held() {
+    // A floor at z = −10 mm, inside the grid's box, with the handle on it: pushed down it does
+    // not move, however hard (up to a quarter of safety.max_force_n), so something holds it.
+    let dir = tempfile::tempdir().unwrap();
+    let (outcome, _) = run_calibration(&config(
+        dir.path(),
+        "workspace_min_mm = [-80.0, -80.0, -10.0]\nstart_position_mm = [0.0, 0.0, -10.0]\n\
+         [calibration]\nvertex_timeout_s = 3.0\n",
+    ));
+    assert_eq!(
+        outcome,
+        Err(CalibrationFailure::Held {
+            axis: 'z',
+            push_n: 2.0
+        })
+    );
 }
 
 #[test]
 fn a_vertex_that_needs_more_updates_than_allowed_fails_with_too_many_iterations() {
     let dir = tempfile::tempdir().unwrap();
+    // Vertex 1 weighs 50 g against the 219 g found at the start: the hold rests 6 mm off it,
+    // and the force there is one update; the bands at the vertex are another.
     let (outcome, events) =
         run_calibration(&config(dir.path(), "[calibration]\nmax_iterations = 2\n"));
     let Err(CalibrationFailure::TooManyIterations { vertex, iterations }) = outcome else {
@@ -403,10 +464,12 @@ fn a_vertex_that_needs_more_updates_than_allowed_fails_with_too_many_iterations(
 }
 
 #[test]
-fn a_vertex_where_the_linkage_is_over_balanced_fails_with_a_non_positive_mass() {
+fn a_linkage_over_balanced_below_the_centre_calibrates_with_negative_masses() {
     // A 120 g handle on a counterbalance spring (70 N/m, relaxed at z = 0) that pulls it up
-    // when below the centre: its apparent weight m g + k_s z reverses at z = −16.8 mm. Driven
-    // tick by tick at 1 kHz without noise, with the true velocity.
+    // when below the centre: its apparent weight m g + k_s z reverses at z = −16.8 mm, so the
+    // bottom layer's apparent mass is negative (−165 g). Before issue 17 this failed ("the
+    // apparent mass came out as −0.0654 kg; hgcd-grid/1 needs positive masses"). Driven tick by
+    // tick at 1 kHz without noise, with the true velocity.
     let config = Config::default();
     let mut calibration = Calibration::new(CalibrationParams::from_config(&config), None).unwrap();
     let (m, g, k_s, dt) = (0.12, 9.81, 70.0, 1e-3);
@@ -425,25 +488,23 @@ fn a_vertex_where_the_linkage_is_over_balanced_fails_with_a_non_positive_mass() 
         if out.done {
             break;
         }
-        assert!(tick < 60_000, "still running after 60 s");
+        assert!(tick < 300_000, "still running after 300 s");
         let passive = Vector3::new(0.0, 0.0, -(m * g + k_s * x.z));
         v += (out.force + passive) / m * dt;
         x += v * dt;
         tick += 1;
     }
-    let Some(Err(CalibrationFailure::NonPositiveMass { vertex, mass })) = calibration.outcome()
-    else {
-        panic!("{:?}", calibration.outcome());
-    };
-    assert_eq!(vertex.index, [-1, -1, -1]);
-    // The update measures the apparent mass where the hold settled, above the vertex: there
-    // the spring outweighs the handle.
-    let z = x.z;
-    assert!(z > vertex.position.z, "settled at {z} m");
-    let apparent = (m * g + k_s * z) / g;
-    assert!(apparent < 0.0);
-    assert!(
-        (mass - apparent).abs() < 1e-5,
-        "{mass} kg, apparent {apparent} kg"
-    );
+    let result = calibration.outcome().unwrap().unwrap();
+    assert!((result.gravity_direction - Vector3::z()).norm() < 1e-3);
+    for vr in &result.vertices {
+        let z = vr.vertex.position.z;
+        let apparent = (m * g + k_s * z) / g;
+        assert!(
+            (vr.mass - apparent).abs() < 0.002,
+            "{}: {} kg, apparent {apparent} kg",
+            vr.vertex,
+            vr.mass
+        );
+    }
+    assert!(result.vertices.iter().filter(|v| v.mass < -0.16).count() == 9);
 }

@@ -676,7 +676,7 @@ fn a_normal_user_calibrates_and_runs_a_simulated_device_without_naming_a_state_d
 
     // `hgcd run` finds it the same way.
     let (status, log) = run_daemon();
-    assert_eq!(status.mode, hgcd::client::Compensating::Scalar, "{log}");
+    assert_eq!(status.mode, hgcd::client::Compensating::Vector, "{log}");
     assert_eq!(
         status.grid.as_deref(),
         Some(grid.to_str().unwrap()),

@@ -543,7 +543,8 @@ fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     });
     let path = calibration_event(&mut c, CalibrationStage::Finished);
     assert_eq!(Path::new(&path), grid_file);
-    assert_eq!(status.mode, Compensating::Scalar);
+    // A calibrated grid has force vectors: with compensation.mode unset, the vector mode.
+    assert_eq!(status.mode, Compensating::Vector);
     assert_eq!(status.grid.as_deref(), Some(path.as_str()));
     // The handle did not drop between the end of the calibration and the swap: it is still near
     // the last vertex of the serpentine, (40, 40, 40) mm, held by the new grid.
@@ -710,7 +711,7 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
         config.sim.start_position_mm = p;
         config.sim.damping_n_s_per_m = 1.0;
         // Vector mode interpolates the holding forces the calibration measured.
-        config.compensation.mode = mode;
+        config.compensation.mode = Some(mode);
         let running = start(config, Some(&run.grid));
         let mut client = running.client(Role::Control, "e2e");
         assert_eq!(

@@ -60,6 +60,24 @@ impl GravityModel {
         })
     }
 
+    /// The model `compensation.mode` asks for: `mode`, or, unset, the vector mode when the grid
+    /// has a force vector for every vertex (every grid calibration writes has: where the field
+    /// turns away from v_G, as on a linkage, the scalar mode leaves its sideways part) and the
+    /// scalar mode otherwise.
+    pub fn configured(
+        file: GridFile,
+        mode: Option<CompensationMode>,
+        outside: OutsideGrid,
+    ) -> Result<Self, ModelError> {
+        let has_vectors = file.vertices.force_vectors.len() == file.grid.vertex_count();
+        let mode = mode.unwrap_or(if has_vectors {
+            CompensationMode::Vector
+        } else {
+            CompensationMode::Scalar
+        });
+        Self::new(file, mode, outside)
+    }
+
     /// F_G at `x`, N.
     pub fn force(&self, x: &Vector3<f64>) -> Vector3<f64> {
         if self.outside == OutsideGrid::Zero && !self.grid.contains(x) {
@@ -183,6 +201,19 @@ mod tests {
         let f = model.force(&x);
         assert!((f - g.gravity_direction * g.mass_at(&x) * 9.81).norm() < 1e-12);
         assert!((f.normalize() - g.gravity_direction).norm() < 1e-12);
+    }
+
+    #[test]
+    fn an_unset_mode_is_vector_with_force_vectors_and_scalar_without() {
+        let mut file = GridFile::from(grid());
+        let bare = GravityModel::configured(file.clone(), None, OutsideGrid::Zero).unwrap();
+        assert_eq!(bare.mode, CompensationMode::Scalar);
+        file.vertices.force_vectors = vec![[0.0, 0.1, 1.0]; 27];
+        let calibrated = GravityModel::configured(file.clone(), None, OutsideGrid::Zero).unwrap();
+        assert_eq!(calibrated.mode, CompensationMode::Vector);
+        let chosen =
+            GravityModel::configured(file, Some(CompensationMode::Scalar), OutsideGrid::Zero);
+        assert_eq!(chosen.unwrap().mode, CompensationMode::Scalar);
     }
 
     #[test]

@@ -134,7 +134,7 @@ pub fn load_model(
                 );
             }
             let c = &config.compensation;
-            GravityModel::new(file, c.mode, c.outside_grid).map_err(UnusableGrid::from)
+            GravityModel::configured(file, c.mode, c.outside_grid).map_err(UnusableGrid::from)
         }
     };
     match built {
@@ -363,7 +363,7 @@ impl Hub {
                         file.save_atomic(&self.grid_path)
                             .map_err(|e| chain(&e))
                             .and_then(|_| {
-                                GravityModel::new(file, c.mode, c.outside_grid)
+                                GravityModel::configured(file, c.mode, c.outside_grid)
                                     .map_err(|e| chain(&e))
                             })
                     }

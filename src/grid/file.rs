@@ -109,6 +109,17 @@ pub struct CalibrationRecord {
     pub duration_s: Option<f64>,
     /// Paper indices [n, m, p] of the vertices left out (outside the workspace).
     pub left_out_vertices: Option<Vec<[i32; 3]>>,
+    /// Paper indices of the vertices the handle could not reach: their values are filled from
+    /// their neighbours (`docs/grid-format.md` §4).
+    pub unreachable_vertices: Option<Vec<[i32; 3]>>,
+    /// What the initialisation measured at X_C: the load (holding force), N; the friction (half
+    /// the stick band) along x, y, z, N; the moving mass along x, y, z, kg; the position noise
+    /// (standard deviation), mm; and the hold stiffness built from them, N/mm.
+    pub load_n: Option<[f64; 3]>,
+    pub friction_n: Option<[f64; 3]>,
+    pub inertia_kg: Option<[f64; 3]>,
+    pub noise_mm: Option<f64>,
+    pub stiffness_n_per_mm: Option<[f64; 3]>,
 }
 
 /// `[vertices]`: what calibration measured at each vertex, in grid order. Each list is either
@@ -124,6 +135,9 @@ pub struct VertexRecords {
     /// Distance from the vertex at the last steady state, mm.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub final_error_mm: Vec<f64>,
+    /// Half the stick band along x, y and z: the friction at the vertex, N.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub friction_n: Vec<[f64; 3]>,
 }
 
 impl VertexRecords {
@@ -132,6 +146,7 @@ impl VertexRecords {
         self.force_vectors.is_empty()
             && self.iterations.is_empty()
             && self.final_error_mm.is_empty()
+            && self.friction_n.is_empty()
     }
 
     fn check(&self, vertices: usize) -> Result<(), Problem> {
@@ -139,6 +154,7 @@ impl VertexRecords {
             ("force_vectors", self.force_vectors.len()),
             ("iterations", self.iterations.len()),
             ("final_error_mm", self.final_error_mm.len()),
+            ("friction_n", self.friction_n.len()),
         ];
         for (key, len) in lengths {
             if len != 0 && len != vertices {
@@ -159,6 +175,14 @@ impl VertexRecords {
         for (vertex, &value) in self.final_error_mm.iter().enumerate() {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(Problem::FinalError { vertex, value });
+            }
+        }
+        for (vertex, &value) in self.friction_n.iter().enumerate() {
+            if !value
+                .iter()
+                .all(|c| c.is_finite() && (0.0..=max).contains(c))
+            {
+                return Err(Problem::Friction { vertex, value, max });
             }
         }
         Ok(())
@@ -358,12 +382,13 @@ impl GridFile {
     /// An upper bound on the size, in bytes, of the file a calibration of `vertices` vertices
     /// (those left out included) writes for a device spec of `spec_len` bytes.
     pub fn size_bound(vertices: usize, spec_len: usize) -> u64 {
-        // Lattice keys and the calibration record: under 2 KiB. Per vertex: a mass, a force
-        // vector, an iteration count and an error, each number at most 24 characters, with
-        // separators, about 160 bytes; a left-out vertex's indices take less. The unit's model
-        // and serial, every byte escaped at worst, and an id made of them.
+        // Lattice keys and the calibration record: under 3 KiB. Per vertex: a mass, a force
+        // vector, an iteration count, an error and a friction vector, each number at most 24
+        // characters, with separators, about 260 bytes; a left-out or unreachable vertex's
+        // indices take less. The unit's model and serial, every byte escaped at worst, and an id
+        // made of them.
         let unit = 4 * (MODEL_LEN + SERIAL_LEN) as u64 + 64;
-        4096 + 2 * spec_len as u64 + unit + 256 * vertices as u64
+        4096 + 2 * spec_len as u64 + unit + 384 * vertices as u64
     }
 }
 
@@ -470,6 +495,7 @@ pub(crate) mod tests {
             force_vectors: (0..n).map(|i| [1e-6 * i as f64, 0.0, 1.2]).collect(),
             iterations: vec![2; n],
             final_error_mm: vec![0.0071278015934572074; n],
+            friction_n: vec![[0.05, 0.048, 0.0]; n],
         };
         file
     }
@@ -575,7 +601,7 @@ pub(crate) mod tests {
             problem(&good.replace("[0.0, 0.0, 1.0]", "[0.0, 0.0, 2.0]")),
             Problem::NotUnit { .. }
         ));
-        for bad in ["-0.05", "nan", "inf", "1e9"] {
+        for bad in ["-1e9", "nan", "-inf", "1e9"] {
             assert!(
                 matches!(
                     problem(&good.replacen("0.05, ", &format!("{bad}, "), 1)),
@@ -584,6 +610,10 @@ pub(crate) mod tests {
                 "{bad}"
             );
         }
+        // Negative and zero masses load (issue 17: over-balanced arms); only the magnitude is
+        // bounded.
+        let signed = good.replacen("0.05, 0.060000000000000005", "-0.05, 0.0", 1);
+        assert_eq!(parse(&signed).unwrap().grid.masses[..2], [-0.05, 0.0]);
         // Item 7 of issue 7: a grid with g = 1e308 loaded.
         assert!(matches!(
             problem(&good.replace("g = 9.81", "g = 1e308")),
@@ -769,13 +799,21 @@ pub(crate) mod tests {
                 rest_point_mm: Some([longest; 3]),
                 duration_s: Some(longest),
                 left_out_vertices: Some(vec![[i32::MIN; 3]; n]),
+                unreachable_vertices: Some(vec![[i32::MIN; 3]; n]),
+                load_n: Some([longest; 3]),
+                friction_n: Some([longest; 3]),
+                inertia_kg: Some([longest; 3]),
+                noise_mm: Some(longest),
+                stiffness_n_per_mm: Some([longest; 3]),
             });
             file.vertices = VertexRecords {
                 force_vectors: vec![[longest; 3]; n],
                 iterations: vec![u32::MAX; n],
                 final_error_mm: vec![longest; n],
+                friction_n: vec![[longest; 3]; n],
             };
-            // Kept and left-out vertices counted together: here as many of each.
+            // Kept and left-out (or unreachable) vertices counted together: here as many of
+            // each.
             let size = file.to_toml_string().len() as u64;
             let bound = GridFile::size_bound(2 * n, spec.len());
             assert!(size <= bound, "{dims:?}: {size} > {bound}");

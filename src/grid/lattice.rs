@@ -167,8 +167,9 @@ impl MassGrid {
             });
         }
         for (vertex, &value) in self.masses.iter().enumerate() {
-            // A magnitude, then the sign: apparent masses are positive today.
-            if !(value.is_finite() && value.abs() <= MAX_MASS_KG && value > 0.0) {
+            // Any sign: an over-balanced linkage has a negative apparent mass, and one balanced
+            // at a vertex a zero one (docs/grid-format.md §3 #11).
+            if !(value.is_finite() && value.abs() <= MAX_MASS_KG) {
                 return Err(Problem::Mass { vertex, value });
             }
         }
@@ -286,7 +287,14 @@ pub(super) mod tests {
         let mut g = sample();
         g.origin.y = -1e9;
         assert!(out_of_range("origin", -1e9)(g.check().unwrap_err()));
-        for bad in [1e300, f64::INFINITY, f64::NAN, -0.05, 0.0] {
+        for bad in [
+            1e300,
+            -1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            -100.001,
+        ] {
             let mut g = sample();
             g.masses[4] = bad;
             assert!(
@@ -294,11 +302,18 @@ pub(super) mod tests {
                 "{bad}"
             );
         }
-        // Today's rule for the sign stays: any positive mass up to the magnitude bound passes,
-        // however small.
+        // The sign rule changed deliberately (issue 17): an over-balanced arm has a negative
+        // apparent mass (the PHANToM 1.5 about −8 g at home), and one balanced at a vertex a zero
+        // one. Any finite mass up to the magnitude bound passes, of either sign.
         let mut g = sample();
-        g.masses[4] = 1e-9;
+        g.masses[3] = -0.008;
+        g.masses[4] = 0.0;
         g.masses[5] = MAX_MASS_KG;
+        g.masses[6] = -MAX_MASS_KG;
+        g.masses[7] = -1e-9;
         assert_eq!(g.check(), Ok(()));
+        // It interpolates like any other: the force points along −v_G where M < 0.
+        let x = g.vertex_position(0, 1, 0);
+        assert!((g.gravity_force(&x) - Vector3::new(0.0, 0.0, -0.008 * 9.81)).norm() < 1e-12);
     }
 }

@@ -128,7 +128,7 @@ pub enum Problem {
         need: u64,
     },
     #[error(
-        "mass at vertex {vertex} must be a positive number of kg up to {MAX_MASS_KG:?}, got {value:?}"
+        "mass at vertex {vertex} must be a finite number of kg, at most {MAX_MASS_KG:?} in magnitude, got {value:?}"
     )]
     Mass { vertex: usize, value: f64 },
     #[error("`[vertices] {key}` has {len} entries but the grid has {need} vertices")]
@@ -151,4 +151,13 @@ pub enum Problem {
          {value:?}"
     )]
     FinalError { vertex: usize, value: f64 },
+    #[error(
+        "`[vertices] friction_n` at vertex {vertex} is {value:?} N, expected finite components \
+         from 0 to {max:?} N"
+    )]
+    Friction {
+        vertex: usize,
+        value: [f64; 3],
+        max: f64,
+    },
 }

@@ -1,5 +1,6 @@
 //! The calibration controller: a state machine with one method per phase, which `tick` only
-//! dispatches to. Start → Init → (Move → Hold) per vertex → Finished, or Failed from any phase.
+//! dispatches to. Start → Catch → InitBand (x, y, z) → (Recentre → Pulse) per axis → Recentre →
+//! (Move → Settle ⇄ Band / Push) per vertex → Finished, or Failed from any phase.
 //!
 //! Like every [`Controller`], it runs on the servo thread: it must not allocate, lock, block or
 //! log, so progress leaves through a bounded channel with `try_send`.
@@ -7,30 +8,41 @@
 use crossbeam_channel::Sender;
 use nalgebra::Vector3;
 
-use super::outcome::{CalibrationFailure, CalibrationResult, VertexResult};
+use super::outcome::{
+    fill_from_neighbours, principal_direction, CalibrationFailure, CalibrationResult,
+    InitialMeasurement, VertexResult,
+};
 use super::plan::{GridPlan, PlanError, Vertex};
-use super::steady::SteadyState;
+use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step};
+use super::steady::{NoiseMeter, SteadyState};
 use super::CalibrationParams;
-use crate::control::pd::PointHold;
+use crate::control::pd::{AxisGains, PointHold};
 use crate::control::{ControlOutput, Controller, DeviceState};
+use crate::estimate::Foaw;
 
 /// Progress, sent with `try_send` from the servo thread.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum CalibrationEvent {
     InitStarted,
+    /// What the initialisation measured at X_C: the load's direction and |load| / g, the
+    /// friction (stick band half-widths) and the moving mass along x, y, z.
     InitDone {
         gravity_direction: Vector3<f64>,
         initial_mass: f64,
+        friction: Vector3<f64>,
+        inertia: Vector3<f64>,
     },
     VertexStarted {
         vertex: usize,
         of: usize,
         at: Vertex,
     },
+    /// The force estimate at a vertex changed: after a rest off the vertex, or a round of band
+    /// measurements. `error` is the distance of that rest from the vertex, m.
     Iteration {
         vertex: usize,
         iteration: u32,
-        mass: f64,
+        force: Vector3<f64>,
         error: f64,
     },
     /// No steady state came at a hold: the gains were scaled by `scale`.
@@ -38,23 +50,105 @@ pub enum CalibrationEvent {
         vertex: usize,
         scale: f64,
     },
+    /// `mass` is the force along the load direction found at X_C, over g (the final v_G comes
+    /// from every vertex's force).
     VertexDone {
         vertex: usize,
         of: usize,
         mass: f64,
+        force: Vector3<f64>,
         iterations: u32,
+    },
+    /// The handle did not yield to a push toward the vertex: it stays `distance` m away.
+    VertexUnreachable {
+        vertex: usize,
+        of: usize,
+        at: Vertex,
+        distance: f64,
     },
     Finished,
     Failed(CalibrationFailure),
 }
 
-/// The initial steady state must sag more than this many ε_init below X_C (else something still
-/// holds the handle): 0.3 mm, the sag of 15 g, with the paper's defaults.
-const MIN_SAG: f64 = 3.0;
+/// Smallest displacement of the smoothed position that counts as a slip, m (on top of three
+/// standard deviations of the measured position noise).
+const MIN_SLIP: f64 = 5e-6;
+/// … and at least this many encoder steps.
+const SLIP_STEPS: f64 = 1.25;
+/// Hold offset the friction band may span at most, m, or this many encoder steps if more: the
+/// hold stiffens until it does (within the bandwidth bound below), but not so far that one step
+/// of the reading is a large force.
+const FRICTION_OFFSET: f64 = 2e-4;
+const FRICTION_OFFSET_STEPS: f64 = 10.0;
+/// Largest natural frequency of the hold, in radians per report period.
+const MAX_OMEGA_PERIODS: f64 = 0.25;
+/// Share of `safety.max_force_n` calibration pushes with, beyond the forces it holds.
+const PUSH_SHARE: f64 = 0.25;
+/// The moving-mass pulse: distance timed, m; time limit, s; least force beyond the band, N.
+const PULSE_DISTANCE: f64 = 5e-4;
+const PULSE_TIMEOUT: f64 = 0.5;
+const PULSE_MIN_EXCESS: f64 = 0.05;
+const PULSE_LOAD_SHARE: f64 = 0.1;
+/// A ramp of added force starts slow enough to cross the measured band in this time, s …
+const CROSSING_TIME: f64 = 0.15;
+/// … and to move a frictionless handle by a slip in this time, s …
+const DETECT_TIME: f64 = 0.03;
+/// … and its rate grows by e every this many seconds (init: the band is still unknown).
+const RAMP_GROWTH: f64 = 0.3;
+/// At X_C the ramp is steady at least at this rate, N/s, over this much force, N.
+const INIT_RAMP_RATE: f64 = 0.1;
+const INIT_RAMP_STEADY: f64 = 0.5;
+const INIT_RAMP_GROWTH: f64 = 0.15;
+/// An axis counts as frictionless when its band at X_C is no wider than a frictionless handle's
+/// seems, and as dominated by friction (its hold at rest then needs no velocity feedback) when
+/// it is more than twice as wide, plus this much, N.
+const DOMINANT_FLOOR: f64 = 0.005;
+const DOMINANT_BANDS: f64 = 1.5;
+
+/// What the stick band at X_C says about the friction along an axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Friction {
+    /// No wider than a frictionless handle's seems: there the force the hold applies at rest is
+    /// the load, and no band is measured at vertices.
+    None,
+    /// Wider: bands are measured with the hold's velocity feedback on, and checked.
+    Slight,
+    /// More than twice as wide: it dissipates more than the velocity feedback would, so the
+    /// hold measures bands without it (its noise would shake the stuck handle).
+    Dominant,
+}
+/// The reach tolerance: this many friction-band offsets, plus three noise standard deviations,
+/// plus this margin, m.
+const REACH_BANDS: f64 = 2.5;
+const REACH_MARGIN: f64 = 2e-5;
+/// Rounds of band measurements at one vertex, at least and at most; once a round changes the
+/// force by less than this share of the band plus this much, the vertex ends (N).
+const MIN_ROUNDS: u32 = 2;
+const MAX_ROUNDS: u32 = 3;
+/// The three constraint normals must span at least this volume (1 for orthogonal ones).
+const MIN_CONSTRAINT_VOLUME: f64 = 0.3;
+/// Another round is measured where the handle is if it is within this many reach tolerances of
+/// the vertex; further off, it settles again first.
+const ROUND_REACH: f64 = 4.0;
+const ROUND_SHARE: f64 = 0.1;
+const FORCE_TOLERANCE: f64 = 1e-3;
+/// Window means at a vertex rest agree within this many standard deviations of their noise,
+/// and at least this much, m.
+const CREEP_SIGMAS: f64 = 4.0;
+const MIN_CREEP: f64 = 1e-6;
+/// Settle time after a change, in radians of the slowest axis (7/ω ≈ two rise times at ζ = 1).
+const SETTLE_RADIANS: f64 = 7.0;
+/// An update that leaves the handle further than this share of its previous offset did not
+/// help: push toward the vertex.
+const PROGRESS: f64 = 0.8;
 
 /// How long a hold may go without a steady state (after the settle time) before the gains are
 /// halved, s.
 const GAIN_BACKOFF_AFTER: f64 = 1.0;
+
+/// A handle whose velocity keeps a root mean square above this at a steady state of the initial
+/// field chatters (m/s): its damping is too strong for it.
+const CHATTER_SPEED: f64 = 2e-3;
 
 /// The gains are halved at most three times (1, ½, ¼, ⅛).
 const MIN_GAIN_SCALE: f64 = 0.2;
@@ -80,12 +174,16 @@ struct Glide {
 impl Glide {
     /// Progress τ at time `t`; 1 or more once arrived.
     fn progress(&self, t: f64) -> f64 {
-        (t - self.start) / self.duration
+        if self.duration > 0.0 {
+            (t - self.start) / self.duration
+        } else {
+            1.0
+        }
     }
 
-    /// The point at progress `tau`.
-    fn at(&self, tau: f64) -> Vector3<f64> {
-        self.from + (self.to - self.from) * minimum_jerk(tau)
+    /// The point at time `t`.
+    fn at(&self, t: f64) -> Vector3<f64> {
+        self.from + (self.to - self.from) * minimum_jerk(self.progress(t))
     }
 }
 
@@ -93,14 +191,43 @@ impl Glide {
 enum Phase {
     /// Before the first tick.
     Start,
-    /// The initial field holds the handle; its centre glides from the start position to X_C
+    /// The initial field catches the handle; its centre glides from the start position to X_C
     /// (`duration` 0: no glide, the handle starts inside the grid's box).
-    Init(Glide),
+    Catch(Glide),
+    /// The stick band along one axis at X_C, under the initial field.
+    InitBand(BandProbe),
+    /// The initial field, now with the measured load as its gravity term, brings the handle back
+    /// to X_C; then the moving-mass pulse along `axis` (3: the initialisation is over) with
+    /// `excess` N beyond the band.
+    Recentre {
+        axis: usize,
+        excess: f64,
+        since: f64,
+    },
+    Pulse(Pulse),
     /// The PD's set point glides to the current vertex.
     Move(Glide),
-    /// The PD holds the current vertex; samples count from `since_change` plus the settle time.
-    Hold {
-        since_change: f64,
+    /// The PD holds the current vertex; samples count from `since` plus the settle time.
+    Settle {
+        since: f64,
+    },
+    /// The stick band along one axis at the current vertex; `round_start` is the force
+    /// estimate when this round of three axes began; the hold's set point is `anchor`, where
+    /// the handle rested when this axis began, so that the force on the other axes is the
+    /// estimate itself.
+    Band {
+        probe: BandProbe,
+        round_start: Vector3<f64>,
+        anchor: Vector3<f64>,
+    },
+    /// A growing push toward the vertex: friction yields to it, an obstacle does not.
+    Push(Push),
+    /// The last check at a vertex: the hold, centred where the handle rests, applies the band's
+    /// middle. A frictional handle stays; a frictionless one (whose "band" is only the slip
+    /// detection's dynamics) moves to where the force it then gets is its load.
+    Check {
+        anchor: Vector3<f64>,
+        since: f64,
     },
     Finished,
     Failed(CalibrationFailure),
@@ -120,37 +247,69 @@ pub struct Calibration {
     end_time: f64,
 
     // What the initialisation found.
-    /// Unit v_G (Eq. 7).
-    gravity_direction: Vector3<f64>,
-    /// M̂_0 (Eq. 8), kg.
-    initial_mass: f64,
     /// Centre X_C of the initial field, m.
     rest_point: Vector3<f64>,
-    /// X(∞), m.
-    initial_steady_state: Vector3<f64>,
-    /// Sag at the last initial steady state, m.
-    init_sag: Option<f64>,
+    /// Gravity term of the initial field: zero while catching, the load once measured, N.
+    catch_force: Vector3<f64>,
+    /// Back-off factor on the initial field's damping, and when it last changed, s.
+    field_scale: f64,
+    field_since: f64,
+    /// Mean square of the velocity lately while the initial field holds the handle, m²/s².
+    speed_square: f64,
+    initial: InitialMeasurement,
+    /// Displacement of the smoothed position that counts as a slip, m, and how far a single
+    /// reading may lie from where the handle stuck before it counts as moving, m.
+    slip: f64,
+    still: f64,
+    /// The position noise, measured at the initialisation's rests, m.
+    noise: NoiseMeter,
+    /// The velocity estimate every force here uses: the servo loop's filter, its noise bound
+    /// raised to the encoder step once that is measured (a single step would otherwise read as
+    /// a burst of speed, and the damping would kick a resting handle with it).
+    filter: Foaw,
+    /// Its noise bound, m.
+    filter_bound: f64,
+    /// The hold's gains and the settle time they need, s.
+    gains: AxisGains,
+    settle_time: f64,
 
     // The estimates, carried from vertex to vertex (Eqs. 12, 14).
-    /// M_j(X_i): the mass in the gravity term.
-    mass: f64,
-    /// The mass the PD gains are built on: the newest estimate (M̂(X_{i−1}) while moving, Eq. 14).
-    gain_mass: f64,
+    /// F̂: the force estimate the hold applies as its gravity term, N.
+    estimate: Vector3<f64>,
+    /// The force of the last vertex reached (the load at X_C before the first), N.
+    last_good: Vector3<f64>,
     /// Back-off factor on the gains (1, ½, ¼, ⅛) when a hold finds no steady state.
     gain_scale: f64,
+    /// The friction along each axis, as the initialisation found it. Along axes it dominates,
+    /// the hold at rest needs no velocity feedback and pulls on the smoothed position.
+    friction_kind: [Friction; 3],
+    smoother: Smoother,
+    smoothed: Vector3<f64>,
 
     // The vertex in progress.
     /// Current vertex (index into the plan's path).
     vertex: usize,
     vertex_start: f64,
-    /// Mass updates made at this vertex.
+    /// Updates of the force estimate at this vertex, and rounds of band measurements.
     iteration: u32,
-    /// Whether the previous steady state at this vertex was within ε_M of it along v_G.
-    previous_near: bool,
-    /// Offset from the vertex along v_G at the previous steady state, m.
-    previous_error: f64,
+    rounds: u32,
+    /// Distance from the vertex of the previous rest off it, m.
+    previous_offset: Option<f64>,
+    /// Rests near the vertex so far.
+    near_rests: u32,
+    /// The force at the first rest near the vertex (the paper's one-sided measurement), N.
+    one_sided: Option<Vector3<f64>>,
+    /// The rest the band is measured at, m, and the band's half-widths, N.
+    rest: Vector3<f64>,
+    band_friction: Vector3<f64>,
+    /// The force the previous round found, when this round followed it directly.
+    /// The forces the rounds before this one found, summed, and how many, when this round
+    /// followed them directly.
+    earlier_rounds: (Vector3<f64>, u32),
+    /// The round's constraints on the holding force, one per axis ([`Band::constraint`]).
+    constraints: [(Vector3<f64>, f64); 3],
 
-    /// Per vertex of the path, once done.
+    /// Per vertex of the path, once done (reached or not).
     results: Vec<Option<VertexResult>>,
 }
 
@@ -161,6 +320,15 @@ impl Calibration {
     ) -> Result<Self, PlanError> {
         let plan = GridPlan::new(&params)?;
         let count = plan.path.len();
+        let n_init = params.n_init;
+        let filter_bound = params.noise_bound;
+        let filter = Foaw::new(
+            params.foaw_variant,
+            params.noise_bound,
+            params.max_window,
+            params.period,
+        )
+        .map_err(PlanError::Filter)?;
         Ok(Self {
             detector: SteadyState::new(params.n_init, params.eps_init),
             params,
@@ -169,19 +337,46 @@ impl Calibration {
             phase: Phase::Start,
             start_time: 0.0,
             end_time: 0.0,
-            gravity_direction: Vector3::z(),
-            initial_mass: 0.0,
             rest_point: Vector3::zeros(),
-            initial_steady_state: Vector3::zeros(),
-            init_sag: None,
-            mass: 0.0,
-            gain_mass: 0.0,
+            catch_force: Vector3::zeros(),
+            field_scale: 1.0,
+            field_since: 0.0,
+            speed_square: 0.0,
+            initial: InitialMeasurement {
+                load: Vector3::zeros(),
+                friction: Vector3::zeros(),
+                inertia: Vector3::zeros(),
+                noise: 0.0,
+                step: 0.0,
+                stiffness: Vector3::zeros(),
+            },
+            slip: MIN_SLIP,
+            still: 0.0,
+            noise: NoiseMeter::new(n_init),
+            filter_bound,
+            filter,
+            gains: AxisGains {
+                stiffness: Vector3::zeros(),
+                damping: Vector3::zeros(),
+            },
+            settle_time: 0.0,
+            estimate: Vector3::zeros(),
+            last_good: Vector3::zeros(),
             gain_scale: 1.0,
+            friction_kind: [Friction::None; 3],
+            smoother: Smoother::new(),
+            smoothed: Vector3::zeros(),
             vertex: 0,
             vertex_start: 0.0,
             iteration: 0,
-            previous_near: false,
-            previous_error: f64::INFINITY,
+            rounds: 0,
+            previous_offset: None,
+            near_rests: 0,
+            one_sided: None,
+            rest: Vector3::zeros(),
+            band_friction: Vector3::zeros(),
+            constraints: [(Vector3::zeros(), 0.0); 3],
+            earlier_rounds: (Vector3::zeros(), 0),
             results: vec![None; count],
         })
     }
@@ -191,46 +386,77 @@ impl Calibration {
         &self.plan
     }
 
-    /// After a successful run: the hold at the last vertex (its PD and its measured gravity
-    /// term), to keep the handle up until the new grid is in use.
+    /// After a successful run: the hold at the last vertex reached (its gains and the force it
+    /// measured there), to keep the handle up until the new grid is in use.
     pub fn final_hold(&self) -> Option<PointHold> {
         if !matches!(self.phase, Phase::Finished) {
             return None;
         }
-        let last = self.results.last().copied().flatten()?;
+        let last = self.results.iter().rev().flatten().find(|r| r.reached)?;
         Some(PointHold {
             set_point: last.vertex.position,
-            mass: last.mass,
-            gravity_direction: self.gravity_direction,
-            g: self.params.g,
-            gains: self.params.gains,
+            force: last.force,
+            gains: self.gains,
         })
     }
 
     /// The result once finished, the failure if it failed, None while running (or if aborted).
+    /// Works out v_G and fills unreachable vertices, so call it off the servo thread.
     pub fn outcome(&self) -> Option<Result<CalibrationResult, CalibrationFailure>> {
         match self.phase {
             Phase::Failed(f) => Some(Err(f)),
-            Phase::Finished => {
-                let mut ordered = vec![None; self.results.len()];
-                for (k, r) in self.results.iter().enumerate() {
-                    ordered[self.plan.grid_index[k]] = *r;
-                }
-                let vertices = ordered.into_iter().collect::<Option<Vec<VertexResult>>>()?;
-                Some(Ok(CalibrationResult {
-                    gravity_direction: self.gravity_direction,
-                    initial_mass: self.initial_mass,
-                    rest_point: self.rest_point,
-                    initial_steady_state: self.initial_steady_state,
-                    vertices,
-                    origin: self.plan.origin,
-                    dims: self.plan.dims,
-                    left_out: self.plan.left_out.clone(),
-                    duration: self.end_time - self.start_time,
-                }))
-            }
+            Phase::Finished => Some(Ok(self.result()?)),
             _ => None,
         }
+    }
+
+    fn result(&self) -> Option<CalibrationResult> {
+        let mut ordered = vec![None; self.results.len()];
+        for (k, r) in self.results.iter().enumerate() {
+            ordered[self.plan.grid_index[k]] = *r;
+        }
+        let mut vertices = ordered.into_iter().collect::<Option<Vec<VertexResult>>>()?;
+        let known: Vec<bool> = vertices.iter().map(|v| v.reached).collect();
+        let g = self.params.g;
+        let load = self.initial.load;
+        let gravity_direction =
+            principal_direction(vertices.iter().filter(|v| v.reached).map(|v| v.force))
+                .or_else(|| (load.norm() > 0.0).then(|| load.normalize()))
+                .unwrap_or_else(Vector3::z);
+        let mut forces: Vec<Vector3<f64>> = vertices.iter().map(|v| v.force).collect();
+        let mut one_sided: Vec<Vector3<f64>> = vertices.iter().map(|v| v.one_sided_force).collect();
+        let mut friction: Vec<Vector3<f64>> = vertices.iter().map(|v| v.friction).collect();
+        fill_from_neighbours(self.plan.dims, &mut forces, &known);
+        fill_from_neighbours(self.plan.dims, &mut one_sided, &known);
+        fill_from_neighbours(self.plan.dims, &mut friction, &known);
+        for (n, v) in vertices.iter_mut().enumerate() {
+            v.force = forces[n];
+            v.one_sided_force = one_sided[n];
+            v.friction = friction[n];
+            v.mass = v.force.dot(&gravity_direction) / g;
+        }
+        let unreachable = vertices
+            .iter()
+            .filter(|v| !v.reached)
+            .map(|v| v.vertex)
+            .collect();
+        Some(CalibrationResult {
+            gravity_direction,
+            initial_mass: load.norm() / g,
+            rest_point: self.rest_point,
+            initial: self.initial,
+            vertices,
+            origin: self.plan.origin,
+            dims: self.plan.dims,
+            left_out: self.plan.left_out.clone(),
+            unreachable,
+            duration: self.end_time - self.start_time,
+        })
+    }
+
+    /// The most calibration pushes beyond the forces it holds, N.
+    fn push_limit(&self) -> f64 {
+        PUSH_SHARE * self.params.max_force
     }
 
     /// First tick. X_C is where the handle rests (on hardware the user has brought it near the
@@ -241,87 +467,322 @@ impl Calibration {
         self.start_time = t;
         let (lo, hi) = (self.plan.origin, self.plan.far_corner());
         let inside = (0..3).all(|a| s.position[a] >= lo[a] && s.position[a] <= hi[a]);
-        let field = if inside {
-            Glide {
-                from: s.position,
-                to: s.position,
-                start: t,
-                duration: 0.0,
-            }
+        let to = if inside {
+            s.position
         } else {
-            let centre = self.params.centre;
-            let cells = (centre - s.position).norm() / self.params.spacing;
-            Glide {
-                from: s.position,
-                to: centre,
-                start: t,
-                duration: self.params.move_time * cells.max(1.0),
-            }
+            self.params.centre
         };
-        self.rest_point = field.to;
-        self.phase = Phase::Init(field);
+        let cells = (to - s.position).norm() / self.params.spacing;
+        let field = Glide {
+            from: s.position,
+            to,
+            start: t,
+            duration: if inside {
+                0.0
+            } else {
+                self.params.move_time * cells.max(1.0)
+            },
+        };
+        self.rest_point = to;
+        self.phase = Phase::Catch(field);
         self.emit(CalibrationEvent::InitStarted);
         ControlOutput::force(Vector3::zeros())
     }
 
-    /// Initialisation (§3.1): the elastic field k_init (X_C − X), plus damping beyond the paper
-    /// (an undamped spring never lets a frictionless handle settle), until a steady state X(∞)
-    /// that sags from X_C. A steady state without sag means something still holds the handle (a
-    /// hand): keep waiting for it to be released. Samples count only once the glide is over.
-    fn initialise(&mut self, s: &DeviceState, field: Glide) -> ControlOutput {
+    /// The initial field centred on `centre`: k_init (X_C − X) − c V̂ plus its gravity term.
+    fn field_force(&self, centre: &Vector3<f64>, s: &DeviceState) -> Vector3<f64> {
+        (centre - s.position) * self.params.k_init
+            - s.velocity * (self.params.init_damping * self.field_scale)
+            + self.catch_force
+    }
+
+    /// The initial field has waited for rest since `since`: after a second without one, halve
+    /// its damping (at most three times). Damping strong for a light handle (c T / m near 1)
+    /// makes it chatter through the velocity filter's lag, and it never comes to rest.
+    fn field_back_off(&mut self, s: &DeviceState, since: f64) -> bool {
+        let weight = 1.0 / self.params.n_init as f64;
+        self.speed_square += (s.velocity.norm_squared() - self.speed_square) * weight;
+        if s.time - since > GAIN_BACKOFF_AFTER && self.field_scale > MIN_GAIN_SCALE {
+            self.field_scale *= 0.5;
+            self.detector.reset();
+            self.field_since = s.time;
+            return true;
+        }
+        false
+    }
+
+    /// A steady state of the initial field, unless the handle chatters about it (small and fast
+    /// enough to average out of the windows, but not of the velocity): then the damping is
+    /// halved and the wait goes on.
+    fn field_steady(&mut self, s: &DeviceState) -> Option<Vector3<f64>> {
+        let steady = self.detector.push(&s.position)?;
+        // An encoder step larger than the velocity filter's noise bound reads as a burst of
+        // speed: raise the bound to the step and look again.
+        let step = self.noise.step();
+        if step > self.filter_bound {
+            if let Ok(filter) = Foaw::new(
+                self.params.foaw_variant,
+                step,
+                self.params.max_window,
+                self.params.period,
+            ) {
+                self.filter = filter;
+                self.filter_bound = step;
+                self.speed_square = 0.0;
+                self.detector.reset();
+                return None;
+            }
+        }
+        if self.speed_square.sqrt() > CHATTER_SPEED && self.field_scale > MIN_GAIN_SCALE {
+            self.field_scale *= 0.5;
+            self.detector.reset();
+            self.field_since = s.time;
+            return None;
+        }
+        Some(steady)
+    }
+
+    /// Initialisation, catch (§3.1): the elastic field k_init (X_C − X) plus damping (an
+    /// undamped spring never lets a frictionless handle settle) until the handle is at rest.
+    /// Unlike the paper, no sag is needed: the load is measured next by pushing. Samples count
+    /// only once the glide is over.
+    fn catch(&mut self, s: &DeviceState, field: Glide) -> ControlOutput {
         let t = s.time;
         if t - field.start > self.params.vertex_timeout + field.duration {
-            return self.fail(self.init_failure());
+            return self.fail(CalibrationFailure::InitTimeout {
+                timeout: self.params.vertex_timeout,
+            });
         }
-        let centre = if field.duration > 0.0 {
-            field.at(field.progress(t))
-        } else {
-            field.to
-        };
-        let force =
-            (centre - s.position) * self.params.k_init - s.velocity * self.params.init_damping;
-        if t - field.start < field.duration {
+        let force = self.field_force(&field.at(t), s);
+        if field.progress(t) < 1.0 {
             return ControlOutput::force(force);
         }
-        if let Some(steady) = self.detector.push(&s.position) {
-            let sag = field.to - steady;
-            self.init_sag = Some(sag.norm());
-            if sag.norm() > MIN_SAG * self.params.eps_init {
-                self.found_gravity(steady, sag);
-                self.vertex = 0;
-                self.start_move(s.position, t);
-                return ControlOutput::force(self.pd_force(&s.position, s));
-            }
-            self.detector.reset();
+        self.noise.push(&s.position);
+        let since = self.field_since.max(field.start + field.duration);
+        self.field_back_off(s, since);
+        if self.field_steady(s).is_some() {
+            self.initial.noise = self.noise.sigma();
+            self.initial.step = self.noise.step();
+            // A slip is a move beyond the noise and beyond an encoder step (a reading flickering
+            // between two steps is no move); a reading within half a step and two standard
+            // deviations of where the handle stuck has not moved yet.
+            self.slip = (MIN_SLIP + 3.0 * self.initial.noise).max(SLIP_STEPS * self.initial.step);
+            self.still = 0.5 * self.initial.step + 2.0 * self.initial.noise;
+            self.phase = Phase::InitBand(BandProbe::new(
+                0,
+                self.init_ramp(),
+                self.slip,
+                self.still,
+                t,
+            ));
         }
         ControlOutput::force(force)
     }
 
-    /// Why the initialisation gave up: it found a steady state that did not sag, or none at all.
-    fn init_failure(&self) -> CalibrationFailure {
-        match self.init_sag {
-            Some(sag) => CalibrationFailure::NoSag {
-                sag_mm: sag * 1e3,
-                min_mass_g: self.params.k_init * (MIN_SAG * self.params.eps_init) / self.params.g
-                    * 1e3,
-            },
-            None => CalibrationFailure::InitTimeout {
-                timeout: self.params.vertex_timeout,
-            },
+    /// Initialisation, load and friction: the stick band along each axis under the initial
+    /// field. Its middle is the load at X_C, its half-width the friction. A handle that does
+    /// not move under the ramp's whole push is held (by a hand, say): catch it again and
+    /// measure again, until the initialisation's time is up.
+    fn init_band(&mut self, s: &DeviceState, mut probe: BandProbe) -> ControlOutput {
+        let t = s.time;
+        let a = probe.axis();
+        let force = self.field_force(&self.rest_point, s) + axis(a) * probe.offset(t);
+        match probe.observe(s, &self.smoothed, &force) {
+            Step::Running => self.phase = Phase::InitBand(probe),
+            Step::Done(band) => {
+                self.initial.load[a] = band.middle();
+                self.initial.friction[a] = band.half_width();
+                self.phase = if a < 2 {
+                    Phase::InitBand(BandProbe::new(
+                        a + 1,
+                        self.init_ramp(),
+                        self.slip,
+                        self.still,
+                        t,
+                    ))
+                } else {
+                    self.catch_force = self.initial.load;
+                    self.detector = SteadyState::new(self.params.n_init, self.params.eps_init);
+                    Phase::Recentre {
+                        axis: 0,
+                        excess: self.pulse_excess(0),
+                        since: t,
+                    }
+                };
+            }
+            Step::Blocked { .. } => return self.held(t, a, self.push_limit()),
+        }
+        ControlOutput::force(force)
+    }
+
+    /// The ramp of a band measurement at X_C, where the band is not known yet: from the rate
+    /// that moves a frictionless handle by a slip in `DETECT_TIME` against the initial field,
+    /// growing at once.
+    fn init_ramp(&self) -> Ramp {
+        Ramp {
+            rate: self.init_ramp_rate(),
+            steady: INIT_RAMP_STEADY,
+            growth: INIT_RAMP_GROWTH,
+            limit: self.push_limit(),
         }
     }
 
-    /// Eqs. 7–9 from the initial steady state X(∞) and its sag X_C − X(∞): v_G along the sag,
-    /// M̂_0 = k_init ‖sag‖ / g, and the first gains built on M̂_0.
-    fn found_gravity(&mut self, steady: Vector3<f64>, sag: Vector3<f64>) {
-        self.gravity_direction = sag / sag.norm(); // Eq. 7
-        self.initial_mass = self.params.k_init * sag.norm() / self.params.g; // Eq. 8
-        self.initial_steady_state = steady;
-        self.mass = self.initial_mass;
-        self.gain_mass = self.initial_mass; // Eq. 9
+    fn init_ramp_rate(&self) -> f64 {
+        (self.params.k_init * self.slip / DETECT_TIME).max(INIT_RAMP_RATE)
+    }
+
+    /// The half-width a frictionless handle of moving mass `m` seems to have at X_C: the
+    /// initial field's force over a slip, plus what the ramp adds while m accelerates over a
+    /// slip (x = r t³ / 6m).
+    fn apparent_band(&self, m: f64) -> f64 {
+        let rate = self.init_ramp_rate();
+        self.params.k_init * self.slip + rate.powf(2.0 / 3.0) * (6.0 * m * self.slip).cbrt()
+    }
+
+    /// The handle did not move under `push` N along `axis`: wait for it to be let go, catching
+    /// it again, or give up once the initialisation's time is up.
+    fn held(&mut self, t: f64, axis: usize, push: f64) -> ControlOutput {
+        if t - self.start_time > self.params.vertex_timeout {
+            return self.fail(CalibrationFailure::Held {
+                axis: ['x', 'y', 'z'][axis],
+                push_n: push,
+            });
+        }
+        self.catch_force = Vector3::zeros();
+        self.detector = SteadyState::new(self.params.n_init, self.params.eps_init);
+        self.phase = Phase::Catch(Glide {
+            from: self.rest_point,
+            to: self.rest_point,
+            start: t,
+            duration: 0.0,
+        });
+        ControlOutput::force(Vector3::zeros())
+    }
+
+    /// The least push beyond the band that times the moving mass well: the friction, a tenth of
+    /// the load (the load changes over the pulse wherever the apparent mass varies), or
+    /// `PULSE_MIN_EXCESS`.
+    fn pulse_excess(&self, a: usize) -> f64 {
+        self.initial.friction[a]
+            .max(PULSE_LOAD_SHARE * self.initial.load.norm())
+            .max(PULSE_MIN_EXCESS)
+    }
+
+    /// Initialisation: the initial field, with the measured load as its gravity term, brings the
+    /// handle back to X_C and lets it settle; then the next pulse, or the first vertex.
+    fn recentre(&mut self, s: &DeviceState, a: usize, excess: f64, since: f64) -> ControlOutput {
+        let t = s.time;
+        if t - since > self.params.vertex_timeout {
+            return self.fail(CalibrationFailure::InitTimeout {
+                timeout: self.params.vertex_timeout,
+            });
+        }
+        let force = self.field_force(&self.rest_point, s);
+        self.noise.push(&s.position);
+        self.field_back_off(s, since.max(self.field_since));
+        let Some(steady) = self.field_steady(s) else {
+            return ControlOutput::force(force);
+        };
+        self.initial.noise = self.initial.noise.min(self.noise.sigma());
+        if a == 3 {
+            self.initialised();
+            self.vertex = 0;
+            self.start_move(steady, t);
+            return ControlOutput::force(force);
+        }
+        self.phase = Phase::Pulse(Pulse::new(
+            a,
+            excess,
+            PULSE_DISTANCE,
+            PULSE_TIMEOUT,
+            &steady,
+            t,
+        ));
+        ControlOutput::force(self.pulse_force(a, excess))
+    }
+
+    /// The load plus the friction plus `excess` along +axis `a`, and no spring.
+    fn pulse_force(&self, a: usize, excess: f64) -> Vector3<f64> {
+        self.initial.load + axis(a) * (self.initial.friction[a] + excess)
+    }
+
+    /// Initialisation, moving mass: the pulse along one axis, then back to X_C. A pulse that did
+    /// not move the handle in time is repeated twice as strong, up to the push limit.
+    fn pulse(&mut self, s: &DeviceState, mut pulse: Pulse) -> ControlOutput {
+        let t = s.time;
+        let a = pulse.axis;
+        let (next_axis, excess) = match pulse.observe(s) {
+            Step::Running => {
+                self.phase = Phase::Pulse(pulse);
+                return ControlOutput::force(self.pulse_force(a, pulse.excess));
+            }
+            Step::Done(mass) => {
+                self.initial.inertia[a] = mass;
+                (a + 1, self.pulse_excess((a + 1).min(2)))
+            }
+            Step::Blocked { .. } => {
+                let excess = 2.0 * pulse.excess;
+                if excess > self.push_limit() {
+                    return self.held(t, a, self.initial.friction[a] + pulse.excess);
+                }
+                (a, excess)
+            }
+        };
+        self.detector = SteadyState::new(self.params.n_init, self.params.eps_init);
+        self.phase = Phase::Recentre {
+            axis: next_axis,
+            excess,
+            since: t,
+        };
+        ControlOutput::force(self.field_force(&self.rest_point, s))
+    }
+
+    /// The hold's gains from what the initialisation measured, and the event that reports it.
+    fn initialised(&mut self) {
+        let (inertia, friction, load) = (
+            self.initial.inertia,
+            self.initial.friction,
+            self.initial.load,
+        );
+        self.gains = AxisGains::from_measurement(
+            &self.params.gains,
+            &inertia,
+            &friction,
+            FRICTION_OFFSET.max(FRICTION_OFFSET_STEPS * self.initial.step),
+            MAX_OMEGA_PERIODS / self.params.period,
+        );
+        self.initial.stiffness = self.gains.stiffness;
+        self.settle_time = SETTLE_RADIANS / self.gains.slowest_omega(&inertia);
+        self.friction_kind = [0, 1, 2].map(|a| {
+            let apparent = self.apparent_band(inertia[a]);
+            if friction[a] > DOMINANT_BANDS * apparent + DOMINANT_FLOOR {
+                Friction::Dominant
+            } else if friction[a] > apparent {
+                Friction::Slight
+            } else {
+                Friction::None
+            }
+        });
+        // One mechanism, one kind of friction: where it dominates along one axis, a hold at rest
+        // without velocity feedback along the others too (they share its joints).
+        if self.friction_kind.contains(&Friction::Dominant) {
+            for kind in &mut self.friction_kind {
+                if *kind == Friction::Slight {
+                    *kind = Friction::Dominant;
+                }
+            }
+        }
+        self.estimate = load;
+        self.last_good = load;
         self.emit(CalibrationEvent::InitDone {
-            gravity_direction: self.gravity_direction,
-            initial_mass: self.initial_mass,
+            gravity_direction: if load.norm() > 0.0 {
+                load.normalize()
+            } else {
+                Vector3::z()
+            },
+            initial_mass: load.norm() / self.params.g,
+            friction,
+            inertia,
         });
     }
 
@@ -337,9 +798,11 @@ impl Calibration {
         });
         self.vertex_start = t;
         self.iteration = 0;
-        self.previous_near = false;
-        self.previous_error = f64::INFINITY;
-        self.detector = SteadyState::new(self.params.n_m, self.params.eps_m);
+        self.rounds = 0;
+        self.previous_offset = None;
+        self.near_rests = 0;
+        self.one_sided = None;
+        self.detector = self.vertex_detector();
         self.emit(CalibrationEvent::VertexStarted {
             vertex: self.vertex,
             of: self.plan.path.len(),
@@ -347,39 +810,92 @@ impl Calibration {
         });
     }
 
-    /// Move (§3.2): the PD (with the gravity term of the mass so far) follows the glide to the
-    /// vertex, then holds it.
-    fn move_to_vertex(&mut self, s: &DeviceState, path: Glide) -> ControlOutput {
-        let tau = path.progress(s.time);
-        if tau >= 1.0 {
-            self.phase = Phase::Hold {
-                since_change: s.time,
-            };
-        }
-        ControlOutput::force(self.pd_force(&path.at(tau), s))
+    /// The steady-state test at vertices: n_M samples within ε_M, window means agreeing within
+    /// what the position noise allows (at most ε_M/10): the closer a hold is to rest, the
+    /// closer the force it applies is to the load.
+    fn vertex_detector(&self) -> SteadyState {
+        let n = self.params.n_m;
+        let eps = self.params.eps_m;
+        let creep = (CREEP_SIGMAS * self.initial.noise * (2.0 / n as f64).sqrt())
+            .max(MIN_CREEP)
+            .min(eps / 10.0);
+        SteadyState::with_creep(n, eps, creep)
     }
 
-    /// Hold (§3.2): the PD holds the vertex with the gravity term M_j g v_G (Eq. 10). Each steady
-    /// state after the settle time gives a mass update; a hold without a steady state backs off
-    /// its gains.
-    fn hold(&mut self, s: &DeviceState, since_change: f64) -> ControlOutput {
-        let t = s.time;
-        let vertex = self.plan.path[self.vertex];
-        if t - self.vertex_start > self.params.vertex_timeout {
-            return self.fail(CalibrationFailure::VertexTimeout {
-                vertex,
+    /// The hold toward `target`: the PD (backed off by `gain_scale`) plus the gravity term
+    /// `feedforward` (Eq. 10 with the force estimate as a vector).
+    fn hold_force(
+        &self,
+        target: &Vector3<f64>,
+        s: &DeviceState,
+        feedforward: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        self.gains
+            .scaled(self.gain_scale)
+            .pd_force(target, s, feedforward)
+    }
+
+    /// The hold at rest: like [`Self::hold_force`], without velocity feedback along axes whose
+    /// friction dissipates more than the feedback would (its noise would shake a stuck handle).
+    fn still_force(
+        &self,
+        target: &Vector3<f64>,
+        s: &DeviceState,
+        feedforward: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        let mut gains = self.gains.scaled(self.gain_scale);
+        let mut still = *s;
+        for a in 0..3 {
+            if self.friction_kind[a] == Friction::Dominant {
+                gains.damping[a] = 0.0;
+                still.position[a] = self.smoothed[a];
+            }
+        }
+        gains.pd_force(target, &still, feedforward)
+    }
+
+    /// Move (§3.2): the PD (with the force estimate so far) follows the glide to the vertex,
+    /// then holds it.
+    fn move_to_vertex(&mut self, s: &DeviceState, path: Glide) -> ControlOutput {
+        if path.progress(s.time) >= 1.0 {
+            self.settle_from(s.time);
+        }
+        ControlOutput::force(self.hold_force(&path.at(s.time), s, &self.estimate))
+    }
+
+    /// Settle from time `t`: a fresh steady-state test after the settle time.
+    fn settle_from(&mut self, t: f64) {
+        self.detector.reset();
+        self.phase = Phase::Settle { since: t };
+    }
+
+    fn vertex_timed_out(&self, t: f64) -> Option<CalibrationFailure> {
+        (t - self.vertex_start > self.params.vertex_timeout).then_some(
+            CalibrationFailure::VertexTimeout {
+                vertex: self.plan.path[self.vertex],
                 timeout: self.params.vertex_timeout,
                 iterations: self.iteration,
-            });
+            },
+        )
+    }
+
+    /// Hold (§3.2): the PD holds the vertex with the force estimate (Eq. 10). Each steady state
+    /// after the settle time is a rest to act on; a hold without a steady state backs off its
+    /// gains.
+    fn settle(&mut self, s: &DeviceState, since: f64) -> ControlOutput {
+        let t = s.time;
+        if let Some(failure) = self.vertex_timed_out(t) {
+            return self.fail(failure);
         }
-        let force = self.pd_force(&vertex.position, s);
-        if t - since_change < self.params.settle_time {
+        let vertex = self.plan.path[self.vertex];
+        let force = self.hold_force(&vertex.position, s, &self.estimate);
+        if t - since < self.settle_time / self.gain_scale.sqrt() {
             return ControlOutput::force(force);
         }
         match self.detector.push(&s.position) {
-            Some(steady) => self.update_mass(s, vertex, steady),
+            Some(rest) => self.at_rest(s, vertex, rest, force),
             None => {
-                if t - since_change > self.params.settle_time + GAIN_BACKOFF_AFTER
+                if t - since > self.settle_time + GAIN_BACKOFF_AFTER
                     && self.gain_scale > MIN_GAIN_SCALE
                 {
                     self.back_off(t);
@@ -389,89 +905,224 @@ impl Calibration {
         }
     }
 
-    /// Halve k_P and k_D (not the gravity term): gains built on a mass several times too large
-    /// make the hold oscillate through the velocity filter's lag, and no steady state comes. The
-    /// next mass update restores them.
+    /// Halve the PD's gains (not the force estimate): gains built on a mass several times too
+    /// large make the hold oscillate through the velocity filter's lag, and no steady state
+    /// comes. The next update restores them.
     fn back_off(&mut self, t: f64) {
         self.gain_scale *= 0.5;
-        self.detector.reset();
-        self.phase = Phase::Hold { since_change: t };
+        self.settle_from(t);
         self.emit(CalibrationEvent::GainsReduced {
             vertex: self.vertex,
             scale: self.gain_scale,
         });
     }
 
-    /// A steady state X̄ at `vertex` X_i: there k_P (X_i − X̄) + M_j g v_G balances the apparent
-    /// weight, so the mass is updated with the *signed* Eq. 11,
-    /// M_{j+1} = M_j + k_P (X_i − X̄)·v_G / g (the paper's norm loses the sign, and a mass that is
-    /// too large then grows without end), and that whole holding force is kept for the vector
-    /// mode.
-    ///
-    /// The vertex ends at the second consecutive steady state within ε_M of it along v_G (the only
-    /// direction a mass update moves the handle): its last update is then measured at the vertex,
-    /// after a transient too small to bias it. The offset across v_G (a linkage's horizontal
-    /// gravity components, or a small error in v_G) stays, in the holding force.
-    fn update_mass(
+    /// How far from the vertex along axis `a` a rest still counts as reached, m: the friction
+    /// band's span of offset a few times over, plus the noise.
+    fn reach_tolerance(&self, a: usize) -> f64 {
+        let stiffness = self.gains.stiffness[a] * self.gain_scale;
+        REACH_BANDS * self.initial.friction[a] / stiffness + 3.0 * self.initial.noise + REACH_MARGIN
+    }
+
+    /// A rest X̄ at `vertex` X_i. There the hold applies F̂ + K (X_i − X̄), which balances the
+    /// load up to the friction. Near the vertex: measure the stick band. Off it: that force
+    /// becomes F̂ (the vector form of the signed Eq. 11; the paper's norm loses the sign), and
+    /// the hold pulls the handle closer; if the previous update did not bring it closer, push.
+    fn at_rest(
         &mut self,
         s: &DeviceState,
         vertex: Vertex,
-        steady: Vector3<f64>,
+        rest: Vector3<f64>,
+        force: Vector3<f64>,
     ) -> ControlOutput {
         let t = s.time;
-        let error = vertex.position - steady;
-        // A correct hold settles ΔM g / k_P from the vertex (≈ 9 mm per 100 % mass error at the
-        // default gains); half a cell away means the handle is blocked: do not push harder.
-        // Likewise when an update did not bring the handle closer along v_G: something holds it.
-        let along = error.dot(&self.gravity_direction).abs();
-        let stuck =
-            self.iteration >= 1 && along > self.params.eps_m && along > 0.8 * self.previous_error;
-        self.previous_error = along;
-        if error.norm() > 0.5 * self.params.spacing || stuck {
-            return self.fail(CalibrationFailure::Unreachable {
-                vertex,
-                distance_mm: error.norm() * 1e3,
-            });
+        let offset = vertex.position - rest;
+        let applied =
+            self.estimate + offset.component_mul(&self.gains.scaled(self.gain_scale).stiffness);
+        if (0..3).all(|a| offset[a].abs() <= self.reach_tolerance(a)) {
+            // The hold now centres on the rest itself: no jump, since F̂ becomes the force it
+            // applies there (inside the stick band: the handle rests under it).
+            self.one_sided.get_or_insert(applied);
+            self.estimate = applied;
+            self.rest = rest;
+            self.near_rests += 1;
+            self.earlier_rounds = (Vector3::zeros(), 0);
+            return self.start_round(s);
         }
-        let k_p = self
-            .params
-            .gains
-            .stiffness(self.gain_mass * self.gain_scale);
-        let holding_force = error * k_p + self.gravity_direction * (self.mass * self.params.g);
-        let updated = self.mass + k_p * error.dot(&self.gravity_direction) / self.params.g; // Eq. 11, signed
+        let distance = offset.norm();
+        if self
+            .previous_offset
+            .is_some_and(|previous| distance > PROGRESS * previous)
+        {
+            let rate = (0..3).map(|a| self.band_ramp(a).rate).fold(0.0, f64::max);
+            let ramp = Ramp {
+                rate,
+                steady: 0.0,
+                growth: RAMP_GROWTH,
+                limit: self.push_limit(),
+            };
+            self.previous_offset = None;
+            self.phase = Phase::Push(Push::new(offset / distance, ramp, self.slip, t));
+            return ControlOutput::force(force);
+        }
+        self.previous_offset = Some(distance);
+        self.update(s, applied, distance)
+    }
+
+    /// F̂ ← `force`; count it, and give up after `max_iterations`.
+    fn update(&mut self, s: &DeviceState, force: Vector3<f64>, error: f64) -> ControlOutput {
+        self.estimate = force;
+        self.gain_scale = 1.0;
         self.iteration += 1;
         self.emit(CalibrationEvent::Iteration {
             vertex: self.vertex,
             iteration: self.iteration,
-            mass: updated,
-            error: error.norm(),
+            force,
+            error,
         });
-        if !(updated.is_finite() && updated > 0.0) {
-            return self.fail(CalibrationFailure::NonPositiveMass {
-                vertex,
-                mass: updated,
+        if self.iteration >= self.params.max_iterations {
+            return self.fail(CalibrationFailure::TooManyIterations {
+                vertex: self.plan.path[self.vertex],
+                iterations: self.iteration,
             });
         }
-        let near = along < self.params.eps_m;
-        let converged = near && self.previous_near;
-        self.previous_near = near;
-        // Unlike Eq. 13 (k_P(i,j) = β M_{j−1}), the gains follow the newest estimate: lagged
-        // gains leave the loop mis-linearised for a whole iteration after a large correction.
-        self.gain_mass = updated;
-        self.gain_scale = 1.0;
-        self.mass = updated;
-        if converged {
-            return self.vertex_done(
-                s,
-                VertexResult {
-                    vertex,
-                    mass: updated,
-                    force: holding_force,
-                    iterations: self.iteration,
-                    final_error: error.norm(),
-                    duration: t - self.vertex_start,
-                },
-            );
+        self.settle_from(s.time);
+        let vertex = self.plan.path[self.vertex].position;
+        ControlOutput::force(self.hold_force(&vertex, s, &self.estimate))
+    }
+
+    /// The ramp of a band measurement along axis `a` at a vertex: steady at the rate that
+    /// crosses the friction band measured at X_C in `CROSSING_TIME` or moves a frictionless
+    /// handle by a slip in `DETECT_TIME`, whichever is faster, over twice the band (and the
+    /// slip's force), growing beyond.
+    fn band_ramp(&self, a: usize) -> Ramp {
+        let stiffness = self.gains.stiffness[a] * self.gain_scale;
+        let slip_force = stiffness * self.slip;
+        let width = 2.0 * self.initial.friction[a];
+        let rate = (slip_force / DETECT_TIME).max(width / CROSSING_TIME);
+        Ramp {
+            rate,
+            steady: 2.0 * (width + 4.0 * slip_force),
+            growth: RAMP_GROWTH,
+            limit: self.push_limit(),
+        }
+    }
+
+    /// The first axis after `a` (all of them: from `None`) with friction, if any.
+    fn next_band_axis(&self, after: Option<usize>) -> Option<usize> {
+        let from = after.map_or(0, |a| a + 1);
+        (from..3).find(|&a| self.friction_kind[a] != Friction::None)
+    }
+
+    /// A round of band measurements along the axes with friction: x, y, then z.
+    fn start_round(&mut self, s: &DeviceState) -> ControlOutput {
+        let t = s.time;
+        let Some(a) = self.next_band_axis(None) else {
+            // No friction anywhere: the force applied at this rest is the load. It is taken at
+            // the second rest near the vertex, which follows a correction too small to leave a
+            // transient (the paper's "n_M samples within ε_M", read as twice in a row).
+            let vertex = self.plan.path[self.vertex];
+            let error = (vertex.position - self.rest).norm();
+            if self.near_rests < 2 {
+                return self.update(s, self.estimate, error);
+            }
+            return self.vertex_done(s, vertex, error);
+        };
+        self.phase = Phase::Band {
+            probe: BandProbe::new(a, self.band_ramp(a), self.slip, self.still, t),
+            round_start: self.estimate,
+            anchor: self.smoothed,
+        };
+        ControlOutput::force(self.still_force(&self.smoothed, s, &self.estimate))
+    }
+
+    /// The stick band at the vertex, axis by axis: F̂ along the axis becomes the band's middle.
+    /// After z, the round is over: the vertex is done once a round changes F̂ by less than a
+    /// quarter of the band (or after `MAX_ROUNDS`); otherwise the handle settles again (it may
+    /// have moved under the new force) and another round follows. A direction the handle does
+    /// not move along under the whole push is blocked: the vertex is unreachable.
+    fn band(
+        &mut self,
+        s: &DeviceState,
+        mut probe: BandProbe,
+        round_start: Vector3<f64>,
+        anchor: Vector3<f64>,
+    ) -> ControlOutput {
+        let t = s.time;
+        if let Some(failure) = self.vertex_timed_out(t) {
+            return self.fail(failure);
+        }
+        let a = probe.axis();
+        let vertex = self.plan.path[self.vertex];
+        let feedforward = self.estimate + axis(a) * probe.offset(t);
+        let force = self.still_force(&anchor, s, &feedforward);
+        match probe.observe(s, &self.smoothed, &force) {
+            Step::Running => {
+                self.phase = Phase::Band {
+                    probe,
+                    round_start,
+                    anchor,
+                };
+                ControlOutput::force(force)
+            }
+            Step::Blocked { .. } => self.unreachable(s, (vertex.position - self.rest).norm()),
+            Step::Done(band) => {
+                self.estimate[a] = band.middle();
+                self.band_friction[a] = band.half_width();
+                self.constraints[a] = band.constraint();
+                if let Some(next) = self.next_band_axis(Some(a)) {
+                    self.phase = Phase::Band {
+                        probe: BandProbe::new(next, self.band_ramp(next), self.slip, self.still, t),
+                        round_start,
+                        anchor: self.smoothed,
+                    };
+                    return ControlOutput::force(force);
+                }
+                self.round_done(s, vertex, round_start, force)
+            }
+        }
+    }
+
+    /// A round is over: the vertex is done once a round changed F̂ by little (the chords the
+    /// bands were measured along then pass through the band's middle), or after `MAX_ROUNDS`;
+    /// otherwise another round follows at once, or, if the handle has crept off the vertex,
+    /// after it settles again.
+    fn round_done(
+        &mut self,
+        s: &DeviceState,
+        vertex: Vertex,
+        round_start: Vector3<f64>,
+        force: Vector3<f64>,
+    ) -> ControlOutput {
+        self.rounds += 1;
+        self.iteration += 1;
+        self.solve_constraints();
+        let change = self.estimate - round_start;
+        let settled = (0..3).all(|a| {
+            self.friction_kind[a] == Friction::None
+                || change[a].abs() <= ROUND_SHARE * self.band_friction[a] + FORCE_TOLERANCE
+        });
+        let error = (vertex.position - self.rest).norm();
+        self.emit(CalibrationEvent::Iteration {
+            vertex: self.vertex,
+            iteration: self.iteration,
+            force: self.estimate,
+            error,
+        });
+        if (settled && self.rounds >= MIN_ROUNDS) || self.rounds >= MAX_ROUNDS {
+            // The rounds measured the same band independently: their mean shrinks what the
+            // slips' timing and the position noise scatter.
+            let (sum, count) = self.earlier_rounds;
+            self.estimate = (sum + self.estimate) / f64::from(count + 1);
+            if !self.friction_kind.contains(&Friction::Slight) {
+                return self.vertex_done(s, vertex, error);
+            }
+            self.detector.reset();
+            self.phase = Phase::Check {
+                anchor: self.smoothed,
+                since: s.time,
+            };
+            return ControlOutput::force(force);
         }
         if self.iteration >= self.params.max_iterations {
             return self.fail(CalibrationFailure::TooManyIterations {
@@ -479,31 +1130,169 @@ impl Calibration {
                 iterations: self.iteration,
             });
         }
-        self.detector.reset();
-        self.phase = Phase::Hold { since_change: t };
-        ControlOutput::force(self.pd_force(&vertex.position, s))
+        // The slips of a round move the handle a little; a new estimate may move it a little
+        // more: measure again where it is unless it has gone far.
+        let offset = vertex.position - self.smoothed;
+        if (0..3).all(|a| offset[a].abs() <= ROUND_REACH * self.reach_tolerance(a)) {
+            self.earlier_rounds.0 += self.estimate;
+            self.earlier_rounds.1 += 1;
+            return self.start_round(s);
+        }
+        self.settle_from(s.time);
+        ControlOutput::force(force)
     }
 
-    /// Record the vertex and go on to the next one, which starts from this one's mass
-    /// M̂(X_i) (Eqs. 12, 14; already in `mass` and `gain_mass`), or finish.
-    fn vertex_done(&mut self, s: &DeviceState, result: VertexResult) -> ControlOutput {
+    /// The check (see [`Phase::Check`]): along each axis the handle moved on by more than a
+    /// slip, the force it rests under replaces the band's middle.
+    fn check(&mut self, s: &DeviceState, anchor: Vector3<f64>, since: f64) -> ControlOutput {
+        let t = s.time;
+        if let Some(failure) = self.vertex_timed_out(t) {
+            return self.fail(failure);
+        }
+        let force = self.hold_force(&anchor, s, &self.estimate);
+        if t - since < self.settle_time {
+            return ControlOutput::force(force);
+        }
+        let Some(rest) = self.detector.push(&s.position) else {
+            return ControlOutput::force(force);
+        };
+        let stiffness = self.gains.scaled(self.gain_scale).stiffness;
+        // Beyond the noise of the anchor (a mean of 8 samples) and of the rest (of n_M), or half
+        // an encoder step, whichever is more.
+        let moved = (3.0 * self.initial.noise * (0.125 + 1.0 / self.params.n_m as f64).sqrt())
+            .max(0.5 * self.initial.step);
+        for a in 0..3 {
+            if self.friction_kind[a] == Friction::Slight && (rest[a] - anchor[a]).abs() > moved {
+                self.estimate[a] += stiffness[a] * (anchor[a] - rest[a]);
+            }
+        }
+        let vertex = self.plan.path[self.vertex];
+        self.vertex_done(s, vertex, (vertex.position - rest).norm())
+    }
+
+    /// F̂ from the round's bands: the force c with n·c = b for each band's constraint
+    /// ([`Band::constraint`]) and, along axes without friction, c = F̂ there. Each axis's middle
+    /// is only right where the chord crosses the band's centre; the slips' directions tell how
+    /// the band's faces lie, so one round finds the centre even of a skewed box (joint friction
+    /// seen at the handle). Constraints too close to parallel leave the middles.
+    fn solve_constraints(&mut self) {
+        let mut n = nalgebra::Matrix3::zeros();
+        let mut b = Vector3::zeros();
+        for a in 0..3 {
+            let (row, value) = if self.friction_kind[a] == Friction::None {
+                (axis(a), self.estimate[a])
+            } else {
+                self.constraints[a]
+            };
+            n.set_row(a, &row.transpose());
+            b[a] = value;
+        }
+        if n.determinant().abs() < MIN_CONSTRAINT_VOLUME {
+            return;
+        }
+        if let Some(c) = n.lu().solve(&b) {
+            self.estimate = c;
+        }
+    }
+
+    /// The push toward the vertex: if the handle moves, it was friction (F̂ keeps the push,
+    /// and the handle settles again); if it does not under the whole push, the vertex is
+    /// unreachable.
+    fn push(&mut self, s: &DeviceState, mut push: Push) -> ControlOutput {
+        let t = s.time;
+        if let Some(failure) = self.vertex_timed_out(t) {
+            return self.fail(failure);
+        }
+        let vertex = self.plan.path[self.vertex].position;
+        let extra = push.direction * push.force(t);
+        let force = self.hold_force(&vertex, s, &(self.estimate + extra));
+        match push.observe(s) {
+            Step::Running => {
+                self.phase = Phase::Push(push);
+                ControlOutput::force(force)
+            }
+            Step::Done(_) => {
+                self.estimate += extra;
+                self.settle_from(t);
+                ControlOutput::force(force)
+            }
+            Step::Blocked { .. } => self.unreachable(s, (vertex - s.position).norm()),
+        }
+    }
+
+    /// Record the vertex and go on to the next one, which starts from this one's force
+    /// (Eqs. 12, 14; already in `estimate`), or finish.
+    fn vertex_done(&mut self, s: &DeviceState, vertex: Vertex, error: f64) -> ControlOutput {
+        let result = VertexResult {
+            vertex,
+            mass: 0.0,
+            force: self.estimate,
+            one_sided_force: self.one_sided.unwrap_or(self.estimate),
+            friction: self.band_friction,
+            iterations: self.iteration,
+            final_error: error,
+            duration: s.time - self.vertex_start,
+            reached: true,
+        };
         self.results[self.vertex] = Some(result);
+        self.last_good = self.estimate;
+        let load = self.initial.load;
+        let along = if load.norm() > 0.0 {
+            load.normalize()
+        } else {
+            Vector3::z()
+        };
         self.emit(CalibrationEvent::VertexDone {
             vertex: self.vertex,
             of: self.plan.path.len(),
-            mass: result.mass,
-            iterations: result.iterations,
+            mass: self.estimate.dot(&along) / self.params.g,
+            force: self.estimate,
+            iterations: self.iteration,
         });
+        self.next_vertex(s, vertex.position)
+    }
+
+    /// Mark the current vertex unreachable (the handle stays `distance` m away), go back to the
+    /// last vertex's force and go on.
+    fn unreachable(&mut self, s: &DeviceState, distance: f64) -> ControlOutput {
+        let vertex = self.plan.path[self.vertex];
+        self.results[self.vertex] = Some(VertexResult {
+            vertex,
+            mass: 0.0,
+            force: Vector3::zeros(),
+            one_sided_force: Vector3::zeros(),
+            friction: Vector3::zeros(),
+            iterations: self.iteration,
+            final_error: distance,
+            duration: s.time - self.vertex_start,
+            reached: false,
+        });
+        self.emit(CalibrationEvent::VertexUnreachable {
+            vertex: self.vertex,
+            of: self.plan.path.len(),
+            at: vertex,
+            distance,
+        });
+        self.estimate = self.last_good;
+        self.gain_scale = 1.0;
+        self.next_vertex(s, s.position)
+    }
+
+    fn next_vertex(&mut self, s: &DeviceState, from: Vector3<f64>) -> ControlOutput {
         self.vertex += 1;
         if self.vertex == self.plan.path.len() {
-            self.phase = Phase::Finished;
             self.end_time = s.time;
+            if self.results.iter().flatten().all(|r| !r.reached) {
+                return self.fail(CalibrationFailure::NothingReached {
+                    count: self.plan.path.len(),
+                });
+            }
+            self.phase = Phase::Finished;
             self.emit(CalibrationEvent::Finished);
             return ControlOutput::done(Vector3::zeros());
         }
-        let here = result.vertex.position;
-        self.start_move(here, s.time);
-        ControlOutput::force(self.pd_force(&here, s))
+        self.start_move(from, s.time);
+        ControlOutput::force(self.hold_force(&from, s, &self.estimate))
     }
 
     fn fail(&mut self, failure: CalibrationFailure) -> ControlOutput {
@@ -517,24 +1306,40 @@ impl Calibration {
             let _ = tx.try_send(event);
         }
     }
+}
 
-    /// The feedback-linearised PD toward `target` with gains on the newest mass (backed off by
-    /// `gain_scale`) plus the gravity term M_j g v_G (Eq. 10).
-    fn pd_force(&self, target: &Vector3<f64>, s: &DeviceState) -> Vector3<f64> {
-        let gravity = self.gravity_direction * (self.mass * self.params.g);
-        self.params
-            .gains
-            .pd_force(self.gain_mass * self.gain_scale, target, s, &gravity)
-    }
+/// The unit vector along axis `a`.
+fn axis(a: usize) -> Vector3<f64> {
+    let mut e = Vector3::zeros();
+    e[a] = 1.0;
+    e
 }
 
 impl Controller for Calibration {
-    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+    fn tick(&mut self, state: &DeviceState) -> ControlOutput {
+        let mut s = *state;
+        s.velocity = self.filter.update(&s.position);
+        let s = &s;
+        self.smoothed = self.smoother.push(&s.position);
         match self.phase {
             Phase::Start => self.start(s),
-            Phase::Init(field) => self.initialise(s, field),
+            Phase::Catch(field) => self.catch(s, field),
+            Phase::InitBand(probe) => self.init_band(s, probe),
+            Phase::Recentre {
+                axis,
+                excess,
+                since,
+            } => self.recentre(s, axis, excess, since),
+            Phase::Pulse(pulse) => self.pulse(s, pulse),
             Phase::Move(path) => self.move_to_vertex(s, path),
-            Phase::Hold { since_change } => self.hold(s, since_change),
+            Phase::Settle { since } => self.settle(s, since),
+            Phase::Band {
+                probe,
+                round_start,
+                anchor,
+            } => self.band(s, probe, round_start, anchor),
+            Phase::Push(push) => self.push(s, push),
+            Phase::Check { anchor, since } => self.check(s, anchor, since),
             Phase::Finished | Phase::Failed(_) => ControlOutput::done(Vector3::zeros()),
         }
     }

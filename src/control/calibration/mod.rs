@@ -1,39 +1,49 @@
-//! Off-line autocalibration (paper §3, Algorithm 1) as a tick-driven state machine.
+//! Off-line autocalibration (paper §3, Algorithm 1) as a tick-driven state machine, made to need
+//! no tuning: it measures the handle instead of assuming it sags visibly under its own weight.
 //!
-//! 1. **Initialisation** (§3.1): an elastic field k_init (X_C − X) (plus a little damping, beyond
-//!    the paper, so a frictionless handle settles) holds the handle near where it rests. At steady
-//!    state the sag gives the gravity direction v_G (Eq. 7) and a rough mass M̂_0 (Eq. 8).
-//! 2. **Vertices** (§3.2): a feedback-linearised PD (k_D = αM, k_P = βM) moves to each grid
-//!    vertex along a minimum-jerk path and holds it with the gravity term M_j g v_G (Eq. 10). At
-//!    each steady state the mass is updated with the *signed* form of Eq. 11,
-//!    M_{j+1} = M_j + k_P (X_i − X̄)·v_G / g (the paper's norm loses the sign; see docs), and the
-//!    whole holding force k_P (X_i − X̄) + M_j g v_G is kept for the vector mode. The next vertex
-//!    starts from this one's mass (Eqs. 12, 14). Unlike Eq. 13 (k_P(i,j) = β M_{j−1}), the gains
-//!    follow the newest estimate: lagged gains leave the loop mis-linearised for a whole iteration
-//!    after a large correction. If a hold finds no steady state for a second, its gains are
-//!    halved (at most three times): gains built on a mass several times too large oscillate
-//!    through the velocity filter's lag.
+//! 1. **Initialisation** (§3.1): an elastic field k_init (X_C − X) with some damping catches the
+//!    handle where it rests. Then, instead of waiting for a sag, it *pushes*: along each axis a
+//!    growing force finds the two edges of the stick band (the forces at which the handle slips
+//!    one way and the other): their middle is the load there, their half-width the friction.
+//!    A short pulse a known amount beyond the band along each axis times the handle's moving
+//!    mass. The hold's gains follow from these: feedback-linearised (k_P = β m, k_D = α m,
+//!    Eqs. 4–5) on the measured moving mass, stiffer where the friction band would otherwise
+//!    span more than 0.2 mm of offset.
+//! 2. **Vertices** (§3.2): the PD moves to each grid vertex along a minimum-jerk path and holds
+//!    it with the force estimate F̂ as its gravity term (Eq. 10 with a vector). At rest off the
+//!    vertex, F̂ becomes the force the hold applies there (the vector form of the signed Eq. 11);
+//!    an update that does not bring the handle closer is followed by a growing push toward the
+//!    vertex, and a handle that does not yield to it is blocked: the vertex is marked unreachable
+//!    and the run goes on. At rest near the vertex (within the reach tolerance that follows the
+//!    friction band), the stick band is measured along x, y and z from both sides and F̂ becomes
+//!    its middle, until a round changes it by less than a quarter of the band. The next vertex
+//!    starts from this one's force (Eqs. 12, 14).
+//! 3. **Result**: v_G is the principal direction of the measured forces; each vertex's mass is
+//!    its force along v_G over g (of either sign); unreachable vertices are filled from their
+//!    neighbours.
 //!
 //! The parts: `plan.rs` (which vertices, in which order), `steady.rs` (when the handle is at
-//! rest), `machine.rs` (the controller, one method per phase: initialisation, move, hold) and
-//! `outcome.rs` (result or failure). The PD law itself is
-//! [`LinearisedGains::pd_force`](crate::control::pd::LinearisedGains::pd_force).
-//! docs/calibration.md describes the method for users, with every deviation from the paper.
+//! rest), `probe.rs` (the stick band and the moving mass), `machine.rs` (the controller, one
+//! method per phase) and `outcome.rs` (result or failure, v_G, the filling). The PD law is
+//! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force).
+//! docs/calibration.md describes the method for users, beside the paper's.
 
 mod machine;
 mod outcome;
 pub mod persist;
 mod plan;
+mod probe;
 mod steady;
 
 pub use machine::{Calibration, CalibrationEvent};
-pub use outcome::{CalibrationFailure, CalibrationResult, VertexResult};
+pub use outcome::{CalibrationFailure, CalibrationResult, InitialMeasurement, VertexResult};
 pub use plan::{GridPlan, PlanError, Vertex};
 
 use nalgebra::Vector3;
 
 use super::pd::LinearisedGains;
 use crate::config::Config;
+use crate::estimate::FoawVariant;
 
 /// Calibration parameters in SI units.
 #[derive(Clone, Debug, PartialEq)]
@@ -57,8 +67,6 @@ pub struct CalibrationParams {
     /// m/s².
     pub g: f64,
     pub gains: LinearisedGains,
-    /// Time after a move or a mass update before steady-state samples count, s (2 × rise time).
-    pub settle_time: f64,
     /// Duration of a one-cell move, s; longer moves take proportionally longer.
     pub move_time: f64,
     /// Limit per vertex (and for the initialisation), s.
@@ -66,6 +74,17 @@ pub struct CalibrationParams {
     pub max_iterations: u32,
     /// Box the handle may be driven in, m.
     pub workspace: (Vector3<f64>, Vector3<f64>),
+    /// The largest force the safety layer lets through, N (calibration pushes with at most a
+    /// quarter of it beyond the forces it holds).
+    pub max_force: f64,
+    /// Report period of the device, s (bounds the hold's bandwidth).
+    pub period: f64,
+    /// The velocity filter the servo loop uses (`[estimate]`): calibration runs its own copy,
+    /// whose noise bound it raises to the encoder step it measures.
+    pub foaw_variant: FoawVariant,
+    /// m.
+    pub noise_bound: f64,
+    pub max_window: usize,
 }
 
 impl CalibrationParams {
@@ -84,11 +103,15 @@ impl CalibrationParams {
             eps_m: c.eps_m(),
             g: c.g,
             gains: LinearisedGains::from_rise_time(rise_time, c.damping_ratio),
-            settle_time: 2.0 * rise_time,
             move_time: c.move_time(),
             vertex_timeout: c.vertex_timeout_s,
             max_iterations: c.max_iterations,
             workspace: config.device.workspace(),
+            max_force: config.safety.max_force_n,
+            period: config.servo_period(),
+            foaw_variant: config.estimate.foaw_variant,
+            noise_bound: config.estimate.noise_bound(),
+            max_window: config.estimate.max_window,
         }
     }
 }

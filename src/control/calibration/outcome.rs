@@ -1,40 +1,70 @@
-//! What a calibration ends with: a [`CalibrationResult`] or a [`CalibrationFailure`].
+//! What a calibration ends with: a [`CalibrationResult`] or a [`CalibrationFailure`]; and the
+//! two things worked out once every vertex is measured: v_G from the whole field, and the
+//! values of vertices the handle could not reach, filled from their neighbours.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use super::plan::Vertex;
 
-/// What was measured at one vertex.
+/// What was measured at one vertex (or, for one the handle could not reach, filled in).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VertexResult {
     pub vertex: Vertex,
-    /// Apparent mass M̂(X_i), kg.
+    /// Apparent mass M̂(X_i) = F·v_G / g, kg: negative where the force points along −v_G.
     pub mass: f64,
-    /// Whole holding force at the last steady state, N (vector form of Eq. 11).
+    /// Holding force: the middle of the stick band, N (what the vector mode interpolates).
     pub force: Vector3<f64>,
-    /// Mass updates made.
+    /// The force at the first rest near the vertex, N: the one-sided measurement the paper's
+    /// procedure makes, anywhere inside the stick band (reported beside `force`).
+    pub one_sided_force: Vector3<f64>,
+    /// Half-width of the stick band along x, y and z: the friction there, N.
+    pub friction: Vector3<f64>,
+    /// Updates of the force estimate (settles off the vertex and rounds of band measurements).
     pub iterations: u32,
-    /// Distance from the vertex at the last steady state, m.
+    /// Distance from the vertex of the rest the band was measured at, m.
     pub final_error: f64,
     /// Device time spent on this vertex, move included, s.
     pub duration: f64,
+    /// False for a vertex the handle could not reach: its values are filled from neighbours.
+    pub reached: bool,
+}
+
+/// What the initialisation measured at the rest point X_C.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InitialMeasurement {
+    /// Holding force at X_C (the middle of the stick bands), N.
+    pub load: Vector3<f64>,
+    /// Half-widths of the stick bands along x, y, z, N.
+    pub friction: Vector3<f64>,
+    /// Moving mass along x, y, z, kg.
+    pub inertia: Vector3<f64>,
+    /// Standard deviation of the reported position at rest, m.
+    pub noise: f64,
+    /// The largest step between consecutive readings at rest: the encoder's step, or a few
+    /// standard deviations of noise without one, m.
+    pub step: f64,
+    /// Hold stiffness built from these, N/m per axis.
+    pub stiffness: Vector3<f64>,
 }
 
 /// A finished calibration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CalibrationResult {
-    /// Unit v_G (Eq. 7).
+    /// Unit v_G: the principal direction of the measured holding forces, signed so that the
+    /// masses are positive on average.
     pub gravity_direction: Vector3<f64>,
-    /// M̂_0 (Eq. 8), kg.
+    /// |load| / g at X_C, kg: a rough mass.
     pub initial_mass: f64,
-    /// Rest point X_C and steady state X(∞) of the initialisation, m.
+    /// Rest point X_C of the initialisation, m.
     pub rest_point: Vector3<f64>,
-    pub initial_steady_state: Vector3<f64>,
+    pub initial: InitialMeasurement,
     /// Results in grid order (x fastest).
     pub vertices: Vec<VertexResult>,
     pub origin: Vector3<f64>,
     pub dims: [usize; 3],
     pub left_out: Vec<Vertex>,
+    /// Vertices the handle could not reach (their values are filled, `docs/grid-format.md` §4).
+    pub unreachable: Vec<Vertex>,
     /// Device time of the whole run, s.
     pub duration: f64,
 }
@@ -48,14 +78,14 @@ pub enum CalibrationFailure {
     )]
     InitTimeout { timeout: f64 },
     #[error(
-        "initialisation: the handle came to rest but sagged only {sag_mm:.3} mm under the field; \
-         either something holds it, or it weighs less than {min_mass_g:.0} g (then lower \
-         calibration.k_init_n_per_mm)"
+        "initialisation: the handle did not move under {push_n:.2} N along {axis}; something holds \
+         it (a hand, a cable, a support), or its friction is beyond what calibration pushes \
+         (a quarter of safety.max_force_n)"
     )]
-    NoSag { sag_mm: f64, min_mass_g: f64 },
+    Held { axis: char, push_n: f64 },
     #[error(
-        "{vertex} did not converge within {timeout:.0} s ({iterations} mass updates); the handle \
-         may be blocked by a stop, the vertex may lie outside the reachable workspace, or \
+        "{vertex} did not converge within {timeout:.0} s ({iterations} updates); the handle may \
+         be blocked by a stop, the vertex may lie outside the reachable workspace, or \
          calibration.eps_m_mm may be below the position noise"
     )]
     VertexTimeout {
@@ -63,16 +93,123 @@ pub enum CalibrationFailure {
         timeout: f64,
         iterations: u32,
     },
-    #[error(
-        "{vertex} could not be reached: the handle settled {distance_mm:.1} mm away from it (a \
-         mechanical stop or an obstacle? check device.workspace_*_mm)"
-    )]
-    Unreachable { vertex: Vertex, distance_mm: f64 },
-    #[error("{vertex} did not converge after {iterations} mass updates")]
+    #[error("{vertex} did not converge after {iterations} updates")]
     TooManyIterations { vertex: Vertex, iterations: u32 },
     #[error(
-        "{vertex}: the apparent mass came out as {mass:.4} kg; hgcd-grid/1 needs positive masses \
-         (is the device over-balanced here?)"
+        "the handle reached none of the {count} vertices (mechanical stops or obstacles? check \
+         device.workspace_*_mm and calibration.centre_mm)"
     )]
-    NonPositiveMass { vertex: Vertex, mass: f64 },
+    NothingReached { count: usize },
+}
+
+/// v_G from the measured holding forces: the unit v maximising Σ (F·v)² (the direction a scalar
+/// field M g v_G best represents them along), signed so that Σ F·v ≥ 0. None without any force.
+pub(super) fn principal_direction(
+    forces: impl Iterator<Item = Vector3<f64>>,
+) -> Option<Vector3<f64>> {
+    let (mut scatter, mut sum) = (Matrix3::zeros(), Vector3::zeros());
+    for f in forces {
+        scatter += f * f.transpose();
+        sum += f;
+    }
+    let eigen = SymmetricEigen::new(scatter);
+    let (k, largest) = eigen
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .fold(
+            (0, f64::MIN),
+            |best, (k, &l)| if l > best.1 { (k, l) } else { best },
+        );
+    if largest <= 0.0 {
+        return None;
+    }
+    let v: Vector3<f64> = eigen.eigenvectors.column(k).into();
+    Some(if v.dot(&sum) < 0.0 { -v } else { v })
+}
+
+/// Fill the vertices of a `dims` grid (x fastest) whose `known` flag is false from their face
+/// neighbours: each round gives every unfilled vertex with at least one filled neighbour the mean
+/// of those neighbours' values (from the rounds before), until all are filled. Requires at least
+/// one known vertex.
+pub(super) fn fill_from_neighbours<
+    T: Copy + std::ops::Add<Output = T> + std::ops::Mul<f64, Output = T>,
+>(
+    dims: [usize; 3],
+    values: &mut [T],
+    known: &[bool],
+) {
+    let mut filled = known.to_vec();
+    let index = |i: usize, j: usize, k: usize| i + dims[0] * (j + dims[1] * k);
+    while filled.iter().any(|f| !f) {
+        let before = filled.clone();
+        let mut any = false;
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    let n = index(i, j, k);
+                    if before[n] {
+                        continue;
+                    }
+                    let mut neighbours = Vec::with_capacity(6);
+                    let c = [i, j, k];
+                    for a in 0..3 {
+                        for step in [-1i64, 1] {
+                            let v = c[a] as i64 + step;
+                            if v < 0 || v >= dims[a] as i64 {
+                                continue;
+                            }
+                            let mut m = c;
+                            m[a] = v as usize;
+                            let neighbour = index(m[0], m[1], m[2]);
+                            if before[neighbour] {
+                                neighbours.push(values[neighbour]);
+                            }
+                        }
+                    }
+                    if let Some((&first, rest)) = neighbours.split_first() {
+                        let sum = rest.iter().fold(first, |acc, &v| acc + v);
+                        values[n] = sum * (1.0 / neighbours.len() as f64);
+                        filled[n] = true;
+                        any = true;
+                    }
+                }
+            }
+        }
+        assert!(any, "fill_from_neighbours needs at least one known vertex");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn v_g_is_the_principal_direction_signed_to_the_mean_force() {
+        let up = Vector3::new(0.1, -0.2, 1.0).normalize();
+        // A field that changes sign along v_G (an over-balanced region) still gives v_G.
+        let forces = [up * 1.2, up * -0.3, up * 0.01, up * 2.0];
+        let v = principal_direction(forces.into_iter()).unwrap();
+        assert!((v - up).norm() < 1e-12, "{v}");
+        // All along −up: v_G points along the forces (the masses come out positive).
+        let v = principal_direction(forces.iter().map(|f| -f)).unwrap();
+        assert!((v + up).norm() < 1e-12, "{v}");
+        assert_eq!(principal_direction(std::iter::empty()), None);
+    }
+
+    #[test]
+    fn unreachable_vertices_take_the_mean_of_their_filled_neighbours() {
+        // A 3×1×1 row with only its first vertex known, and a 3×3×1 layer with a missing
+        // corner and centre.
+        let mut row = [2.0, 0.0, 0.0];
+        fill_from_neighbours([3, 1, 1], &mut row, &[true, false, false]);
+        assert_eq!(row, [2.0, 2.0, 2.0]);
+        let mut layer = [1.0, 2.0, 3.0, 4.0, 0.0, 6.0, 7.0, 8.0, 0.0];
+        let known = [true, true, true, true, false, true, true, true, false];
+        fill_from_neighbours([3, 3, 1], &mut layer, &known);
+        // Centre: mean of 2, 4, 6, 8; the corner (2, 2): mean of 6 and 8 (the centre was not
+        // yet filled in that round).
+        assert_eq!(layer[4], 5.0);
+        assert_eq!(layer[8], 7.0);
+    }
 }

@@ -31,6 +31,7 @@ pub fn check_room(path: &Path, plan: &GridPlan, device: &DeviceSpec) -> Result<(
 /// device, the parameters used and what was measured at each vertex.
 pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpec) -> GridFile {
     let c = &config.calibration;
+    let i = &result.initial;
     let mm = |v: nalgebra::Vector3<f64>| (v * 1e3).into();
     let mut file = GridFile::from(MassGrid {
         g: c.g,
@@ -65,6 +66,12 @@ pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpe
         rest_point_mm: Some(mm(result.rest_point)),
         duration_s: Some(result.duration),
         left_out_vertices: Some(result.left_out.iter().map(|v| v.index).collect()),
+        unreachable_vertices: Some(result.unreachable.iter().map(|v| v.index).collect()),
+        load_n: Some(i.load.into()),
+        friction_n: Some(i.friction.into()),
+        inertia_kg: Some(i.inertia.into()),
+        noise_mm: Some(i.noise * 1e3),
+        stiffness_n_per_mm: Some((i.stiffness * 1e-3).into()),
     });
     file.vertices = VertexRecords {
         force_vectors: result.vertices.iter().map(|v| v.force.into()).collect(),
@@ -74,6 +81,7 @@ pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpe
             .iter()
             .map(|v| v.final_error * 1e3)
             .collect(),
+        friction_n: result.vertices.iter().map(|v| v.friction.into()).collect(),
     };
     file
 }

@@ -43,7 +43,7 @@ pub struct GridPlan {
 }
 
 /// Why a grid cannot be planned.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[derive(Debug, PartialEq, thiserror::Error)]
 pub enum PlanError {
     #[error(
         "only {inside} of {total} vertices along {axis} lie inside the workspace; at least 2 are \
@@ -55,6 +55,8 @@ pub enum PlanError {
         inside: usize,
         total: usize,
     },
+    #[error("calibration's velocity filter cannot be built: {0} (check [estimate])")]
+    Filter(#[source] crate::estimate::FoawError),
 }
 
 impl GridPlan {

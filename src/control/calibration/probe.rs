@@ -1,0 +1,540 @@
+//! The two measurements calibration makes by pushing the handle rather than waiting for it:
+//!
+//! - [`BandProbe`], the stick band along one axis. A force added along the axis grows until the
+//!   handle slips, first one way to reach the band's lower edge, then across the whole band to its
+//!   upper edge, then back across it to the lower edge again; after each slip the force is held
+//!   until the handle is at rest. The force at each slip is an edge of the band: its middle is
+//!   the holding force along that axis, its half-width the friction. The last two crossings start
+//!   at rest from opposite edges and mirror each other, so whatever the slip detection lags (the
+//!   ramp, the handle's inertia) is the same on both sides and cancels in the middle. A
+//!   frictionless handle slips at once: both edges are the holding force.
+//! - [`Pulse`], the moving mass along one axis: a constant force a known amount beyond the stick
+//!   band accelerates the handle from rest; the times it takes to cover a quarter and all of a
+//!   short distance give the acceleration, whatever the delay before it starts.
+//!
+//! Both are allocation-free sub-machines the calibration controller ticks.
+
+use nalgebra::Vector3;
+
+use crate::control::DeviceState;
+
+/// Samples averaged to tell a slip from position noise, and to read the force at the slip.
+const SLIP_WINDOW: usize = 8;
+
+/// Samples the hold at rest averages its position over (see [`Smoother`]).
+const SMOOTHING: usize = 8;
+
+/// How a ramp of added force grows: at a constant `rate` (N/s) over its first `steady` N, so that
+/// crossings of the expected band all cross their edges alike, then at a rate growing as
+/// e^(t/growth), so that a wider band or an obstacle is crossed in a bounded time. A crossing
+/// longer than `limit` (N) finds no slip.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Ramp {
+    pub rate: f64,
+    pub steady: f64,
+    pub growth: f64,
+    pub limit: f64,
+}
+
+impl Ramp {
+    /// Force added `t` s after the start, N.
+    fn at(&self, t: f64) -> f64 {
+        let t = t.max(0.0);
+        let t_steady = self.steady / self.rate;
+        if t <= t_steady {
+            self.rate * t
+        } else {
+            self.steady + self.rate * self.growth * ((t - t_steady) / self.growth).exp_m1()
+        }
+    }
+}
+
+/// A position along one axis, smoothed over the last [`SLIP_WINDOW`] samples.
+#[derive(Clone, Copy, Debug)]
+struct Window {
+    positions: [f64; SLIP_WINDOW],
+    len: usize,
+    next: usize,
+}
+
+impl Window {
+    fn new() -> Self {
+        Self {
+            positions: [0.0; SLIP_WINDOW],
+            len: 0,
+            next: 0,
+        }
+    }
+
+    fn push(&mut self, position: f64) {
+        self.positions[self.next] = position;
+        self.next = (self.next + 1) % SLIP_WINDOW;
+        self.len = (self.len + 1).min(SLIP_WINDOW);
+    }
+
+    fn position(&self) -> f64 {
+        self.positions[..self.len].iter().sum::<f64>() / self.len as f64
+    }
+}
+
+/// The mean of the last [`SMOOTHING`] positions: what a hold at rest pulls on, so that the
+/// encoder's steps and noise do not shake a stuck handle.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Smoother {
+    samples: [Vector3<f64>; SMOOTHING],
+    len: usize,
+    next: usize,
+}
+
+impl Smoother {
+    pub fn new() -> Self {
+        Self {
+            samples: [Vector3::zeros(); SMOOTHING],
+            len: 0,
+            next: 0,
+        }
+    }
+
+    /// Add a sample; the mean of the newest ones.
+    pub fn push(&mut self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.samples[self.next] = *x;
+        self.next = (self.next + 1) % SMOOTHING;
+        self.len = (self.len + 1).min(SMOOTHING);
+        self.samples[..self.len].iter().sum::<Vector3<f64>>() / self.len as f64
+    }
+}
+
+/// Which crossing a band probe is making.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Crossing {
+    /// Toward −axis, to reach the lower edge from wherever the handle rests.
+    Reach,
+    /// Toward +axis, across the band from its lower edge.
+    Up,
+    /// Toward −axis, across the band from its upper edge.
+    Down,
+}
+
+impl Crossing {
+    fn sign(self) -> f64 {
+        match self {
+            Crossing::Up => 1.0,
+            Crossing::Reach | Crossing::Down => -1.0,
+        }
+    }
+}
+
+/// The stick band along one axis: the commanded forces at its two edges, and how the handle
+/// moved when it slipped at each (from rest to rest, m).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Band {
+    pub axis: usize,
+    pub upper: Vector3<f64>,
+    pub lower: Vector3<f64>,
+    pub upper_slip: Vector3<f64>,
+    pub lower_slip: Vector3<f64>,
+}
+
+impl Band {
+    /// The middle of the band along its axis: the holding force's component there, N.
+    pub fn middle(&self) -> f64 {
+        0.5 * (self.upper[self.axis] + self.lower[self.axis])
+    }
+
+    /// What the band says about the holding force c: n·c = b. A handle slips along the normal of
+    /// the stick band's boundary where its force meets it (joint friction: along the joint that
+    /// gives; a ball of friction: away from its centre), and the band is symmetric about c, so
+    /// with n the difference of the two slips' directions, n·c = n·(upper + lower)/2. Along a
+    /// ball's chord n is the probe's axis; across a box's two faces it is their normal, however
+    /// the chord cuts them. Without a clear slip (n too small), the axis itself.
+    pub fn constraint(&self) -> (Vector3<f64>, f64) {
+        let mid = 0.5 * (self.upper + self.lower);
+        let unit = |v: Vector3<f64>| v.try_normalize(1e-12).unwrap_or_else(Vector3::zeros);
+        let mut n = unit(unit(self.upper_slip) - unit(self.lower_slip));
+        if n[self.axis] < 0.5 {
+            n = Vector3::zeros();
+            n[self.axis] = 1.0;
+        }
+        (n, n.dot(&mid))
+    }
+
+    /// Half the band's width along its axis: the friction there, N (0 without friction; the
+    /// slip detection's lag makes it read a little wide).
+    pub fn half_width(&self) -> f64 {
+        (0.5 * (self.upper[self.axis] - self.lower[self.axis])).max(0.0)
+    }
+}
+
+/// What a probe did this tick.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) enum Step<T> {
+    /// Still measuring.
+    Running,
+    Done(T),
+    /// The handle did not move along `sign` × axis under the ramp's whole `limit`.
+    Blocked {
+        sign: f64,
+    },
+}
+
+/// Measures the stick band along one axis (module docs). The controller adds
+/// [`BandProbe::offset`] along the axis to its hold force and reports every tick's position and
+/// commanded force to [`BandProbe::observe`].
+#[derive(Clone, Copy, Debug)]
+pub(super) struct BandProbe {
+    axis: usize,
+    ramp: Ramp,
+    /// Displacement of the smoothed position that counts as a slip, m.
+    slip: f64,
+    crossing: Crossing,
+    /// Added force at the start of the crossing, N, and the start time, s.
+    start_offset: f64,
+    start_time: f64,
+    offset: f64,
+    /// Smallest progress (sign × smoothed position) since the crossing started, m.
+    low: f64,
+    /// How far above `low` a single reading may lie and still count as not moved, m (half an
+    /// encoder step and some noise).
+    still: f64,
+    /// The force commanded at the last reading that had not moved: the edge, once the slip is
+    /// confirmed (a slip is confirmed only after `slip`, which an encoder step or noise may make
+    /// take a while).
+    departure: Vector3<f64>,
+    window: Window,
+    upper: Vector3<f64>,
+    lower: Vector3<f64>,
+    /// The smoothed position where the crossing started from rest, and the moves of the Up and
+    /// Down crossings' slips, m.
+    start_position: Vector3<f64>,
+    upper_slip: Vector3<f64>,
+    lower_slip: Vector3<f64>,
+    /// After a slip: the added force is held until the handle is at rest again, so that every
+    /// crossing starts from rest (a heavy handle would otherwise start the next one still
+    /// moving, and the two crossings would not mirror each other).
+    pause: Option<Pause>,
+}
+
+/// Waiting for rest before `next` (`None`: the band is measured): samples since the last block
+/// mean, and that mean.
+#[derive(Clone, Copy, Debug)]
+struct Pause {
+    next: Option<Crossing>,
+    count: usize,
+    previous: Option<f64>,
+    /// Sum of the smoothed positions of the current block, and the previous block's mean.
+    sum: Vector3<f64>,
+    previous_mean: Vector3<f64>,
+}
+
+impl BandProbe {
+    pub fn new(axis: usize, ramp: Ramp, slip: f64, still: f64, now: f64) -> Self {
+        Self {
+            axis,
+            ramp,
+            slip,
+            still,
+            departure: Vector3::zeros(),
+            crossing: Crossing::Reach,
+            start_offset: 0.0,
+            start_time: now,
+            offset: 0.0,
+            low: f64::INFINITY,
+            window: Window::new(),
+            upper: Vector3::zeros(),
+            lower: Vector3::zeros(),
+            start_position: Vector3::zeros(),
+            upper_slip: Vector3::zeros(),
+            lower_slip: Vector3::zeros(),
+            pause: None,
+        }
+    }
+
+    pub fn axis(&self) -> usize {
+        self.axis
+    }
+
+    /// The force to add along the axis at time `t`, N.
+    pub fn offset(&mut self, t: f64) -> f64 {
+        if self.pause.is_none() {
+            let sign = self.crossing.sign();
+            self.offset = self.start_offset + sign * self.ramp.at(t - self.start_time);
+        }
+        self.offset
+    }
+
+    /// Feed the tick's state, the smoothed position and the force commanded at this tick (with
+    /// its offset).
+    pub fn observe(
+        &mut self,
+        s: &DeviceState,
+        smoothed: &Vector3<f64>,
+        commanded: &Vector3<f64>,
+    ) -> Step<Band> {
+        self.window.push(s.position[self.axis]);
+        if self.low == f64::INFINITY {
+            self.start_position = *smoothed;
+        }
+        if let Some(mut pause) = self.pause {
+            // At rest once two consecutive block means agree within a third of a slip; where it
+            // rests is the mean over both blocks.
+            pause.count += 1;
+            pause.sum += smoothed;
+            if pause.count >= SLIP_WINDOW {
+                pause.count = 0;
+                let mean = self.window.position();
+                let block = pause.sum / SLIP_WINDOW as f64;
+                pause.sum = Vector3::zeros();
+                if pause
+                    .previous
+                    .is_some_and(|p| (mean - p).abs() < self.slip / 3.0)
+                {
+                    let rest = 0.5 * (block + pause.previous_mean);
+                    let moved = rest - self.start_position;
+                    self.start_position = rest;
+                    match self.crossing {
+                        Crossing::Up => self.upper_slip = moved,
+                        Crossing::Down => self.lower_slip = moved,
+                        Crossing::Reach => {}
+                    }
+                    let Some(next) = pause.next else {
+                        return Step::Done(Band {
+                            axis: self.axis,
+                            upper: self.upper,
+                            lower: self.lower,
+                            upper_slip: self.upper_slip,
+                            lower_slip: self.lower_slip,
+                        });
+                    };
+                    self.pause = None;
+                    self.crossing = next;
+                    self.start_offset = self.offset;
+                    self.start_time = s.time;
+                    self.low = next.sign() * mean;
+                    return Step::Running;
+                }
+                pause.previous = Some(mean);
+                pause.previous_mean = block;
+            }
+            self.pause = Some(pause);
+            return Step::Running;
+        }
+        let sign = self.crossing.sign();
+        let progress = sign * self.window.position();
+        self.low = self.low.min(progress);
+        if sign * s.position[self.axis] <= self.low + self.still {
+            self.departure = *commanded;
+        }
+        if progress - self.low <= self.slip {
+            return if (self.offset - self.start_offset).abs() > self.ramp.limit {
+                Step::Blocked { sign }
+            } else {
+                Step::Running
+            };
+        }
+        let edge = self.departure;
+        let next = match self.crossing {
+            Crossing::Reach => Some(Crossing::Up),
+            Crossing::Up => {
+                self.upper = edge;
+                Some(Crossing::Down)
+            }
+            Crossing::Down => {
+                self.lower = edge;
+                None
+            }
+        };
+        self.pause = Some(Pause {
+            next,
+            count: 0,
+            previous: None,
+            sum: Vector3::zeros(),
+            previous_mean: Vector3::zeros(),
+        });
+        Step::Running
+    }
+}
+
+/// A growing push along a unit `direction` until the handle moves along it (friction it can
+/// overcome) or the ramp's limit (an obstacle): what tells a friction band from a stop.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Push {
+    pub direction: Vector3<f64>,
+    ramp: Ramp,
+    slip: f64,
+    start_time: f64,
+    force: f64,
+    low: f64,
+    window: Window,
+}
+
+impl Push {
+    pub fn new(direction: Vector3<f64>, ramp: Ramp, slip: f64, now: f64) -> Self {
+        Self {
+            direction,
+            ramp,
+            slip,
+            start_time: now,
+            force: 0.0,
+            low: f64::INFINITY,
+            window: Window::new(),
+        }
+    }
+
+    /// The push at time `t`, N.
+    pub fn force(&mut self, t: f64) -> f64 {
+        self.force = self.ramp.at(t - self.start_time);
+        self.force
+    }
+
+    /// Feed a tick: done (with the push that moved the handle, N) once it has moved along the
+    /// direction; blocked once the push passes the ramp's limit without moving it.
+    pub fn observe(&mut self, s: &DeviceState) -> Step<f64> {
+        self.window.push(s.position.dot(&self.direction));
+        let progress = self.window.position();
+        self.low = self.low.min(progress);
+        if progress - self.low > self.slip {
+            Step::Done(self.force)
+        } else if self.force > self.ramp.limit {
+            Step::Blocked { sign: 1.0 }
+        } else {
+            Step::Running
+        }
+    }
+}
+
+/// Measures the moving mass along one axis (module docs): the controller applies the stick
+/// band's middle plus `friction + excess` along +axis, and feeds each tick here.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Pulse {
+    pub axis: usize,
+    /// Force beyond the stick band's edge, N.
+    pub excess: f64,
+    /// Distance over which the acceleration is timed, m.
+    distance: f64,
+    timeout: f64,
+    start_position: f64,
+    start_time: f64,
+    quarter_time: Option<f64>,
+}
+
+impl Pulse {
+    pub fn new(
+        axis: usize,
+        excess: f64,
+        distance: f64,
+        timeout: f64,
+        start: &Vector3<f64>,
+        now: f64,
+    ) -> Self {
+        Self {
+            axis,
+            excess,
+            distance,
+            timeout,
+            start_position: start[axis],
+            start_time: now,
+            quarter_time: None,
+        }
+    }
+
+    /// Feed a tick: the moving mass (kg) once the handle has covered the distance; blocked if it
+    /// has not within the time limit (the push was too weak).
+    pub fn observe(&mut self, s: &DeviceState) -> Step<f64> {
+        let x = s.position[self.axis] - self.start_position;
+        if self.quarter_time.is_none() && x >= 0.25 * self.distance {
+            self.quarter_time = Some(s.time);
+        }
+        if let (Some(quarter), true) = (self.quarter_time, x >= self.distance) {
+            // x = a (t − t₀)² / 2: a quarter of the distance at √(d / 2a), all of it at √(2d / a),
+            // so the time between them is √(d / 2a).
+            let dt = (s.time - quarter).max(1e-6);
+            let a = self.distance / (2.0 * dt * dt);
+            return Step::Done(self.excess / a);
+        }
+        if s.time - self.start_time > self.timeout {
+            return Step::Blocked { sign: 1.0 };
+        }
+        Step::Running
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state(t: f64, x: f64) -> DeviceState {
+        DeviceState {
+            time: t,
+            host_time: t,
+            position: Vector3::new(x, 0.0, 0.0),
+            velocity: Vector3::zeros(),
+            status: Default::default(),
+            tick: 0,
+        }
+    }
+
+    /// A 1-D point of mass `m` with Coulomb friction `f` around the holding force `hold`, under
+    /// a critically damped spring `k` to the origin plus the probe's offset; the probe's band.
+    fn band_of(m: f64, f: f64, hold: f64, k: f64) -> Band {
+        let ramp = Ramp {
+            rate: 0.5,
+            steady: 0.3,
+            growth: 0.2,
+            limit: 3.0,
+        };
+        let mut probe = BandProbe::new(0, ramp, 5e-6, 2e-6, 0.0);
+        let (mut x, mut v) = (0.0f64, 0.0f64);
+        let dt = 1e-3;
+        for n in 0..20_000 {
+            let t = n as f64 * dt;
+            let force = -k * x - 2.0 * (k * m).sqrt() * v + probe.offset(t);
+            let smoothed = Vector3::new(x, 0.0, 0.0);
+            match probe.observe(&state(t, x), &smoothed, &Vector3::new(force, 0.0, 0.0)) {
+                Step::Done(band) => return band,
+                Step::Blocked { .. } => panic!("blocked"),
+                Step::Running => {}
+            }
+            for _ in 0..10 {
+                let h = dt / 10.0;
+                let net = force - hold;
+                let trial = v + net * h / m;
+                v = if trial.abs() <= f * h / m {
+                    0.0
+                } else {
+                    trial - f * h / m * trial.signum()
+                };
+                x += v * h;
+            }
+        }
+        panic!("no band");
+    }
+
+    #[test]
+    fn the_middle_of_the_band_is_the_holding_force_and_its_half_width_the_friction() {
+        for (m, f, hold) in [(0.12, 0.1, 0.3), (0.5, 0.05, -1.0), (0.005, 0.0, 0.04)] {
+            let band = band_of(m, f, hold, 200.0);
+            assert!((band.middle() - hold).abs() < 2e-4, "{m} {f}: {band:?}");
+            assert!(
+                band.half_width() >= f && band.half_width() < f + 0.03,
+                "{m} {f}: {band:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_pulse_times_the_acceleration_whatever_the_delay() {
+        // 0.05 N beyond the band on 0.2 kg: a = 0.25 m/s², starting 7 ms late.
+        let mut pulse = Pulse::new(0, 0.05, 5e-4, 1.0, &Vector3::zeros(), 0.0);
+        let dt = 1e-3;
+        for n in 0..1000 {
+            let t = n as f64 * dt;
+            let moving = (t - 0.007).max(0.0);
+            match pulse.observe(&state(t, 0.5 * 0.25 * moving * moving)) {
+                Step::Done(m) => return assert!((m - 0.2).abs() < 0.01, "{m}"),
+                Step::Blocked { .. } => panic!("timed out"),
+                Step::Running => {}
+            }
+        }
+        panic!("never done");
+    }
+}

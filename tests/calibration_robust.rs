@@ -1,0 +1,423 @@
+//! Calibration that needs no tuning (issue 17, and issue 14 item 3): the default config on light,
+//! heavy, over-balanced and weightless handles, gravity tilted, Coulomb friction as large as the
+//! load, an obstacle, and the published PHANToM 1.5 arm. Every figure is judged against the
+//! plant's own holding force ([`Plant::holding_force`]), never against calibration output; every
+//! run is in virtual time.
+
+use std::sync::atomic::AtomicBool;
+
+use nalgebra::Vector3;
+
+use hgcd::config::{Config, DeviceSpec};
+use hgcd::control::calibration::persist::grid_file;
+use hgcd::control::calibration::{
+    Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
+};
+use hgcd::control::compensation::{Compensation, ForceOffset, GravityModel};
+use hgcd::control::{ControlOutput, Controller, DeviceState};
+use hgcd::servo::{self, ExitReason, ServoOptions};
+use hgcd::sim::SimDevice;
+use hgcd::transport::sim::SimTransport;
+use hgcd::transport::Pacing;
+
+/// Which simulated device, and its config.
+struct Device {
+    model: &'static str,
+    config: Config,
+}
+
+impl Device {
+    /// The point mass of the default config with apparent mass `mass` (kg), Coulomb friction
+    /// `friction` (N), gravity tilted `tilt` degrees about y, noise seed `seed`. Weightless and
+    /// over-balanced handles get a 50 g moving mass (a counterweight moves too).
+    fn point_mass(mass: f64, friction: f64, tilt: f64, seed: u64) -> Self {
+        let mut config = Config::default();
+        config.sim.mass_kg = mass;
+        config.sim.coulomb_friction_n = friction;
+        config.sim.seed = seed;
+        config.sim.gravity_direction = tilted(tilt);
+        if mass.abs() < 0.005 {
+            config.sim.inertia_kg = Some(0.05);
+        }
+        Self {
+            model: "point-mass",
+            config,
+        }
+    }
+
+    /// The PHANToM 1.5 with its published mechanics and joint friction, gravity tilted `tilt`
+    /// degrees about y.
+    fn phantom(tilt: f64, seed: u64) -> Self {
+        let mut config = Config::default();
+        config.sim.gravity_direction = tilted(tilt);
+        config.sim.seed = seed;
+        Self {
+            model: "phantom",
+            config,
+        }
+    }
+
+    fn spec(&self) -> DeviceSpec {
+        format!("sim:{}", self.model).parse().unwrap()
+    }
+
+    /// The device, its handle at rest at `start` (m).
+    fn at(&self, start: &Vector3<f64>) -> SimDevice {
+        let mut config = self.config.clone();
+        config.sim.start_position_mm = (start * 1e3).into();
+        SimDevice::from_config(self.model, &config).unwrap()
+    }
+
+    /// The plant's holding force at `x`: the ground truth.
+    fn truth(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.at(x).plant().holding_force()
+    }
+
+    /// A calibration run in virtual time with the default parameters, and its events.
+    fn calibrate(&self) -> (CalibrationResult, Vec<CalibrationEvent>) {
+        let device = SimDevice::from_config(self.model, &self.config).unwrap();
+        let (tx, events) = crossbeam_channel::unbounded();
+        let mut calibration =
+            Calibration::new(CalibrationParams::from_config(&self.config), Some(tx)).unwrap();
+        run(device, &mut calibration, &self.config);
+        let events: Vec<_> = events.try_iter().collect();
+        match calibration.outcome() {
+            Some(Ok(result)) => (result, events),
+            other => panic!(
+                "{} {:?}: {other:?}; last events {:?}",
+                self.model,
+                self.config.sim,
+                &events[events.len().saturating_sub(3)..]
+            ),
+        }
+    }
+
+    /// The compensation the daemon would run with the grid of `result` (default mode).
+    fn compensation(&self, result: &CalibrationResult) -> GravityModel {
+        let file = grid_file(result, &self.config, &self.spec());
+        let c = &self.config.compensation;
+        GravityModel::configured(file, c.mode, c.outside_grid).unwrap()
+    }
+
+    /// Where a handle released at rest at `start` under `model` is 0.5 s later, m.
+    fn released(&self, model: &GravityModel, start: &Vector3<f64>) -> Vector3<f64> {
+        let mut compensation =
+            Compensation::new(Some(Box::new(model.clone())), ForceOffset::new(0.05, 0.05));
+        let mut limited = For {
+            controller: &mut compensation,
+            until: 0.5,
+        };
+        run(self.at(start), &mut limited, &self.config)
+    }
+}
+
+/// v_G tilted `degrees` from +z toward +x.
+fn tilted(degrees: f64) -> [f64; 3] {
+    let t = degrees.to_radians();
+    [t.sin(), 0.0, t.cos()]
+}
+
+/// Runs a controller until it is done, stopping as a fault would; where the handle ends, m.
+fn run(device: SimDevice, controller: &mut dyn Controller, config: &Config) -> Vector3<f64> {
+    let mut transport = SimTransport::new(device, Pacing::Virtual);
+    let mut options = ServoOptions::from_config(config);
+    options.stop_on_fault = true;
+    let report = servo::run(
+        &mut transport,
+        controller,
+        &options,
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
+    assert_eq!(report.exit, ExitReason::ControllerDone);
+    transport.device().plant().position()
+}
+
+/// A controller run for `until` seconds of device time.
+struct For<'a> {
+    controller: &'a mut dyn Controller,
+    until: f64,
+}
+
+impl Controller for For<'_> {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        let out = self.controller.tick(s);
+        if s.time >= self.until {
+            ControlOutput::done(out.force)
+        } else {
+            out
+        }
+    }
+}
+
+/// Points across the ±40 mm cube: its 27 vertices' cells' centres and faces, 5 per axis.
+fn cube_points() -> impl Iterator<Item = Vector3<f64>> {
+    let c = [-0.04, -0.02, 0.0, 0.02, 0.04];
+    c.into_iter().flat_map(move |x| {
+        c.into_iter()
+            .flat_map(move |y| c.into_iter().map(move |z| Vector3::new(x, y, z)))
+    })
+}
+
+/// Worst errors of a calibration against the plant, N: of the whole force vector, of its
+/// vertical part (along the plant's gravity), of the one-sided reading; and the plant's smallest
+/// vertical force at a vertex.
+struct Errors {
+    vector: f64,
+    vertical: f64,
+    one_sided: f64,
+    weight: f64,
+}
+
+fn errors(device: &Device, result: &CalibrationResult) -> Errors {
+    let up = Vector3::from(device.config.sim.gravity_direction).normalize();
+    let mut e = Errors {
+        vector: 0.0,
+        vertical: 0.0,
+        one_sided: 0.0,
+        weight: f64::INFINITY,
+    };
+    for v in result.vertices.iter().filter(|v| v.reached) {
+        let truth = device.truth(&v.vertex.position);
+        e.vector = e.vector.max((v.force - truth).norm());
+        e.vertical = e.vertical.max((v.force - truth).dot(&up).abs());
+        e.one_sided = e.one_sided.max((v.one_sided_force - truth).norm());
+        e.weight = e.weight.min(truth.dot(&up).abs());
+    }
+    e
+}
+
+/// The point-mass matrix of issue 17 and issue 14 item 3, chosen to cover it without running
+/// its every combination: 5 g to 500 g, over-balanced (−8 g) and weightless, gravity upright
+/// and tilted 10°, Coulomb friction 0, 0.02, 0.04, 0.06 and 0.1 N, a different noise seed each
+/// (each friction level meets several masses and seeds).
+const MATRIX: &[(f64, f64, f64, u64)] = &[
+    (0.005, 0.0, 10.0, 1),
+    (0.005, 0.04, 0.0, 2),
+    (0.005, 0.1, 10.0, 3),
+    (0.02, 0.02, 10.0, 4),
+    (0.02, 0.06, 0.0, 5),
+    (0.12, 0.0, 0.0, 6),
+    (0.12, 0.02, 10.0, 7),
+    (0.12, 0.1, 0.0, 8),
+    (0.5, 0.0, 10.0, 9),
+    (0.5, 0.04, 10.0, 10),
+    (0.5, 0.1, 0.0, 11),
+    (-0.008, 0.0, 10.0, 12),
+    (-0.008, 0.06, 10.0, 13),
+    (0.0, 0.02, 0.0, 14),
+    (0.0005, 0.1, 10.0, 15),
+];
+
+#[test]
+fn the_default_config_calibrates_light_heavy_over_balanced_and_weightless_handles_with_friction() {
+    for &(mass, friction, tilt, seed) in MATRIX {
+        let device = Device::point_mass(mass, friction, tilt, seed);
+        let (result, events) = device.calibrate();
+        let case = format!("{mass} kg, {friction} N, {tilt}°, seed {seed}");
+        // First try: every vertex reached, no vertex given up on.
+        assert!(result.unreachable.is_empty(), "{case}");
+        assert!(!events
+            .iter()
+            .any(|e| matches!(e, CalibrationEvent::VertexUnreachable { .. })));
+        let e = errors(&device, &result);
+        // Within 2 % of the vertical force, or of the friction where that is more (a 5 g
+        // handle against 0.1 N: the encoder's 5 µm step alone shifts the slips' timing by about
+        // 1 mN), and never less than 1 mN (a weightless handle's; 2 % of −8 g is 1.6 mN).
+        let vertical_bound = (0.02 * e.weight).max(0.02 * friction).max(1e-3);
+        assert!(
+            e.vertical <= vertical_bound,
+            "{case}: vertical error {} N",
+            e.vertical
+        );
+        // The whole vector within 3 % of either, and never less than 2 mN.
+        assert!(
+            e.vector <= (0.03 * e.weight).max(0.03 * friction).max(2e-3),
+            "{case}: error {} N",
+            e.vector
+        );
+    }
+}
+
+#[test]
+fn with_compensation_on_the_residual_is_under_10_mn_and_a_released_handle_stays_within_5_mm() {
+    // Four of the matrix: the lightest frictionless handle drifts furthest for a given
+    // residual (5 mm in 0.5 s is 0.2 mN on 5 g), the heaviest leaves the largest residual.
+    for &(mass, friction, tilt, seed) in [MATRIX[0], MATRIX[4], MATRIX[8], MATRIX[12]].iter() {
+        let device = Device::point_mass(mass, friction, tilt, seed);
+        let (result, _) = device.calibrate();
+        let model = device.compensation(&result);
+        let case = format!("{mass} kg, {friction} N, {tilt}°");
+        for x in cube_points() {
+            let residual = (model.force(&x) - device.truth(&x)).norm();
+            assert!(residual <= 0.01, "{case}: residual {residual} N at {x:?}");
+        }
+        for start in [
+            Vector3::zeros(),
+            Vector3::new(0.013, -0.027, 0.031),
+            Vector3::new(-0.035, 0.02, -0.03),
+        ] {
+            let moved = (device.released(&model, &start) - start).norm();
+            assert!(
+                moved < 5e-3,
+                "{case}: released at {start:?} moved {moved} m"
+            );
+        }
+    }
+}
+
+#[test]
+fn one_unreachable_vertex_is_marked_and_filled_and_the_other_26_are_kept() {
+    // Issue 14, item 3: an obstacle covers the corner (+40, +40, +40) mm of the grid, with
+    // 0.06 N of friction (a friction band yields to a push, an obstacle does not).
+    let mut device = Device::point_mass(0.12, 0.06, 0.0, 1);
+    device.config.sim.obstacle_min_mm = Some([30.0, 30.0, 30.0]);
+    device.config.sim.obstacle_max_mm = Some([90.0, 90.0, 90.0]);
+    let (result, events) = device.calibrate();
+    let unreachable: Vec<_> = events
+        .iter()
+        .filter_map(|e| match e {
+            CalibrationEvent::VertexUnreachable { at, distance, .. } => Some((at.index, *distance)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(unreachable.len(), 1, "{unreachable:?}");
+    assert_eq!(unreachable[0].0, [1, 1, 1]);
+    // The obstacle's nearest face is 10 mm from the vertex.
+    assert!(unreachable[0].1 > 9e-3, "{unreachable:?}");
+    assert_eq!(result.unreachable.len(), 1);
+    let corner = &result.vertices[26];
+    assert!(!corner.reached);
+    // Filled as docs/grid-format.md §4 says: the mean of its three calibrated face neighbours.
+    let neighbours = [25, 23, 17].map(|n| result.vertices[n].force);
+    let mean = neighbours.iter().sum::<Vector3<f64>>() / 3.0;
+    assert!((corner.force - mean).norm() < 1e-12);
+    // The 26 others are kept, within 2 %.
+    let e = errors(&device, &result);
+    assert!(e.vector <= 0.02 * e.weight, "{}", e.vector);
+    // And the grid file says which vertex was filled.
+    let file = grid_file(&result, &device.config, &device.spec());
+    let record = file.calibration.unwrap();
+    assert_eq!(record.unreachable_vertices, Some(vec![[1, 1, 1]]));
+}
+
+#[test]
+fn both_sides_of_the_friction_band_beat_the_papers_one_sided_reading() {
+    // The one-sided rest (the paper's procedure) lands anywhere in the band: off by up to the
+    // friction. The middle of the band is the load.
+    let device = Device::point_mass(0.12, 0.1, 10.0, 21);
+    let (result, _) = device.calibrate();
+    let e = errors(&device, &result);
+    assert!(e.one_sided > 0.05, "one-sided {}", e.one_sided);
+    assert!(e.one_sided <= 0.1 + 0.005, "one-sided {}", e.one_sided);
+    assert!(e.vector < 0.003, "two-sided {}", e.vector);
+    // The friction found is the plant's, within what the slip detection adds.
+    let f = result.initial.friction;
+    assert!(f.iter().all(|&f| (0.08..0.13).contains(&f)), "{f}");
+}
+
+#[test]
+fn the_published_phantom_calibrates_first_time_within_10_mn_and_stays_put_when_compensated() {
+    // Issue 17's Must show on sim:phantom: published mechanics and joint friction, gravity
+    // upright and tilted 10°.
+    for (tilt, seed) in [(0.0, 1), (10.0, 2)] {
+        let device = Device::phantom(tilt, seed);
+        let (result, _) = device.calibrate();
+        assert!(result.unreachable.is_empty(), "{tilt}°");
+        let e = errors(&device, &result);
+        assert!(
+            e.vector <= 0.01,
+            "{tilt}°: force vector off by {} N",
+            e.vector
+        );
+        // The paper's one-sided reading is off by the friction band, about 0.1 N.
+        assert!(e.one_sided > 0.05, "{tilt}°: one-sided {}", e.one_sided);
+        let model = device.compensation(&result);
+        for x in cube_points() {
+            let residual = (model.force(&x) - device.truth(&x)).norm();
+            assert!(residual <= 0.01, "{tilt}°: residual {residual} N at {x:?}");
+        }
+        for start in [
+            Vector3::zeros(),
+            Vector3::new(0.03, -0.03, 0.03),
+            Vector3::new(-0.035, 0.02, -0.03),
+        ] {
+            let moved = (device.released(&model, &start) - start).norm();
+            assert!(
+                moved < 5e-3,
+                "{tilt}°: released at {start:?} moved {moved} m"
+            );
+        }
+    }
+}
+
+/// docs/calibration.md §6's table: on each simulated device, the worst error of the one-sided
+/// reading (the paper's procedure: the force at the first rest near the vertex) and of the
+/// middle of the stick band (hgcd's), with the compensation's worst residual over the cube and
+/// the furthest a released handle moves in 0.5 s. Run with
+/// `cargo test --release --test calibration_robust side_by_side -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn side_by_side() {
+    let mut delta = Device::phantom(0.0, 1);
+    delta.model = "delta";
+    let mut delta_tilted = Device::phantom(10.0, 1);
+    delta_tilted.model = "delta";
+    let devices = [
+        (
+            "point-mass 120 g, no friction",
+            Device::point_mass(0.12, 0.0, 0.0, 1),
+        ),
+        (
+            "point-mass 120 g, 0.05 N",
+            Device::point_mass(0.12, 0.05, 0.0, 1),
+        ),
+        (
+            "point-mass 5 g, 0.1 N, 10°",
+            Device::point_mass(0.005, 0.1, 10.0, 1),
+        ),
+        (
+            "point-mass −8 g, 0.06 N, 10°",
+            Device::point_mass(-0.008, 0.06, 10.0, 1),
+        ),
+        ("phantom, published", Device::phantom(0.0, 1)),
+        ("phantom, published, 10°", Device::phantom(10.0, 1)),
+        ("delta, nominal", delta),
+        ("delta, nominal, 10°", delta_tilted),
+    ];
+    println!(
+        "| device | friction found at X_C, N | paper (one-sided), worst error N | hgcd (band middle), \
+         worst error N | worst vertical error | residual, N | released, mm | device time, s |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+    for (name, device) in devices {
+        let (result, _) = device.calibrate();
+        let e = errors(&device, &result);
+        let model = device.compensation(&result);
+        let residual = cube_points()
+            .map(|x| (model.force(&x) - device.truth(&x)).norm())
+            .fold(0.0, f64::max);
+        let released = [
+            Vector3::zeros(),
+            Vector3::new(0.013, -0.027, 0.031),
+            Vector3::new(-0.035, 0.02, -0.03),
+        ]
+        .iter()
+        .map(|start| (device.released(&model, start) - start).norm())
+        .fold(0.0, f64::max);
+        let f = result.initial.friction;
+        println!(
+            "| {name} | {:.3}, {:.3}, {:.3} | {:.4} | {:.4} | {:.2} % | {:.4} | {:.2} | {:.0} |",
+            f.x,
+            f.y,
+            f.z,
+            e.one_sided,
+            e.vector,
+            100.0 * e.vertical / e.weight,
+            residual,
+            released * 1e3,
+            result.duration
+        );
+    }
+}
