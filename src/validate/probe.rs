@@ -14,6 +14,7 @@
 
 use nalgebra::Vector3;
 
+use crate::control::calibration::steady::SteadyState;
 use crate::control::DeviceState;
 
 /// Damping of the hold per unit of its stiffness, s (c_h = k_h · this).
@@ -127,65 +128,6 @@ pub struct Rest {
     pub settle_time: f64,
 }
 
-/// The paper's "n consecutive samples within a sphere of radius ε", read as for calibration
-/// (docs/calibration.md): two consecutive windows of n samples, each within ε of its first sample,
-/// whose means agree within ε/10.
-#[derive(Clone, Debug)]
-struct Steady {
-    n: usize,
-    eps: f64,
-    first: Vector3<f64>,
-    sum: Vector3<f64>,
-    count: usize,
-    previous_mean: Option<Vector3<f64>>,
-}
-
-impl Steady {
-    fn new(n: usize, eps: f64) -> Self {
-        Self {
-            n,
-            eps,
-            first: Vector3::zeros(),
-            sum: Vector3::zeros(),
-            count: 0,
-            previous_mean: None,
-        }
-    }
-
-    fn reset(&mut self) {
-        self.count = 0;
-        self.previous_mean = None;
-    }
-
-    /// Add a sample; the newest window's mean once it completes a steady state.
-    fn push(&mut self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
-        if self.count == 0 || (x - self.first).norm() > self.eps {
-            if self.count > 0 {
-                self.previous_mean = None;
-            }
-            self.first = *x;
-            self.sum = Vector3::zeros();
-            self.count = 0;
-        }
-        self.sum += x;
-        self.count += 1;
-        if self.count < self.n {
-            return None;
-        }
-        let mean = self.sum / self.n as f64;
-        self.count = 0;
-        match self.previous_mean.replace(mean) {
-            Some(previous) if (mean - previous).norm() < self.eps / 10.0 => Some(mean),
-            _ => None,
-        }
-    }
-
-    /// The newest complete window's mean, if any.
-    fn last_mean(&self) -> Option<Vector3<f64>> {
-        self.previous_mean
-    }
-}
-
 /// What the application is doing.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Phase {
@@ -239,12 +181,13 @@ pub struct Probe {
     since: f64,
     cursor: Cursor,
     reference: Vector3<f64>,
-    steady: Steady,
+    /// The paper's steady state, read as for calibration (docs/calibration.md).
+    steady: SteadyState,
 }
 
 impl Probe {
     pub fn new(plan: ContactPlan, params: ProbeParams) -> Self {
-        let steady = Steady::new(params.steady_samples, params.steady_radius);
+        let steady = SteadyState::new(params.steady_samples, params.steady_radius);
         Self {
             plan,
             params,
@@ -459,12 +402,12 @@ mod tests {
     #[test]
     fn steady_state_needs_two_agreeing_windows() {
         let p = |x: f64| Vector3::new(x, 0.0, 0.0);
-        let mut d = Steady::new(3, 1e-4);
+        let mut d = SteadyState::new(3, 1e-4);
         // Creeping by 10 µm a sample (30 µm per window, ε/10 = 10 µm): never steady.
         for k in 0..30 {
             assert!(d.push(&p(k as f64 * 1e-5)).is_none());
         }
-        let mut d = Steady::new(3, 1e-4);
+        let mut d = SteadyState::new(3, 1e-4);
         let found = (0..6).filter_map(|_| d.push(&p(1e-3))).last();
         assert_eq!(found, Some(p(1e-3)));
     }

@@ -33,7 +33,7 @@ mod outcome;
 pub mod persist;
 mod plan;
 mod probe;
-mod steady;
+pub(crate) mod steady;
 
 pub use machine::{Calibration, CalibrationEvent};
 pub use outcome::{CalibrationFailure, CalibrationResult, InitialMeasurement, VertexResult};

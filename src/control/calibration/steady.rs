@@ -12,7 +12,7 @@ use nalgebra::Vector3;
 /// mean of the n samples before them (the handle is neither creeping toward its equilibrium nor
 /// drifting; an oscillation much smaller than ε averages out); yields their mean.
 #[derive(Clone, Debug)]
-pub(super) struct SteadyState {
+pub(crate) struct SteadyState {
     n: usize,
     eps: f64,
     /// How far two consecutive window means may differ, m.
@@ -24,7 +24,7 @@ pub(super) struct SteadyState {
 }
 
 impl SteadyState {
-    pub(super) fn new(n: usize, eps: f64) -> Self {
+    pub(crate) fn new(n: usize, eps: f64) -> Self {
         Self::with_creep(n, eps, eps / 10.0)
     }
 
@@ -42,12 +42,12 @@ impl SteadyState {
     }
 
     /// Forget both windows.
-    pub(super) fn reset(&mut self) {
+    pub(crate) fn reset(&mut self) {
         self.count = 0;
         self.previous_mean = None;
     }
     /// Add a sample; the mean X̄ of the newest window when it completes a steady state.
-    pub(super) fn push(&mut self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
+    pub(crate) fn push(&mut self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
         if self.count == 0 {
             self.first = *x;
             self.sum = Vector3::zeros();
@@ -68,6 +68,11 @@ impl SteadyState {
             Some(previous) if (mean - previous).norm() < self.creep => Some(mean),
             _ => None,
         }
+    }
+
+    /// The newest complete window's mean, if any (steady or not).
+    pub(crate) fn last_mean(&self) -> Option<Vector3<f64>> {
+        self.previous_mean
     }
 }
 
