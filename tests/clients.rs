@@ -637,7 +637,11 @@ fn the_python_client_takes_the_force_limit_from_the_welcome_or_the_protocol() {
     let script = "import sys, hgcd_client\n\
                   with hgcd_client.connect(sys.argv[1]) as c:\n    \
                   print(c.take_ownership().max_force_n)";
-    for (replies, limit) in [(LIMITED, "3.5"), (&[WELCOME][..], "8.0")] {
+    // A daemon from before the limit was published: the protocol's 8 N.
+    const UNLIMITED: &[&str] = &[
+        r#"{"type":"welcome","version":1,"role":"control","client_id":1,"device":"sim:point-mass","device_id":"sim-point-mass","rate_hz":1000.0}"#,
+    ];
+    for (replies, limit) in [(LIMITED, "3.5"), (UNLIMITED, "8.0")] {
         let output = python_module(&fake_daemon(dir.path(), replies), script);
         assert!(output.status.success(), "{output:?}");
         assert_eq!(text(&output.stdout).trim(), limit);

@@ -113,7 +113,16 @@ impl TestDaemon {
                 let _ = ready_tx.send(());
             })
         });
-        let _ = ready_rx.recv_timeout(WAIT);
+        // Ready, or ended before it (then `join` says why). A loaded machine may take a while
+        // to start it: wait as long as that, not a fixed [`WAIT`].
+        let deadline = std::time::Instant::now() + 4 * WAIT;
+        while ready_rx.recv_timeout(WAIT / 100).is_err() && !handle.is_finished() {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "the daemon neither served its socket nor ended within {:?}",
+                4 * WAIT
+            );
+        }
         Running {
             dir,
             socket,
