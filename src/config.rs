@@ -182,6 +182,8 @@ pub const RANGES: &[(&str, Range)] = &[
     ("validation.n_s", Range::new(2.0, 10_000.0, "samples")),
     ("validation.eps_s_mm", Range::new(0.001, 10.0, "mm")),
     ("validation.settle_timeout_s", Range::new(0.1, 3600.0, "s")),
+    ("validation.up_direction", Range::new(-1000.0, 1000.0, "")),
+    ("validation.drop_mm", Range::new(0.01, 50.0, "mm")),
 ];
 
 impl Range {
@@ -681,12 +683,18 @@ pub struct ValidationConfig {
     pub surface_damping_n_s_per_m: f64,
     /// Height above the surface the handle is lifted to between repetitions, mm.
     pub lift_mm: f64,
+    /// How far the surface drops, and rises back, before the reading from below, mm: more than
+    /// twice the friction force over the surface stiffness.
+    pub drop_mm: f64,
     /// Steady state: samples per window, n_s.
     pub n_s: usize,
     /// Steady state: radius of the window's sphere, eps_s, mm.
     pub eps_s_mm: f64,
     /// A repetition with no steady state after this long is recorded as unsettled, s.
     pub settle_timeout_s: f64,
+    /// "Up" in the device frame, opposite to gravity: the surface's normal. Unset: on a simulated
+    /// device its world's up, on hardware the grid's v_G.
+    pub up_direction: Option<[f64; 3]>,
 }
 
 impl Default for ValidationConfig {
@@ -696,9 +704,11 @@ impl Default for ValidationConfig {
             hold_stiffness_n_per_mm: 1.0,
             surface_damping_n_s_per_m: 10.0,
             lift_mm: 5.0,
+            drop_mm: 1.0,
             n_s: 50,
             eps_s_mm: 0.05,
             settle_timeout_s: 5.0,
+            up_direction: None,
         }
     }
 }
@@ -717,6 +727,11 @@ impl ValidationConfig {
     /// Lift height, m.
     pub fn lift(&self) -> f64 {
         self.lift_mm * 1e-3
+    }
+
+    /// The surface's drop before the reading from below, m.
+    pub fn drop(&self) -> f64 {
+        self.drop_mm * 1e-3
     }
 
     /// Radius of the steady-state sphere, m.
@@ -1093,9 +1108,19 @@ impl Config {
             v.surface_damping_n_s_per_m,
         )?;
         in_range("validation.lift_mm", v.lift_mm)?;
+        in_range("validation.drop_mm", v.drop_mm)?;
         in_range("validation.n_s", v.n_s as f64)?;
         in_range("validation.eps_s_mm", v.eps_s_mm)?;
         in_range("validation.settle_timeout_s", v.settle_timeout_s)?;
+        if let Some(up) = v.up_direction {
+            each_in_range("validation.up_direction", up)?;
+            if Vector3::from(up).norm() < 1e-6 {
+                return Err(invalid(
+                    "validation.up_direction",
+                    "must not be the zero vector: give the direction opposite to gravity, e.g. [0.0, 0.0, 1.0]",
+                ));
+            }
+        }
         Ok(())
     }
 

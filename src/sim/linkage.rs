@@ -403,6 +403,10 @@ impl<M: Mechanism> Plant for Linkage<M> {
             .unwrap_or_else(|| Vector3::repeat(f64::NAN))
     }
 
+    fn up(&self) -> Vector3<f64> {
+        -self.env.gravity.normalize()
+    }
+
     fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64> {
         let zero = Vector3::zeros();
         let mut q = self.q;

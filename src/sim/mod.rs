@@ -41,6 +41,8 @@ pub trait Plant: Send {
     /// from where it is: quantised as its encoders quantise (Cartesian for the point mass, joint
     /// angles then forward kinematics for a linkage).
     fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64>;
+    /// Unit "up" of the simulated world in the device frame: opposite to gravity.
+    fn up(&self) -> Vector3<f64>;
 }
 
 /// Why a simulated device could not be built from its config.

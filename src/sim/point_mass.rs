@@ -153,6 +153,9 @@ impl Plant for PointMass {
     fn holding_force(&self) -> Vector3<f64> {
         self.field.gravity_direction * (self.mass() * self.field.g)
     }
+    fn up(&self) -> Vector3<f64> {
+        self.field.gravity_direction
+    }
     fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64> {
         let x = self.x + noise;
         if self.resolution > 0.0 {

@@ -45,7 +45,7 @@ impl ExperimentController {
         compensation.model = models[0].take();
         let mut arbiter = Arbiter::new(compensation);
         arbiter.command(ServoCommand::SetOwner(Some(PROBE_CLIENT)));
-        let rests = Vec::with_capacity(probe.plan().total());
+        let rests = Vec::with_capacity(probe.plan().readings());
         Self {
             arbiter,
             models,

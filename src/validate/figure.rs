@@ -73,7 +73,7 @@ fn plot<DB: DrawingBackend>(
     let top = report
         .modes
         .iter()
-        .flat_map(|m| m.points.iter())
+        .flat_map(|m| m.two_sided.points.iter())
         .map(|s| mm(s.mean + s.std))
         .filter(|v| v.is_finite())
         .fold(mm(report.ideal) * 1.5, f64::max)
@@ -126,6 +126,7 @@ fn plot<DB: DrawingBackend>(
         // Side by side at each point, so the error bars do not hide each other.
         let shift = (r as f64 - (runs - 1.0) / 2.0) * 0.15;
         let points: Vec<(f64, f64, f64)> = m
+            .two_sided
             .points
             .iter()
             .enumerate()
@@ -133,7 +134,7 @@ fn plot<DB: DrawingBackend>(
             .map(|(k, s)| ((k + 1) as f64 + shift, mm(s.mean), mm(s.std)))
             .collect();
         let line: Vec<(f64, f64)> = points.iter().map(|&(x, y, _)| (x, y)).collect();
-        let label = format!("{}: mean {:.3} mm", m.mode.name(), mm(m.mean));
+        let label = format!("{}: mean {:.3} mm", m.mode.name(), mm(m.two_sided.mean));
         let style = colour.stroke_width(2);
         let series = if m.mode == Mode::None {
             chart.draw_series(DashedLineSeries::new(line.clone(), 4, 4, style))?

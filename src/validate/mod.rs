@@ -25,7 +25,8 @@ use thiserror::Error;
 use tracing::info;
 
 pub use figure::FigureError;
-pub use report::{ModeReport, PointStats, Report, Sample};
+pub use probe::Reading;
+pub use report::{ModeReport, PointStats, Readings, Report, Sample};
 
 use crate::calibrate::{calibrate, CalibrateError, CalibrateRequest, CalibrationRun};
 use crate::config::{CompensationMode, Config, ConfigError, DeviceSpec};
@@ -33,6 +34,7 @@ use crate::control::calibration::CalibrationEvent;
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel, ModelError};
 use crate::grid::{grid_path, GridError, GridFile};
 use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
+use crate::sim::SimDevice;
 use crate::transport::{self, Pacing, Transport, TransportError};
 use controller::ExperimentController;
 use probe::{ContactPlan, Probe, ProbeParams, Rest};
@@ -202,6 +204,8 @@ pub struct Prepared {
     request: ValidateRequest,
     transport: Box<dyn Transport>,
     grid: GridSource,
+    /// The surface's normal where known before the grid ([`surface_normal`]).
+    up: Option<Vector3<f64>>,
 }
 
 /// The files a validation wrote.
@@ -238,6 +242,7 @@ pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, V
     device_config.sim.probe_mass_kg = request.probe_mass;
     let transport = transport::open(&request.device, &device_config, request.pacing)
         .map_err(ValidateError::Open)?;
+    let up = surface_normal(&request.device, &device_config)?;
     let device = transport::identify(transport.as_ref(), &request.device, &device_config)
         .map_err(ValidateError::Open)?;
     request.device = device.spec.clone();
@@ -265,14 +270,40 @@ pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, V
     };
     if let GridSource::File(file, path) = &grid {
         // Refuse now rather than after the device has moved.
-        experiment_setup(config, &request, file, path)?;
+        experiment_setup(config, &request, up, file, path)?;
     }
     Ok(Prepared {
         config: config.clone(),
         request,
         transport,
         grid,
+        up,
     })
+}
+
+/// The surface's normal, "up" (opposite to gravity) in the device frame, where the config or the
+/// device knows it: `validation.up_direction`, else on a simulated device its world's up. None
+/// leaves it to the grid's v_G (the paper's assumption: the handle's apparent gravity force is
+/// vertical).
+fn surface_normal(
+    device: &DeviceSpec,
+    config: &Config,
+) -> Result<Option<Vector3<f64>>, ValidateError> {
+    if let Some(up) = config.validation.up_direction {
+        return Ok(Some(Vector3::from(up).normalize()));
+    }
+    match device {
+        DeviceSpec::Sim { model } => {
+            let sim = SimDevice::from_config(model, config).map_err(|source| {
+                ValidateError::Open(TransportError::Simulation {
+                    spec: device.to_string(),
+                    source,
+                })
+            })?;
+            Ok(Some(sim.plant().up()))
+        }
+        _ => Ok(None),
+    }
 }
 
 fn check_request(r: &ValidateRequest) -> Result<(), ValidateError> {
@@ -319,6 +350,7 @@ struct Setup {
 fn experiment_setup(
     config: &Config,
     request: &ValidateRequest,
+    up: Option<Vector3<f64>>,
     file: &GridFile,
     path: &Path,
 ) -> Result<Setup, ValidateError> {
@@ -328,15 +360,16 @@ fn experiment_setup(
     let plan = ContactPlan::paper(
         centre,
         v.point_spacing(),
-        grid.gravity_direction,
+        up.unwrap_or(grid.gravity_direction),
         request.modes.len(),
         request.repetitions,
     );
     let (lo, hi) = config.device.workspace();
     for p in &plan.points {
         let lifted = p + plan.normal * v.lift();
+        let dropped = p - plan.normal * v.drop();
         let inside = |x: &Vector3<f64>| (0..3).all(|a| x[a] >= lo[a] && x[a] <= hi[a]);
-        if !grid.contains(p) || !inside(p) || !inside(&lifted) {
+        if !grid.contains(p) || !inside(p) || !inside(&lifted) || !inside(&dropped) {
             return Err(ValidateError::PointOutside {
                 point: *p,
                 grid: path.to_path_buf(),
@@ -348,6 +381,7 @@ fn experiment_setup(
         surface_damping: v.surface_damping_n_s_per_m,
         hold_stiffness: v.hold_stiffness(),
         lift: v.lift(),
+        drop: v.drop(),
         steady_samples: v.n_s,
         steady_radius: v.eps_s(),
         settle_timeout: v.settle_timeout_s,
@@ -397,6 +431,7 @@ impl Prepared {
             request,
             transport,
             grid,
+            up,
         } = self;
         let (file, path, calibration) = match grid {
             GridSource::File(file, path) => (*file, path, None),
@@ -409,8 +444,9 @@ impl Prepared {
             plan,
             params,
             models,
-        } = experiment_setup(&config, &request, &file, &path)?;
+        } = experiment_setup(&config, &request, up, &file, &path)?;
         let points = plan.points.clone();
+        let normal = plan.normal;
         let total = plan.total();
         progress(ValidateEvent::Started { of: total });
         info!(
@@ -439,14 +475,22 @@ impl Prepared {
         let handle = servo::thread::spawn(transport, controller, options, servo_config, stop, None)
             .map_err(ValidateError::Spawn)?;
         let mut done = 0;
-        let mut show = |rest: Rest, done: &mut usize| {
-            *done += 1;
-            progress(ValidateEvent::Rest {
-                done: *done,
-                of: total,
-                mode: request.modes[rest.run],
-                penalty: (points[rest.point] - rest.position).norm(),
-            });
+        let mut above = None;
+        // A repetition ends with its reading from below; show its two-sided penalty.
+        let mut show = |rest: Rest, done: &mut usize| match rest.reading {
+            Reading::Below => {
+                *done += 1;
+                let x = above
+                    .take()
+                    .map_or(rest.position, |a: Vector3<f64>| (a + rest.position) / 2.0);
+                progress(ValidateEvent::Rest {
+                    done: *done,
+                    of: total,
+                    mode: request.modes[rest.run],
+                    penalty: (points[rest.point] - x).norm(),
+                });
+            }
+            _ => above = Some(rest.position),
         };
         while !handle.is_finished() {
             for rest in rx.try_iter() {
@@ -465,7 +509,14 @@ impl Prepared {
             ExitReason::Fault(fault) => return Err(ValidateError::Fault(fault)),
             exit => return Err(ValidateError::EndedEarly(exit)),
         }
-        let report = Report::new(&request, &file, &path, &points, &controller.into_rests());
+        let report = Report::new(
+            &request,
+            &file,
+            &path,
+            &points,
+            &normal,
+            &controller.into_rests(),
+        );
         let outputs = write_outputs(&request.out, &report, started.elapsed().as_secs_f64())?;
         Ok(Validation {
             report,

@@ -1,7 +1,10 @@
 //! The application side of the experiment: what a client of the daemon would render, tick by tick,
 //! from the state it is sent. It carries the handle to each contact point, lowers it onto a
-//! horizontal surface, waits for the steady state and records where the handle rests, then lifts
-//! it off and lowers it again (so friction is sampled afresh at every repetition).
+//! horizontal surface, waits for the steady state and records where the handle rests (the paper's
+//! reading, from above); then drops the surface by a little and raises it back into place, so the
+//! handle rises to its rest and is read again from below; then lifts it off and lowers it again
+//! (so friction is sampled afresh at every repetition). Friction stops a handle short of its
+//! equilibrium on the side it comes from, so the two readings bracket it.
 //!
 //! The force it asks for, with n the unit "up" (v_G), N = n nᵀ and T = I − N:
 //!
@@ -25,6 +28,8 @@ const RELEASE_TIME: f64 = 0.1;
 const GRIP_TIME: f64 = 0.05;
 /// Lowering the reference from the lift height onto the surface, s (minimum jerk).
 const LOWER_TIME: f64 = 0.15;
+/// Dropping the surface below the contact point, and raising it back, s each (minimum jerk).
+const DROP_TIME: f64 = 0.15;
 /// Raising it back to the lift height, s (minimum jerk).
 const RAISE_TIME: f64 = 0.1;
 /// Transits between contact points: at least this long, s ...
@@ -43,6 +48,8 @@ pub struct ProbeParams {
     pub hold_stiffness: f64,
     /// Lift height above the surface, m.
     pub lift: f64,
+    /// How far the surface drops before it rises back into place for the reading from below, m.
+    pub drop: f64,
     /// Steady state: samples per window.
     pub steady_samples: usize,
     /// Steady state: sphere radius, m.
@@ -109,9 +116,37 @@ impl ContactPlan {
     pub fn total(&self) -> usize {
         self.runs * self.points.len() * self.repetitions
     }
+
+    /// Readings in the whole experiment: two per repetition.
+    pub fn readings(&self) -> usize {
+        2 * self.total()
+    }
 }
 
-/// One repetition's outcome: where the handle came to rest on the surface.
+/// Which side the handle came to rest from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Reading {
+    /// Sinking into the surface from above: the paper's procedure.
+    Above,
+    /// Pushed up by the surface as it rises back into place.
+    Below,
+    /// The middle of the two rests of one repetition: hgcd's procedure.
+    TwoSided,
+}
+
+impl Reading {
+    pub const ALL: [Reading; 3] = [Reading::Above, Reading::Below, Reading::TwoSided];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Reading::Above => "above",
+            Reading::Below => "below",
+            Reading::TwoSided => "two-sided",
+        }
+    }
+}
+
+/// One reading: where the handle came to rest on the surface.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Rest {
     /// Run (compensation mode), in plan order.
@@ -119,12 +154,15 @@ pub struct Rest {
     /// Index of the contact point in [`ContactPlan::points`].
     pub point: usize,
     pub repetition: usize,
+    /// [`Reading::Above`] or [`Reading::Below`].
+    pub reading: Reading,
     /// Mean position over the steady window, m.
     pub position: Vector3<f64>,
     /// False when no steady state came within the timeout (`position` is then the newest
     /// window's mean, or the last sample).
     pub settled: bool,
-    /// Time from the end of the release to the steady state, s.
+    /// Time from the end of the release (from above) or of the surface's rise (from below) to
+    /// the steady state, s.
     pub settle_time: f64,
 }
 
@@ -145,8 +183,12 @@ enum Phase {
     Lower,
     /// Fading the vertical hold out.
     Release,
-    /// Waiting for the steady state.
-    Settle,
+    /// Waiting for the steady state, approached from one side.
+    Settle(Reading),
+    /// Dropping the surface by [`ProbeParams::drop`].
+    Drop,
+    /// Raising it back into place.
+    Raise,
     /// Fading the vertical hold in, then raising the reference to lift height.
     Lift,
     /// All repetitions done: holding the handle at lift height.
@@ -181,6 +223,8 @@ pub struct Probe {
     since: f64,
     cursor: Cursor,
     reference: Vector3<f64>,
+    /// How far the surface is below the contact point, m.
+    surface_drop: f64,
     /// The paper's steady state, read as for calibration (docs/calibration.md).
     steady: SteadyState,
 }
@@ -199,6 +243,7 @@ impl Probe {
                 repetition: 0,
             },
             reference: Vector3::zeros(),
+            surface_drop: 0.0,
             steady,
         }
     }
@@ -287,11 +332,28 @@ impl Probe {
                 let w = 1.0 - (t - self.since) / RELEASE_TIME;
                 if w <= 0.0 {
                     self.steady.reset();
-                    self.enter(Phase::Settle, t);
+                    self.enter(Phase::Settle(Reading::Above), t);
                 }
                 (w.max(0.0), 1.0)
             }
-            Phase::Settle => {
+            Phase::Drop => {
+                let u = (t - self.since) / DROP_TIME;
+                self.surface_drop = self.params.drop * min_jerk(u);
+                if u >= 1.0 {
+                    self.enter(Phase::Raise, t);
+                }
+                (0.0, 1.0)
+            }
+            Phase::Raise => {
+                let u = (t - self.since) / DROP_TIME;
+                self.surface_drop = self.params.drop * (1.0 - min_jerk(u));
+                if u >= 1.0 {
+                    self.steady.reset();
+                    self.enter(Phase::Settle(Reading::Below), t);
+                }
+                (0.0, 1.0)
+            }
+            Phase::Settle(reading) => {
                 let waited = t - self.since;
                 let found = self.steady.push(&s.position);
                 if found.is_some() || waited >= self.params.settle_timeout {
@@ -302,11 +364,16 @@ impl Probe {
                         run: self.cursor.run,
                         point: self.plan.order[self.cursor.visit],
                         repetition: self.cursor.repetition,
+                        reading,
                         position,
                         settled: found.is_some(),
                         settle_time: waited,
                     });
-                    self.enter(Phase::Lift, t);
+                    let next = match reading {
+                        Reading::Above => Phase::Drop,
+                        _ => Phase::Lift,
+                    };
+                    self.enter(next, t);
                 }
                 (0.0, 1.0)
             }
@@ -363,7 +430,7 @@ impl Probe {
         let v_t = s.velocity - n * v_n;
         let mut f = e_t * k_h - v_t * c_h + n * (w * (k_h * e_n - c_h * v_n));
         if surface > 0.0 {
-            let depth = (self.point() - s.position).dot(&n);
+            let depth = (self.point() - s.position).dot(&n) - self.surface_drop;
             if depth > 0.0 {
                 let push = self.params.stiffness * depth - self.params.surface_damping * v_n;
                 f += n * (surface * push.max(0.0));
@@ -429,6 +496,7 @@ mod tests {
             surface_damping: 10.0,
             hold_stiffness: 1000.0,
             lift: 0.005,
+            drop: 0.001,
             steady_samples: 50,
             steady_radius: 5e-5,
             settle_timeout: 5.0,
@@ -459,7 +527,7 @@ mod tests {
             t += dt;
             assert!(t < 200.0, "the experiment does not end");
         }
-        assert_eq!(rests.len(), 54);
+        assert_eq!(rests.len(), 108);
         let ideal = m * g / 1000.0;
         for r in &rests {
             let p = probe.plan().points[r.point];

@@ -1,5 +1,5 @@
-//! The experiment's results: every repetition, the statistics per mode and contact point, and the
-//! three ways they leave: the terminal table, `penalties.csv` and `summary.json`.
+//! The experiment's results: every reading, the statistics per mode, reading and contact point,
+//! and the three ways they leave: the terminal table, `penalties.csv` and `summary.json`.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -7,18 +7,19 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector3;
 use serde_json::json;
 
-use super::probe::Rest;
+use super::probe::{Reading, Rest};
 use super::{Mode, ValidateRequest};
 use crate::grid::GridFile;
 
-/// One repetition.
+/// One reading of one repetition.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sample {
     pub mode: Mode,
     /// Index of the contact point (its number is this + 1).
     pub point: usize,
     pub repetition: usize,
-    /// Where the handle rested, m.
+    pub reading: Reading,
+    /// Where the handle rested (two-sided: the middle of the two rests), m.
     pub position: Vector3<f64>,
     /// ΔX = ‖P_n − X‖, m.
     pub penalty: f64,
@@ -26,8 +27,9 @@ pub struct Sample {
     pub depth: f64,
     /// Distance across the surface normal, m (what the horizontal hold let through).
     pub lateral: f64,
+    /// Two-sided: both readings settled.
     pub settled: bool,
-    /// s.
+    /// s (two-sided: the two readings' sum).
     pub settle_time: f64,
 }
 
@@ -42,10 +44,9 @@ pub struct PointStats {
     pub count: usize,
 }
 
-/// One mode's results.
+/// One mode's results from one reading.
 #[derive(Clone, Debug, PartialEq)]
-pub struct ModeReport {
-    pub mode: Mode,
+pub struct Readings {
     /// Mean penalty over every settled repetition at every point, m.
     pub mean: f64,
     /// Standard deviation over all of them, m.
@@ -54,6 +55,28 @@ pub struct ModeReport {
     pub unsettled: usize,
     /// Per contact point, in point order.
     pub points: Vec<PointStats>,
+}
+
+/// One mode's results.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModeReport {
+    pub mode: Mode,
+    /// hgcd's procedure: the middle of the rests from above and from below.
+    pub two_sided: Readings,
+    /// The paper's procedure: the rest sinking into the surface from above.
+    pub above: Readings,
+    /// The rest the rising surface pushes the handle up to.
+    pub below: Readings,
+}
+
+impl ModeReport {
+    pub fn of(&self, reading: Reading) -> &Readings {
+        match reading {
+            Reading::Above => &self.above,
+            Reading::Below => &self.below,
+            Reading::TwoSided => &self.two_sided,
+        }
+    }
 }
 
 /// Everything a validation measured.
@@ -72,6 +95,8 @@ pub struct Report {
     pub ideal: f64,
     /// The contact points, m, in point order.
     pub points: Vec<Vector3<f64>>,
+    /// The surface's normal, unit "up".
+    pub up: Vector3<f64>,
     /// In run order.
     pub modes: Vec<ModeReport>,
     pub samples: Vec<Sample>,
@@ -99,60 +124,84 @@ impl Report {
         file: &GridFile,
         grid: &Path,
         points: &[Vector3<f64>],
+        normal: &Vector3<f64>,
         rests: &[Rest],
     ) -> Self {
-        let normal = file.grid.gravity_direction;
-        let samples: Vec<Sample> = rests
-            .iter()
-            .map(|r| {
-                let offset = points[r.point] - r.position;
-                let depth = offset.dot(&normal);
-                Sample {
-                    mode: request.modes[r.run],
-                    point: r.point,
-                    repetition: r.repetition,
-                    position: r.position,
-                    penalty: offset.norm(),
-                    depth,
-                    lateral: (offset - normal * depth).norm(),
-                    settled: r.settled,
-                    settle_time: r.settle_time,
-                }
-            })
-            .collect();
+        let normal = *normal;
+        let sample = |r: &Rest, reading: Reading, position: Vector3<f64>| {
+            let offset = points[r.point] - position;
+            let depth = offset.dot(&normal);
+            Sample {
+                mode: request.modes[r.run],
+                point: r.point,
+                repetition: r.repetition,
+                reading,
+                position,
+                penalty: offset.norm(),
+                depth,
+                lateral: (offset - normal * depth).norm(),
+                settled: r.settled,
+                settle_time: r.settle_time,
+            }
+        };
+        let mut samples = Vec::with_capacity(rests.len() * 3 / 2);
+        for (k, r) in rests.iter().enumerate() {
+            samples.push(sample(r, r.reading, r.position));
+            // A reading from below follows the same repetition's reading from above.
+            let above = k.checked_sub(1).map(|j| &rests[j]).filter(|a| {
+                a.reading == Reading::Above
+                    && (a.run, a.point, a.repetition) == (r.run, r.point, r.repetition)
+            });
+            if let (Reading::Below, Some(a)) = (r.reading, above) {
+                let mut both = sample(r, Reading::TwoSided, (a.position + r.position) / 2.0);
+                both.settled = a.settled && r.settled;
+                both.settle_time = a.settle_time + r.settle_time;
+                samples.push(both);
+            }
+        }
+        let readings = |mode: Mode, reading: Reading| {
+            let of = |p: Option<usize>| {
+                samples
+                    .iter()
+                    .filter(|s| {
+                        s.mode == mode
+                            && s.reading == reading
+                            && s.settled
+                            && p.is_none_or(|p| s.point == p)
+                    })
+                    .map(|s| s.penalty)
+                    .collect::<Vec<f64>>()
+            };
+            let (mean, std) = mean_std(&of(None));
+            let points = (0..points.len())
+                .map(|p| {
+                    let values = of(Some(p));
+                    let (mean, std) = mean_std(&values);
+                    PointStats {
+                        mean,
+                        std,
+                        count: values.len(),
+                    }
+                })
+                .collect();
+            Readings {
+                mean,
+                std,
+                unsettled: samples
+                    .iter()
+                    .filter(|s| s.mode == mode && s.reading == reading && !s.settled)
+                    .count(),
+                points,
+            }
+        };
         let modes = request
             .modes
             .iter()
-            .map(|&mode| {
-                let of_mode = |p: Option<usize>| {
-                    samples
-                        .iter()
-                        .filter(|s| s.mode == mode && s.settled && p.is_none_or(|p| s.point == p))
-                        .map(|s| s.penalty)
-                        .collect::<Vec<f64>>()
-                };
-                let (mean, std) = mean_std(&of_mode(None));
-                let points = (0..points.len())
-                    .map(|p| {
-                        let values = of_mode(Some(p));
-                        let (mean, std) = mean_std(&values);
-                        PointStats {
-                            mean,
-                            std,
-                            count: values.len(),
-                        }
-                    })
-                    .collect();
-                ModeReport {
-                    mode,
-                    mean,
-                    std,
-                    unsettled: samples
-                        .iter()
-                        .filter(|s| s.mode == mode && !s.settled)
-                        .count(),
-                    points,
-                }
+            .map(|&mode| ModeReport {
+                mode,
+                two_sided: readings(mode, Reading::TwoSided),
+                above: readings(mode, Reading::Above),
+                below: readings(mode, Reading::Below),
             })
             .collect();
         Self {
@@ -164,6 +213,7 @@ impl Report {
             repetitions: request.repetitions,
             ideal: request.probe_mass * file.grid.g / request.stiffness,
             points: points.to_vec(),
+            up: normal,
             modes,
             samples,
         }
@@ -173,7 +223,8 @@ impl Report {
     pub fn table(&self) -> String {
         let mut out = format!(
             "penalty ΔX = ‖P_n − X‖ at steady state, mm: mean ± standard deviation over {} \
-             repetitions\n(probe {:.0} g, surface {} N/mm; ideal m_p g / k = {:.3} mm)\n",
+             repetitions\nX: the middle of the rests from above and from below (the paper read \
+             from above only)\n(probe {:.0} g, surface {} N/mm; ideal m_p g / k = {:.3} mm)\n",
             self.repetitions,
             self.probe_mass * 1e3,
             self.stiffness * 1e-3,
@@ -195,47 +246,62 @@ impl Report {
                 p.z
             );
             for m in &self.modes {
-                let s = m.points[n];
+                let s = m.two_sided.points[n];
                 let cell = format!("{:.3} ± {:.3}", mm(s.mean), mm(s.std));
                 let _ = write!(out, "  {cell:<18}");
             }
             out.push('\n');
         }
-        let _ = write!(out, "  mean                  ");
-        for m in &self.modes {
-            let error = (m.mean / self.ideal - 1.0) * 1e2;
-            let cell = format!("{:.3} ({error:+.1} %)", mm(m.mean));
-            let _ = write!(out, "  {cell:<18}");
+        for (reading, label) in [
+            (Reading::TwoSided, "mean                  "),
+            (Reading::Above, "mean from above, paper"),
+            (Reading::Below, "mean from below       "),
+        ] {
+            let _ = write!(out, "  {label}");
+            for m in &self.modes {
+                let r = m.of(reading);
+                let error = (r.mean / self.ideal - 1.0) * 1e2;
+                let cell = format!("{:.3} ({error:+.1} %)", mm(r.mean));
+                let _ = write!(out, "  {cell:<18}");
+            }
+            out.push('\n');
         }
-        out.push('\n');
-        for m in self.modes.iter().filter(|m| m.unsettled > 0) {
-            let _ = writeln!(
-                out,
-                "  {}: {} repetition(s) found no steady state and are left out (see the CSV)",
-                m.mode.name(),
-                m.unsettled
-            );
+        for m in &self.modes {
+            for reading in [Reading::Above, Reading::Below] {
+                let unsettled = m.of(reading).unsettled;
+                if unsettled > 0 {
+                    let _ = writeln!(
+                        out,
+                        "  {}: {unsettled} reading(s) from {} found no steady state; their \
+                         repetitions are left out (see the CSV)",
+                        m.mode.name(),
+                        reading.name()
+                    );
+                }
+            }
         }
         // Cells are padded to line up; lines end without the padding.
         out.lines().map(|l| format!("{}\n", l.trim_end())).collect()
     }
 
-    /// Every repetition, one line each (`penalties.csv`).
+    /// Every reading, one line each (`penalties.csv`).
     pub fn csv(&self) -> String {
         let mut out = String::from(
-            "mode,point,x_mm,y_mm,z_mm,repetition,penalty_mm,depth_mm,lateral_mm,settled,settle_ms\n",
+            "mode,point,x_mm,y_mm,z_mm,repetition,reading,penalty_mm,depth_mm,lateral_mm,settled,\
+             settle_ms\n",
         );
         for s in &self.samples {
             let p = self.points[s.point] * 1e3;
             let _ = writeln!(
                 out,
-                "{},{},{},{},{},{},{:.5},{:.5},{:.5},{},{:.0}",
+                "{},{},{},{},{},{},{},{:.5},{:.5},{:.5},{},{:.0}",
                 s.mode.name(),
                 s.point + 1,
                 p.x,
                 p.y,
                 p.z,
                 s.repetition + 1,
+                s.reading.name(),
                 mm(s.penalty),
                 mm(s.depth),
                 mm(s.lateral),
@@ -246,34 +312,41 @@ impl Report {
         out
     }
 
+    /// One mode's statistics from one reading, as `summary.json` gives them.
+    fn readings_json(&self, r: &Readings) -> serde_json::Value {
+        let points: Vec<serde_json::Value> = r
+            .points
+            .iter()
+            .enumerate()
+            .map(|(n, s)| {
+                let p = self.points[n] * 1e3;
+                json!({
+                    "number": n + 1,
+                    "position_mm": [p.x, p.y, p.z],
+                    "mean_mm": mm(s.mean),
+                    "std_mm": mm(s.std),
+                    "repetitions": s.count,
+                })
+            })
+            .collect();
+        json!({
+            "mean_mm": mm(r.mean),
+            "std_mm": mm(r.std),
+            "error_percent": (r.mean / self.ideal - 1.0) * 1e2,
+            "unsettled": r.unsettled,
+            "points": points,
+        })
+    }
+
     /// `summary.json` (docs/validation.md §4 lists the keys).
     pub fn summary_json(&self, wall_time: f64) -> String {
         let modes: serde_json::Map<String, serde_json::Value> = self
             .modes
             .iter()
             .map(|m| {
-                let points: Vec<serde_json::Value> = m
-                    .points
-                    .iter()
-                    .enumerate()
-                    .map(|(n, s)| {
-                        let p = self.points[n] * 1e3;
-                        json!({
-                            "number": n + 1,
-                            "position_mm": [p.x, p.y, p.z],
-                            "mean_mm": mm(s.mean),
-                            "std_mm": mm(s.std),
-                            "repetitions": s.count,
-                        })
-                    })
-                    .collect();
-                let value = json!({
-                    "mean_mm": mm(m.mean),
-                    "std_mm": mm(m.std),
-                    "error_percent": (m.mean / self.ideal - 1.0) * 1e2,
-                    "unsettled": m.unsettled,
-                    "points": points,
-                });
+                let mut value = self.readings_json(&m.two_sided);
+                value["from_above"] = self.readings_json(&m.above);
+                value["from_below"] = self.readings_json(&m.below);
                 (m.mode.name().to_string(), value)
             })
             .collect();
@@ -285,6 +358,7 @@ impl Report {
             "g": self.g,
             "repetitions": self.repetitions,
             "ideal_mm": mm(self.ideal),
+            "up_direction": [self.up.x, self.up.y, self.up.z],
             "modes": modes,
             "wall_time_s": wall_time,
         });
