@@ -137,6 +137,9 @@ pub const RANGES: &[(&str, Range)] = &[
     ("sim.noise_mm", Range::new(0.0, 1.0, "mm")),
     ("sim.damping_n_s_per_m", Range::new(0.0, 100.0, "N*s/m")),
     ("sim.coulomb_friction_n", Range::new(0.0, 10.0, "N")),
+    ("sim.spring_n_per_m", Range::new(0.0, 10_000.0, "N/m")),
+    ("sim.spring_anchor_mm", Range::new(-1000.0, 1000.0, "mm")),
+    ("sim.force_delay_ms", Range::new(0.0, 100.0, "ms")),
     ("sim.probe_mass_kg", Range::new(0.0, 1.0, "kg")),
     ("sim.friction_scale", Range::new(0.0, 10.0, "")),
     ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
@@ -508,6 +511,13 @@ pub struct SimConfig {
     /// Coulomb friction at the handle, N: the handle sticks while the net force on it is at most
     /// this, and slides against this much force otherwise.
     pub coulomb_friction_n: f64,
+    /// point-mass: an isotropic spring pulling the handle toward `spring_anchor_mm` (a cable, a
+    /// hose), N/m.
+    pub spring_n_per_m: f64,
+    pub spring_anchor_mm: [f64; 3],
+    /// The actuators render each force command this much later, ms (whole report periods): a
+    /// slow amplifier or a buffered driver.
+    pub force_delay_ms: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
     pub probe_mass_kg: f64,
     /// Linkage plants: which unit of the model (0: the nominal published one; any other value a
@@ -544,6 +554,9 @@ impl Default for SimConfig {
             noise_mm: 0.002,
             damping_n_s_per_m: 0.0,
             coulomb_friction_n: 0.0,
+            spring_n_per_m: 0.0,
+            spring_anchor_mm: [0.0; 3],
+            force_delay_ms: 0.0,
             probe_mass_kg: 0.0,
             unit_seed: 0,
             friction_scale: 1.0,
@@ -834,6 +847,15 @@ impl SimConfig {
     }
 
     /// The obstacle box (smallest corner, largest corner), m, if both corners are given.
+    pub fn spring_anchor(&self) -> Vector3<f64> {
+        mm(self.spring_anchor_mm)
+    }
+
+    /// The actuators' delay, s.
+    pub fn force_delay(&self) -> f64 {
+        self.force_delay_ms * 1e-3
+    }
+
     pub fn obstacle(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
         Some(mm_box(self.obstacle_min_mm?, self.obstacle_max_mm?))
     }
@@ -1004,6 +1026,9 @@ impl Config {
         in_range("sim.noise_mm", sim.noise_mm)?;
         in_range("sim.damping_n_s_per_m", sim.damping_n_s_per_m)?;
         in_range("sim.coulomb_friction_n", sim.coulomb_friction_n)?;
+        in_range("sim.spring_n_per_m", sim.spring_n_per_m)?;
+        each_in_range("sim.spring_anchor_mm", sim.spring_anchor_mm)?;
+        in_range("sim.force_delay_ms", sim.force_delay_ms)?;
         in_range("sim.probe_mass_kg", sim.probe_mass_kg)?;
         in_range("sim.friction_scale", sim.friction_scale)?;
         in_range("sim.substep_hz", sim.substep_hz)?;

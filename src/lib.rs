@@ -7,7 +7,9 @@ pub mod calibrate; //  `hgcd calibrate`: run Algorithm 1 on a device and persist
 pub mod config; //     typed configuration, defaults, validation
 pub mod control; //    controllers: PD hold, calibration, compensation
 pub mod daemon; //     `hgcd run`: compensation, application server, calibration on request
+pub mod discrepancy; // `hgcd record` and `hgcd analyze`: where model and measurement disagree
 pub mod estimate; //   FOAW velocity estimation
+pub mod figure; //     SVG and PNG figures without system libraries
 pub mod grid; //       apparent-mass grid, trilinear interpolation, hgcd-grid/1 files
 pub mod mailbox; //    what the daemon hands the servo thread and gets back, lock-free
 pub mod newest; //     a slot where the newest value wins, wait-free on both sides

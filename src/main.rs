@@ -11,6 +11,7 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use hgcd::calibrate::{calibrate, CalibrateError, CalibrateRequest};
 use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH, SIM_MODELS};
 use hgcd::daemon::{self, RunError, RunRequest, Signals};
+use hgcd::discrepancy::{self, AnalyzeRequest, RecordError, RecordRequest};
 
 mod ctl;
 mod progress;
@@ -111,6 +112,42 @@ enum Command {
         /// Do not ask for confirmation before starting on a real device.
         #[arg(long)]
         yes: bool,
+    },
+    /// Log an identification run: compensation on, a PD law tracking slow and fast multisines
+    /// and holds inside the calibrated grid (docs/discrepancy.md). Ctrl-C ends it early with a
+    /// valid, shorter log.
+    Record {
+        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+        #[arg(long, value_name = "SPEC")]
+        device: Option<String>,
+        /// Compensate with this grid (default: the device's stored grid).
+        #[arg(long, value_name = "FILE")]
+        grid: Option<PathBuf>,
+        /// The log to write (CSV, docs/log-format.md).
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+        /// Seconds of device time to record.
+        #[arg(long, value_name = "S", default_value_t = 40.0)]
+        duration: f64,
+        /// Run a simulated device in real time (default for simulated devices: virtual time).
+        #[arg(long)]
+        real_time: bool,
+        /// Do not ask for confirmation before starting on a real device.
+        #[arg(long)]
+        yes: bool,
+    },
+    /// Compare a measured log with a calibrated grid: where they disagree, which physical effect
+    /// the model misses (or none), and how much adding it shrinks the gap on held-out data.
+    Analyze {
+        /// The calibrated model (hgcd-grid/1).
+        #[arg(long, value_name = "FILE")]
+        grid: PathBuf,
+        /// The measured log (CSV, docs/log-format.md).
+        #[arg(long, value_name = "FILE")]
+        log: PathBuf,
+        /// Directory for the report (created if needed).
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
     },
     /// Show the running daemon's state: device, grid, mode, clients, loop timing.
     Status,
@@ -307,6 +344,34 @@ fn real_main(cli: Cli) -> Result<()> {
             };
             validate_here(&config, &request, yes)
         }
+        Command::Record {
+            device,
+            grid,
+            out,
+            duration,
+            real_time,
+            yes,
+        } => {
+            let config = config()?;
+            let device = device_spec(device.as_deref(), &config)?;
+            let simulated = matches!(device, DeviceSpec::Sim { .. });
+            if !simulated && !yes {
+                confirm_start()?;
+            }
+            let request = RecordRequest {
+                device,
+                pacing: if simulated && !real_time {
+                    Pacing::Virtual
+                } else {
+                    Pacing::RealTime
+                },
+                grid,
+                out,
+                duration,
+            };
+            record_here(&config, &request)
+        }
+        Command::Analyze { grid, log, out } => analyze_here(&AnalyzeRequest { grid, log, out }),
         Command::Status => ctl::status(&config()?.socket_path()),
         Command::SimDevice {
             listen,
@@ -373,6 +438,42 @@ fn calibrate_here(
     display.finish();
     let run = run?;
     out(&progress::summary(&run))
+}
+
+/// `hgcd record`: the identification run; says where the log went.
+fn record_here(config: &Config, request: &RecordRequest) -> Result<()> {
+    let stop = install_stop_handler()?;
+    let mut display = progress::RecordDisplay::new(request.duration);
+    let recording = discrepancy::record(config, request, stop, &mut |share| display.show(share));
+    display.finish();
+    let recording = recording?;
+    out(&format!(
+        "{} rows, {:.1} s{} in {}\n",
+        recording.log.len(),
+        recording.log.duration(),
+        if recording.interrupted {
+            " (stopped early)"
+        } else {
+            ""
+        },
+        request.out.display()
+    ))
+}
+
+/// `hgcd analyze`: a line per stage on stderr, the verdict on stdout.
+fn analyze_here(request: &AnalyzeRequest) -> Result<()> {
+    let analysis = discrepancy::analyze(request, &mut |stage| err(&format!("analyze: {stage}\n")))?;
+    let (before, after) = analysis.errors();
+    out(&format!(
+        "effect: {}\nheld-out RMS force residual: {:.4} N nominal, {:.4} N augmented \
+         ({:+.0} %)\nreport in {} ({:.1} s wall time)\n",
+        analysis.effect.name(),
+        before,
+        after,
+        (after / before - 1.0) * 1e2,
+        request.out.join("report.md").display(),
+        analysis.wall_time
+    ))
 }
 
 /// `hgcd validate` in this process: prepare, confirm on hardware, run; prints the table.
@@ -536,7 +637,12 @@ fn exit_status(e: &anyhow::Error) -> u8 {
         (_, _, Some(ValidateError::Calibration(c))) => calibrate_gone(c),
         _ => false,
     };
-    if device_gone {
+    let recording_gone = match e.downcast_ref::<RecordError>() {
+        Some(RecordError::Open(t)) => gone(t),
+        Some(RecordError::Servo(s)) => servo_gone(s),
+        _ => false,
+    };
+    if device_gone || recording_gone {
         EXIT_DEVICE_GONE
     } else {
         1

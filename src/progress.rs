@@ -217,6 +217,49 @@ impl ValidationDisplay {
     }
 }
 
+/// Progress of `hgcd record`: a bar over the share recorded on a terminal, a log line every
+/// tenth otherwise.
+pub struct RecordDisplay {
+    bar: Option<ProgressBar>,
+    tenths: u64,
+}
+
+impl RecordDisplay {
+    pub fn new(seconds: f64) -> Self {
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let bar = ProgressBar::new(1000);
+            bar.set_style(
+                ProgressStyle::with_template(&format!(
+                    "{{spinner}} [{{elapsed_precise}}] {{bar:30}} recording {seconds} s of device \
+                     time  {{percent}} %"
+                ))
+                .expect("valid template"),
+            );
+            bar
+        });
+        Self { bar, tenths: 0 }
+    }
+
+    pub fn show(&mut self, share: f64) {
+        match &self.bar {
+            Some(bar) => bar.set_position((share.clamp(0.0, 1.0) * 1e3) as u64),
+            None => {
+                let tenths = (share.clamp(0.0, 1.0) * 10.0) as u64;
+                if tenths > self.tenths {
+                    self.tenths = tenths;
+                    info!("recording: {} % done", tenths * 10);
+                }
+            }
+        }
+    }
+
+    pub fn finish(&mut self) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+    }
+}
+
 /// Vertices a calibration with `config` visits (for the bar's length).
 pub fn vertex_count(config: &Config) -> usize {
     GridPlan::new(&CalibrationParams::from_config(config))

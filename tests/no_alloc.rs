@@ -15,6 +15,7 @@ use nalgebra::Vector3;
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
 use hgcd::control::calibration::{Calibration, CalibrationParams};
+use hgcd::discrepancy::record::{RecordParams, Recorder};
 use hgcd::grid::GridFile;
 use hgcd::protocol::OUTPUT_REPORT_LEN;
 use hgcd::servo::{self, ServoOptions};
@@ -236,6 +237,7 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
         surface_damping: 10.0,
         hold_stiffness: 1000.0,
         lift: 0.005,
+        drop: 0.001,
         steady_samples: 50,
         steady_radius: 5e-5,
         settle_timeout: 5.0,
@@ -259,9 +261,39 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
     )
     .unwrap();
     let rests = experiment.into_rests();
-    assert_eq!(rests.len(), 2 * 27 * 2, "the experiment completes");
+    assert_eq!(rests.len(), 2 * 2 * 27 * 2, "the experiment completes");
     assert!(rests.iter().all(|r| r.settled));
     assert_quiet("validation experiment", &seen, 10_000);
+}
+
+#[test]
+fn an_identification_run_of_hgcd_record() {
+    use hgcd::control::compensation::{CompensationMode, GravityModel, OutsideGrid};
+    let mut config = config();
+    config.sim.force_delay_ms = 3.0;
+    let sim = SimTransport::new(
+        SimDevice::from_config("point-mass", &config).unwrap(),
+        Pacing::Virtual,
+    );
+    let (mut tap, seen) = counting(sim);
+    let model = GravityModel::new(
+        GridFile::from(truth_field_27()),
+        CompensationMode::Scalar,
+        OutsideGrid::HoldNearest,
+    )
+    .unwrap();
+    let params = RecordParams::inside(&model, 12.0);
+    let mut recorder = Recorder::new(params, model, config.servo_period());
+    servo::run(
+        &mut tap,
+        &mut recorder,
+        &ServoOptions::from_config(&config),
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
+    assert!(recorder.into_rows().len() >= 12_000, "the run completes");
+    assert_quiet("identification run", &seen, 10_000);
 }
 
 #[test]

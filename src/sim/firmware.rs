@@ -13,6 +13,10 @@ use crate::protocol::{
     INPUT_REPORT_LEN, MODEL_LEN,
 };
 
+/// The longest actuator delay simulated, report periods (`sim.force_delay_ms` at 1 kHz is at
+/// most 100).
+const MAX_DELAY_PERIODS: usize = 128;
+
 /// Emulated device firmware: one report period at a time.
 pub struct SimDevice {
     plant: Box<dyn Plant>,
@@ -31,6 +35,10 @@ pub struct SimDevice {
     clock_us: u64,
     sequence: u16,
     command: Vector3<f64>,
+    /// The actuators' delay line: the commands of the last `delay` periods, oldest first out.
+    delayed: [Vector3<f64>; MAX_DELAY_PERIODS],
+    delay: usize,
+    delay_slot: usize,
     enabled: bool,
     last_command_us: u64,
     saturated: bool,
@@ -62,6 +70,9 @@ impl SimDevice {
             clock_us: 0,
             sequence: 0,
             command: Vector3::zeros(),
+            delayed: [Vector3::zeros(); MAX_DELAY_PERIODS],
+            delay: 0,
+            delay_slot: 0,
             enabled: false,
             last_command_us: 0,
             saturated: false,
@@ -99,6 +110,8 @@ impl SimDevice {
             sim.device_watchdog(),
         );
         device.stop_reporting_after = sim.stop_reporting_after_s;
+        device.delay =
+            ((sim.force_delay() / device.period).round() as usize).min(MAX_DELAY_PERIODS);
         device.model = format!("sim-{model}");
         device.serial = sim.serial.clone();
         Ok(device)
@@ -192,6 +205,11 @@ impl SimDevice {
             self.command = Vector3::zeros();
         }
         let mut force = self.command;
+        if self.delay > 0 {
+            // The slot about to be overwritten holds the command of `delay` periods ago.
+            force = std::mem::replace(&mut self.delayed[self.delay_slot], self.command);
+            self.delay_slot = (self.delay_slot + 1) % self.delay;
+        }
         self.saturated = false;
         for axis in 0..3 {
             if force[axis].abs() > self.max_force {

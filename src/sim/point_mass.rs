@@ -10,7 +10,8 @@ use crate::grid::{GridError, GridFile, MassGrid};
 const MIN_INERTIA: f64 = 1e-3;
 
 /// A point-like end effector with position-dependent apparent mass M(X) and inertia m:
-/// m Ẍ = F − M(X) g v_G − b Ẋ + F_c, inside hard stops that absorb the motion into them.
+/// m Ẍ = F − M(X) g v_G − b Ẋ − k (X − X_k) + F_c, inside hard stops that absorb the motion into
+/// them (k, X_k: an optional spring, a cable pulling the handle).
 ///
 /// F_c is Coulomb friction of level f_c: while the handle is at rest it sticks as long as the
 /// net force on it, |F − M g v_G|, is at most f_c (F_c cancels it); otherwise it slides and
@@ -24,6 +25,9 @@ pub struct PointMass {
     pub damping: f64,
     /// Coulomb friction level f_c, N (static and sliding alike).
     pub friction: f64,
+    /// Spring stiffness k, N/m, and its anchor X_k, m.
+    pub spring: f64,
+    pub spring_anchor: Vector3<f64>,
     /// Moving mass m without the payload, kg; `None`: |M(X)| (at least 1 g).
     pub inertia: Option<f64>,
     /// A box inside the workspace the handle cannot enter (smallest corner, largest), m: an
@@ -51,6 +55,8 @@ impl PointMass {
             field,
             damping,
             friction: 0.0,
+            spring: 0.0,
+            spring_anchor: Vector3::zeros(),
             inertia: None,
             obstacle: None,
             payload: 0.0,
@@ -79,6 +85,8 @@ impl PointMass {
         let mut plant = Self::new(field, sim.damping_n_s_per_m, (lo, hi), sim.start_position());
         plant.payload = sim.probe_mass_kg;
         plant.friction = sim.coulomb_friction_n;
+        plant.spring = sim.spring_n_per_m;
+        plant.spring_anchor = sim.spring_anchor();
         plant.inertia = sim.inertia_kg;
         plant.obstacle = sim.obstacle();
         plant.resolution = sim.encoder_resolution();
@@ -152,6 +160,7 @@ impl Plant for PointMass {
     }
     fn holding_force(&self) -> Vector3<f64> {
         self.field.gravity_direction * (self.mass() * self.field.g)
+            + (self.x - self.spring_anchor) * self.spring
     }
     fn up(&self) -> Vector3<f64> {
         self.field.gravity_direction

@@ -1,37 +1,18 @@
 //! The paper's Fig. 2 for one device: the mean penalty at each contact point with its standard
 //! deviation as an error bar, one line per compensation mode, and the ideal m_p g / k as a dashed
-//! line. Drawn with plotters without system libraries: text uses the embedded DejaVu Sans subset
-//! (assets/fonts/).
+//! line ([`crate::figure`]).
 
-use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::path::Path;
 
 use plotters::coord::Shift;
 use plotters::prelude::*;
-use plotters::style::{register_font, FontStyle};
-use thiserror::Error;
 
 use super::report::Report;
 use super::Mode;
-
-/// The embedded font (a subset of DejaVu Sans; licence in assets/fonts/LICENSE).
-static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans-subset.ttf");
+use crate::figure::{Figure, FigureError};
 
 /// Figure size, px.
 const SIZE: (u32, u32) = (1100, 620);
-
-#[derive(Debug, Error)]
-#[error("drawing the figure {}: {message}", path.display())]
-pub struct FigureError {
-    pub path: PathBuf,
-    pub message: String,
-}
-
-/// Register the embedded font as plotters' "sans-serif", once per process.
-fn font_registered() -> bool {
-    static REGISTERED: OnceLock<bool> = OnceLock::new();
-    *REGISTERED.get_or_init(|| register_font("sans-serif", FontStyle::Normal, FONT).is_ok())
-}
 
 /// Colour and line style of a mode: the paper's blue dotted line without compensation, red solid
 /// with it; the vector mode in green.
@@ -45,23 +26,18 @@ fn colour(mode: Mode) -> RGBColor {
 
 /// Draw the figure as SVG at `svg` and PNG at `png`.
 pub fn draw(report: &Report, svg: &Path, png: &Path) -> Result<(), FigureError> {
-    let err = |path: &Path| {
-        let path = path.to_path_buf();
-        move |e: &dyn std::fmt::Display| FigureError {
-            path: path.clone(),
-            message: e.to_string(),
-        }
-    };
-    if !font_registered() {
-        return Err(err(svg)(&"the embedded font does not load"));
+    crate::figure::draw(&Penalties(report), SIZE, svg, png)
+}
+
+struct Penalties<'a>(&'a Report);
+
+impl Figure for Penalties<'_> {
+    fn plot<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+    ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+        plot(self.0, root)
     }
-    let root = SVGBackend::new(svg, SIZE).into_drawing_area();
-    plot(report, &root).map_err(|e| err(svg)(&e))?;
-    root.present().map_err(|e| err(svg)(&e))?;
-    let root = BitMapBackend::new(png, SIZE).into_drawing_area();
-    plot(report, &root).map_err(|e| err(png)(&e))?;
-    root.present().map_err(|e| err(png)(&e))?;
-    Ok(())
 }
 
 fn plot<DB: DrawingBackend>(

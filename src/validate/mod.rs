@@ -24,7 +24,7 @@ use nalgebra::Vector3;
 use thiserror::Error;
 use tracing::info;
 
-pub use figure::FigureError;
+pub use crate::figure::FigureError;
 pub use probe::Reading;
 pub use report::{ModeReport, PointStats, Readings, Report, Sample};
 

@@ -1,0 +1,376 @@
+//! The measured log (docs/log-format.md): CSV with a header row naming at least
+//! `t,x,y,z,fx,fy,fz` (s, m, N), optionally `xr,yr,zr` (m); other columns ignored, `#` lines
+//! comments. `# key = value` comments before the header carry what `hgcd record` knows: the
+//! device's grid id and the excitation's gains.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use nalgebra::Vector3;
+use thiserror::Error;
+
+/// The shortest log analysed, s: its held-out part must still hold several slow cycles.
+pub const MIN_DURATION: f64 = 10.0;
+/// Sample rates accepted, Hz.
+pub const RATE_RANGE: (f64, f64) = (200.0, 20_000.0);
+/// A step longer than this many median steps is a gap: the derivatives assume even sampling.
+const GAP_STEPS: f64 = 5.0;
+
+/// Why a log cannot be analysed. Each names the file and, where it can, the line.
+#[derive(Debug, Error)]
+pub enum LogError {
+    #[error("cannot read the log {}", path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("log {}: no header row (the first line that is not a comment)", path.display())]
+    NoHeader { path: PathBuf },
+    #[error("log {}: the header has no column `{column}` (needed: t,x,y,z,fx,fy,fz)", path.display())]
+    MissingColumn { path: PathBuf, column: &'static str },
+    #[error("log {} line {line}: {problem}", path.display())]
+    Row {
+        path: PathBuf,
+        line: usize,
+        problem: String,
+    },
+    #[error(
+        "log {}: {seconds:.1} s of data; analyze needs at least {MIN_DURATION} s (hgcd record \
+         writes 40 s by default)",
+        path.display()
+    )]
+    TooShort { path: PathBuf, seconds: f64 },
+    #[error(
+        "log {}: rows come at {rate:.0} Hz; analyze takes {} to {} Hz",
+        path.display(), RATE_RANGE.0, RATE_RANGE.1
+    )]
+    Rate { path: PathBuf, rate: f64 },
+    #[error("writing the log {}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// The excitation a log was recorded with, as `hgcd record` writes it in the log's comments: the
+/// PD law F = F_G(X) + K (X_r − X) + D (Ẋ_r − Ẋ) its force followed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Excitation {
+    /// K, N/m.
+    pub stiffness: f64,
+    /// D, N·s/m.
+    pub damping: f64,
+}
+
+/// A measured log, SI units.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Log {
+    /// s, strictly increasing.
+    pub time: Vec<f64>,
+    /// Measured end-effector position, m.
+    pub position: Vec<Vector3<f64>>,
+    /// Total force commanded at that tick, N.
+    pub force: Vec<Vector3<f64>>,
+    /// The reference the excitation tracked, m (when the log has `xr,yr,zr`).
+    pub reference: Option<Vec<Vector3<f64>>>,
+    /// The grid id of the device it was recorded on (`# device = ID`).
+    pub device: Option<String>,
+    /// The excitation's PD gains (`# stiffness_n_per_m = K`, `# damping_n_s_per_m = D`).
+    pub excitation: Option<Excitation>,
+}
+
+impl Log {
+    pub fn len(&self) -> usize {
+        self.time.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.time.is_empty()
+    }
+
+    /// Duration, s.
+    pub fn duration(&self) -> f64 {
+        match (self.time.first(), self.time.last()) {
+            (Some(a), Some(b)) => b - a,
+            _ => 0.0,
+        }
+    }
+
+    /// Median sample period, s.
+    pub fn period(&self) -> f64 {
+        let mut steps: Vec<f64> = self.time.windows(2).map(|w| w[1] - w[0]).collect();
+        if steps.is_empty() {
+            return f64::NAN;
+        }
+        let mid = steps.len() / 2;
+        *steps.select_nth_unstable_by(mid, f64::total_cmp).1
+    }
+
+    /// Read and check a log file.
+    ///
+    /// # Errors
+    /// [`LogError`]: unreadable, no header or a needed column missing, a row with a missing,
+    /// unparsable or non-finite value, times that repeat or go back, a gap, too short, or a rate
+    /// out of range.
+    pub fn load(path: &Path) -> Result<Self, LogError> {
+        let text = std::fs::read_to_string(path).map_err(|source| LogError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// [`Log::load`] on `text`, read from `path`.
+    pub fn parse(text: &str, path: &Path) -> Result<Self, LogError> {
+        let row_error = |line: usize, problem: String| LogError::Row {
+            path: path.to_path_buf(),
+            line,
+            problem,
+        };
+        let mut log = Log::default();
+        let mut gains = (None, None);
+        let mut columns: Option<Columns> = None;
+        for (index, raw) in text.lines().enumerate() {
+            let line = index + 1;
+            let trimmed = raw.trim();
+            if trimmed.is_empty() {
+                continue;
+            }
+            if let Some(comment) = trimmed.strip_prefix('#') {
+                if columns.is_none() {
+                    if let Some((key, value)) = comment.split_once('=') {
+                        let value = value.trim();
+                        match key.trim() {
+                            "device" => log.device = Some(value.to_string()),
+                            "stiffness_n_per_m" => gains.0 = value.parse::<f64>().ok(),
+                            "damping_n_s_per_m" => gains.1 = value.parse::<f64>().ok(),
+                            _ => {}
+                        }
+                    }
+                }
+                continue;
+            }
+            let Some(c) = &columns else {
+                let parsed = Columns::find(trimmed, path)?;
+                if parsed.reference.is_some() {
+                    log.reference = Some(Vec::new());
+                }
+                columns = Some(parsed);
+                continue;
+            };
+            let fields: Vec<&str> = trimmed.split(',').map(str::trim).collect();
+            let value = |i: usize, name: &str| -> Result<f64, LogError> {
+                let text = fields
+                    .get(i)
+                    .ok_or_else(|| row_error(line, format!("no value for `{name}`")))?;
+                let v: f64 = text
+                    .parse()
+                    .map_err(|_| row_error(line, format!("`{name}` is not a number: `{text}`")))?;
+                if !v.is_finite() {
+                    return Err(row_error(line, format!("`{name}` is {v}")));
+                }
+                Ok(v)
+            };
+            let triple = |at: [usize; 3], names: [&str; 3]| -> Result<Vector3<f64>, LogError> {
+                Ok(Vector3::new(
+                    value(at[0], names[0])?,
+                    value(at[1], names[1])?,
+                    value(at[2], names[2])?,
+                ))
+            };
+            let t = value(c.time, "t")?;
+            if let Some(&previous) = log.time.last() {
+                if t == previous {
+                    return Err(row_error(
+                        line,
+                        format!("time {t} s repeats the row before"),
+                    ));
+                }
+                if t < previous {
+                    return Err(row_error(
+                        line,
+                        format!("time {t} s goes back (the row before is at {previous} s)"),
+                    ));
+                }
+            }
+            log.time.push(t);
+            log.position.push(triple(c.position, ["x", "y", "z"])?);
+            log.force.push(triple(c.force, ["fx", "fy", "fz"])?);
+            if let (Some(at), Some(reference)) = (c.reference, log.reference.as_mut()) {
+                reference.push(triple(at, ["xr", "yr", "zr"])?);
+            }
+        }
+        if columns.is_none() {
+            return Err(LogError::NoHeader {
+                path: path.to_path_buf(),
+            });
+        }
+        if let (Some(stiffness), Some(damping)) = gains {
+            log.excitation = Some(Excitation { stiffness, damping });
+        }
+        log.check(path)?;
+        Ok(log)
+    }
+
+    /// Long enough, evenly sampled at an accepted rate.
+    fn check(&self, path: &Path) -> Result<(), LogError> {
+        let seconds = self.duration();
+        if seconds < MIN_DURATION {
+            return Err(LogError::TooShort {
+                path: path.to_path_buf(),
+                seconds,
+            });
+        }
+        let period = self.period();
+        let rate = 1.0 / period;
+        if !(RATE_RANGE.0..=RATE_RANGE.1).contains(&rate) {
+            return Err(LogError::Rate {
+                path: path.to_path_buf(),
+                rate,
+            });
+        }
+        if let Some(k) = self
+            .time
+            .windows(2)
+            .position(|w| w[1] - w[0] > GAP_STEPS * period)
+        {
+            return Err(LogError::Row {
+                path: path.to_path_buf(),
+                line: 0,
+                problem: format!(
+                    "a gap of {:.1} ms after t = {} s (rows come every {:.2} ms): analyze needs \
+                     evenly spaced rows",
+                    (self.time[k + 1] - self.time[k]) * 1e3,
+                    self.time[k],
+                    period * 1e3
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// The log as CSV, with the device and excitation as comments.
+    pub fn to_csv(&self) -> String {
+        let mut out = String::from("# hgcd record log (docs/log-format.md)\n");
+        if let Some(device) = &self.device {
+            let _ = writeln!(out, "# device = {device}");
+        }
+        if let Some(e) = &self.excitation {
+            let _ = writeln!(out, "# stiffness_n_per_m = {}", e.stiffness);
+            let _ = writeln!(out, "# damping_n_s_per_m = {}", e.damping);
+        }
+        out.push_str("t,x,y,z,fx,fy,fz");
+        if self.reference.is_some() {
+            out.push_str(",xr,yr,zr");
+        }
+        out.push('\n');
+        for k in 0..self.len() {
+            let (x, f) = (self.position[k], self.force[k]);
+            let _ = write!(
+                out,
+                "{:.6},{:.9},{:.9},{:.9},{:.6},{:.6},{:.6}",
+                self.time[k], x.x, x.y, x.z, f.x, f.y, f.z
+            );
+            if let Some(r) = &self.reference {
+                let r = r[k];
+                let _ = write!(out, ",{:.9},{:.9},{:.9}", r.x, r.y, r.z);
+            }
+            out.push('\n');
+        }
+        out
+    }
+
+    /// Write the log to `path`.
+    ///
+    /// # Errors
+    /// [`LogError::Write`].
+    pub fn save(&self, path: &Path) -> Result<(), LogError> {
+        std::fs::write(path, self.to_csv()).map_err(|source| LogError::Write {
+            path: path.to_path_buf(),
+            source,
+        })
+    }
+}
+
+/// Where the needed columns are in a header.
+struct Columns {
+    time: usize,
+    position: [usize; 3],
+    force: [usize; 3],
+    reference: Option<[usize; 3]>,
+}
+
+impl Columns {
+    fn find(header: &str, path: &Path) -> Result<Self, LogError> {
+        let names: Vec<&str> = header.split(',').map(str::trim).collect();
+        let at = |column: &'static str| names.iter().position(|n| *n == column);
+        let need = |column: &'static str| {
+            at(column).ok_or_else(|| LogError::MissingColumn {
+                path: path.to_path_buf(),
+                column,
+            })
+        };
+        let reference = match (at("xr"), at("yr"), at("zr")) {
+            (Some(a), Some(b), Some(c)) => Some([a, b, c]),
+            _ => None,
+        };
+        Ok(Self {
+            time: need("t")?,
+            position: [need("x")?, need("y")?, need("z")?],
+            force: [need("fx")?, need("fy")?, need("fz")?],
+            reference,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rows(n: usize, period: f64) -> String {
+        let mut s = String::from("# device = sim-point-mass\nt,x,y,z,fx,fy,fz,extra\n");
+        for k in 0..n {
+            let _ = writeln!(s, "{},{},0,0,0,0,1.2,7", k as f64 * period, k as f64 * 1e-6);
+        }
+        s
+    }
+
+    #[test]
+    fn a_log_round_trips_through_csv() {
+        let text = rows(12_000, 1e-3);
+        let log = Log::parse(&text, Path::new("l.csv")).unwrap();
+        assert_eq!(log.len(), 12_000);
+        assert_eq!(log.device.as_deref(), Some("sim-point-mass"));
+        assert!((log.period() - 1e-3).abs() < 1e-12);
+        let again = Log::parse(&log.to_csv(), Path::new("l.csv")).unwrap();
+        // Written to the nanometre and the micronewton.
+        let close = |a: &[Vector3<f64>], b: &[Vector3<f64>], tolerance: f64| {
+            a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).amax() <= tolerance)
+        };
+        assert!(close(&again.position, &log.position, 1e-9));
+        assert!(close(&again.force, &log.force, 1e-6));
+        assert_eq!(again.device, log.device);
+    }
+
+    #[test]
+    fn bad_logs_say_what_is_wrong() {
+        let p = Path::new("l.csv");
+        let says = |text: &str, what: &str| {
+            let e = Log::parse(text, p).unwrap_err().to_string();
+            assert!(e.contains(what), "{e}");
+        };
+        says("t,x,y,z,fx,fy\n0,0,0,0,0,0\n", "no column `fz`");
+        says("# only comments\n", "no header row");
+        says(&rows(3000, 1e-3), "3.0 s of data");
+        let mut nan = rows(12_000, 1e-3);
+        nan = nan.replacen("1.2,7\n", "NaN,7\n", 1);
+        says(&nan, "line 3: `fz` is NaN");
+        let mut repeat = rows(12_000, 1e-3);
+        repeat = repeat.replacen("0.001,", "0,", 1);
+        says(&repeat, "line 4: time 0 s repeats");
+        let slow = rows(200, 0.1);
+        says(&slow, "rows come at 10 Hz");
+    }
+}

@@ -1,0 +1,362 @@
+//! Where the model and the measurement disagree (docs/discrepancy.md): `hgcd record` logs an
+//! identification run with compensation on ([`record`]); `hgcd analyze` compares the log with
+//! the calibrated model, locates the disagreement, names the physical effect the model is
+//! missing (or none), adds it and shows on held-out data that the gap shrinks ([`analyze`]).
+
+pub mod analysis;
+pub mod effects;
+pub mod log;
+pub mod record;
+mod report;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use thiserror::Error;
+use tracing::info;
+
+use crate::config::{Config, ConfigError, DeviceSpec};
+use crate::control::compensation::{GravityModel, ModelError};
+use crate::figure::FigureError;
+use crate::grid::{grid_path, GridError, GridFile};
+use crate::servo::{self, ExitReason, ServoError, ServoOptions};
+use crate::transport::{self, Pacing, TransportError};
+use analysis::{Fit, Signals};
+pub use effects::Effect;
+use log::{Log, LogError};
+use record::{RecordParams, Recorder};
+pub use report::Diagnostics;
+
+/// What `hgcd record` is asked to do.
+#[derive(Clone, Debug)]
+pub struct RecordRequest {
+    pub device: DeviceSpec,
+    pub pacing: Pacing,
+    /// The grid compensating during the run (None: the device's stored grid).
+    pub grid: Option<PathBuf>,
+    /// The log to write.
+    pub out: PathBuf,
+    /// Device time to record, s.
+    pub duration: f64,
+}
+
+/// Why `hgcd record` wrote no log.
+#[derive(Debug, Error)]
+pub enum RecordError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("--duration {0} s is out of range (10 to 3600 s)")]
+    Duration(f64),
+    #[error(transparent)]
+    Open(TransportError),
+    #[error(
+        "no calibration grid for {device} at {}: calibrate it first (`hgcd calibrate --device \
+         {device}`) or pass --grid FILE",
+        path.display()
+    )]
+    NoGrid { device: String, path: PathBuf },
+    #[error(transparent)]
+    Grid(GridError),
+    #[error("grid {}: {source}", path.display())]
+    Model {
+        path: PathBuf,
+        #[source]
+        source: ModelError,
+    },
+    #[error("starting the servo thread")]
+    Spawn(#[source] std::io::Error),
+    #[error("the servo thread panicked")]
+    ServoPanicked,
+    #[error("the recording stopped")]
+    Servo(#[source] ServoError),
+    #[error("the recording stopped by a fault: {0:?}; no log was written")]
+    Ended(ExitReason),
+    #[error(transparent)]
+    Log(#[from] LogError),
+}
+
+/// A finished recording.
+#[derive(Debug)]
+pub struct Recording {
+    pub log: Log,
+    /// Stopped early by Ctrl-C (the log is valid, only shorter).
+    pub interrupted: bool,
+}
+
+/// Drive the device through the excitation (compensation on) and write the log. `progress` sees
+/// the share done (0 to 1) now and then, on the calling thread.
+///
+/// # Errors
+/// [`RecordError`]: a bad duration or config, a device that cannot be opened, no usable grid, or
+/// a fault during the run (no log is written then).
+pub fn record(
+    config: &Config,
+    request: &RecordRequest,
+    stop: Arc<AtomicBool>,
+    progress: &mut dyn FnMut(f64),
+) -> Result<Recording, RecordError> {
+    config.validate()?;
+    if !(log::MIN_DURATION..=3600.0).contains(&request.duration) {
+        return Err(RecordError::Duration(request.duration));
+    }
+    let transport =
+        transport::open(&request.device, config, request.pacing).map_err(RecordError::Open)?;
+    let device = transport::identify(transport.as_ref(), &request.device, config)
+        .map_err(RecordError::Open)?;
+    let config = &config.for_device(device.info.as_ref());
+    let path = match &request.grid {
+        Some(path) => path.clone(),
+        None => grid_path(&config.state_dir(), &device.grid_id()),
+    };
+    let file = match GridFile::load_for(&path, &device) {
+        Ok(file) => file,
+        Err(GridError::Missing { .. }) if request.grid.is_none() => {
+            return Err(RecordError::NoGrid {
+                device: device.spec.to_string(),
+                path,
+            })
+        }
+        Err(e) => return Err(RecordError::Grid(e)),
+    };
+    let c = &config.compensation;
+    let model = GravityModel::configured(file, c.mode, c.outside_grid)
+        .map_err(|source| RecordError::Model { path, source })?;
+    let params = RecordParams::inside(&model, request.duration);
+    let recorder = Recorder::new(params, model, config.servo_period());
+    let elapsed_ms = recorder.elapsed_ms();
+    let mut options = ServoOptions::from_config(config);
+    options.stop_on_fault = true;
+    let mut servo_config = config.servo.clone();
+    if request.pacing == Pacing::Virtual {
+        // A virtual-time loop runs flat out: never let it take a core at real-time priority.
+        servo_config.realtime_priority = 0;
+    }
+    info!(
+        "recording {} s on {} ({})",
+        request.duration,
+        device.spec,
+        request.out.display()
+    );
+    let handle = servo::thread::spawn(transport, recorder, options, servo_config, stop, None)
+        .map_err(RecordError::Spawn)?;
+    while !handle.is_finished() {
+        std::thread::sleep(servo::thread::POLL);
+        progress(elapsed_ms.load(Ordering::Relaxed) as f64 * 1e-3 / request.duration);
+    }
+    let (result, recorder) = handle.join().map_err(|_| RecordError::ServoPanicked)?;
+    let report = result.map_err(RecordError::Servo)?;
+    let interrupted = match report.exit {
+        ExitReason::ControllerDone => false,
+        ExitReason::Stopped => true,
+        exit => return Err(RecordError::Ended(exit)),
+    };
+    let log = record::log_of(&recorder.into_rows(), device.grid_id(), params.excitation);
+    log.save(&request.out)?;
+    Ok(Recording { log, interrupted })
+}
+
+/// What `hgcd analyze` is asked to do.
+#[derive(Clone, Debug)]
+pub struct AnalyzeRequest {
+    pub grid: PathBuf,
+    pub log: PathBuf,
+    pub out: PathBuf,
+}
+
+/// Why `hgcd analyze` wrote no report.
+#[derive(Debug, Error)]
+pub enum AnalyzeError {
+    #[error(transparent)]
+    Log(#[from] LogError),
+    #[error(transparent)]
+    Grid(GridError),
+    #[error("grid {}: {source}", path.display())]
+    Model {
+        path: PathBuf,
+        #[source]
+        source: ModelError,
+    },
+    #[error(
+        "the grid {} was calibrated on {grid_device} and the log {} recorded on {log_device}: \
+         analyse a log with the grid of the same device",
+        grid.display(), log.display()
+    )]
+    ForeignGrid {
+        grid: PathBuf,
+        log: PathBuf,
+        grid_device: String,
+        log_device: String,
+    },
+    #[error(
+        "log {}: {share:.0} % of its positions lie outside the grid {}: record inside the \
+         calibrated grid (hgcd record does)",
+        log.display(), grid.display()
+    )]
+    OutsideGrid {
+        log: PathBuf,
+        grid: PathBuf,
+        share: f64,
+    },
+    #[error(
+        "log {}: the motion does not excite the model (the handle hardly moved): record with \
+         hgcd record",
+        .0.display()
+    )]
+    NoExcitation(PathBuf),
+    #[error("cannot write the results in {} (--out)", path.display())]
+    Out {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Figure(#[from] FigureError),
+}
+
+/// A log whose handle moves slower than this, RMS, excites no model, m/s.
+const MIN_RMS_SPEED: f64 = 1e-3;
+
+/// Share of a log's positions that may lie outside the grid.
+const MAX_OUTSIDE_SHARE: f64 = 0.05;
+
+/// A finished analysis.
+#[derive(Debug)]
+pub struct Analysis {
+    /// The effect named ([`Effect::None`] when the model explains the log).
+    pub effect: Effect,
+    pub nominal: Fit,
+    /// Every candidate, in [`Effect::CANDIDATES`] order.
+    pub candidates: Vec<Fit>,
+    /// The augmented model (the nominal one when nothing is named).
+    pub augmented: Fit,
+    /// Held-out RMS position error of the closed-loop simulation, nominal and augmented, m
+    /// (logs with a reference and the excitation's gains).
+    pub position_error: Option<(f64, f64)>,
+    pub diagnostics: Diagnostics,
+    /// The grid's v_G.
+    pub up: nalgebra::Vector3<f64>,
+    /// Wall time, s.
+    pub wall_time: f64,
+}
+
+impl Analysis {
+    /// Held-out RMS force residual of the nominal and the augmented model, N.
+    pub fn errors(&self) -> (f64, f64) {
+        (self.nominal.heldout_error, self.augmented.heldout_error)
+    }
+}
+
+/// Analyse `request.log` against the grid `request.grid` and write the report in
+/// `request.out`. `progress` hears a line per stage.
+///
+/// # Errors
+/// [`AnalyzeError`]: a bad log (docs/log-format.md), a grid that does not load or belongs to
+/// another device, a log outside the grid or without motion, or an output that cannot be written.
+pub fn analyze(
+    request: &AnalyzeRequest,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Analysis, AnalyzeError> {
+    let started = std::time::Instant::now();
+    progress("reading the log and the grid");
+    let log = Log::load(&request.log)?;
+    let file = GridFile::load(&request.grid).map_err(AnalyzeError::Grid)?;
+    if let (Some(grid_device), Some(log_device)) = (file.device.as_ref(), log.device.as_ref()) {
+        if &grid_device.id != log_device {
+            return Err(AnalyzeError::ForeignGrid {
+                grid: request.grid.clone(),
+                log: request.log.clone(),
+                grid_device: grid_device.id.clone(),
+                log_device: log_device.clone(),
+            });
+        }
+    }
+    let outside = crate::config::Config::default().compensation.outside_grid;
+    let model = GravityModel::configured(file.clone(), None, outside).map_err(|source| {
+        AnalyzeError::Model {
+            path: request.grid.clone(),
+            source,
+        }
+    })?;
+    let outside = log
+        .position
+        .iter()
+        .filter(|x| !model.grid.contains(x))
+        .count() as f64
+        / log.len() as f64;
+    if outside > MAX_OUTSIDE_SHARE {
+        return Err(AnalyzeError::OutsideGrid {
+            log: request.log.clone(),
+            grid: request.grid.clone(),
+            share: outside * 1e2,
+        });
+    }
+    check_out(&request.out)?;
+
+    progress("smoothing and differentiating the position");
+    let signals = Signals::new(&log, &model);
+    let speed = (signals
+        .samples
+        .iter()
+        .map(|s| s.velocity.norm_squared())
+        .sum::<f64>()
+        / signals.len() as f64)
+        .sqrt();
+    if speed < MIN_RMS_SPEED {
+        return Err(AnalyzeError::NoExcitation(request.log.clone()));
+    }
+    progress("fitting the nominal model (grid and moving mass)");
+    let nominal = analysis::nominal(&signals)
+        .ok_or_else(|| AnalyzeError::NoExcitation(request.log.clone()))?;
+    let mut candidates = Vec::with_capacity(Effect::CANDIDATES.len());
+    for effect in Effect::CANDIDATES {
+        progress(&format!("fitting and scoring {}", effect.name()));
+        if let Some(fit) = analysis::fit(effect, &signals) {
+            candidates.push(fit);
+        }
+    }
+    let effect = analysis::name_effect(&nominal, &candidates);
+    let augmented = candidates
+        .iter()
+        .find(|c| c.effect == effect)
+        .unwrap_or(&nominal)
+        .clone();
+    progress("locating the disagreement and simulating");
+    let diagnostics = Diagnostics::new(&signals, &nominal, &augmented, &model);
+    let position_error = log.excitation.as_ref().and_then(|e| {
+        let (_, heldout) = signals.split();
+        let error = |fit: &Fit| {
+            let simulated = analysis::simulate(&log, &signals, fit, &model, e)?;
+            let residual: Vec<_> = (0..signals.len())
+                .map(|k| log.position[k + signals.first] - simulated[k + signals.first])
+                .collect();
+            Some(analysis::rms(&residual, heldout.clone()))
+        };
+        Some((error(&nominal)?, error(&augmented)?))
+    });
+    let analysis = Analysis {
+        effect,
+        nominal,
+        candidates,
+        augmented,
+        position_error,
+        diagnostics,
+        up: model.grid.gravity_direction,
+        wall_time: started.elapsed().as_secs_f64(),
+    };
+    progress("writing the report");
+    report::write(request, &file, &signals, &analysis)?;
+    Ok(analysis)
+}
+
+/// Create `out` if needed and check a file can be written there.
+fn check_out(out: &Path) -> Result<(), AnalyzeError> {
+    let err = |source| AnalyzeError::Out {
+        path: out.to_path_buf(),
+        source,
+    };
+    std::fs::create_dir_all(out).map_err(err)?;
+    let probe = out.join(".hgcd-analyze-write-check");
+    std::fs::write(&probe, b"").map_err(err)?;
+    std::fs::remove_file(&probe).map_err(err)
+}

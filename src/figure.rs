@@ -1,0 +1,64 @@
+//! Figures in SVG and PNG without system libraries: plotters' SVG and bitmap backends, with
+//! text in the embedded DejaVu Sans subset (assets/fonts/). `hgcd validate` and `hgcd analyze`
+//! draw through [`draw`].
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::{register_font, FontStyle};
+use thiserror::Error;
+
+/// The embedded font (a subset of DejaVu Sans; licence in assets/fonts/LICENSE).
+static FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans-subset.ttf");
+
+#[derive(Debug, Error)]
+#[error("drawing the figure {}: {message}", path.display())]
+pub struct FigureError {
+    pub path: PathBuf,
+    pub message: String,
+}
+
+/// Register the embedded font as plotters' "sans-serif", once per process.
+fn font_registered() -> bool {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    *REGISTERED.get_or_init(|| register_font("sans-serif", FontStyle::Normal, FONT).is_ok())
+}
+
+/// A figure's drawing, for any backend.
+pub trait Figure {
+    fn plot<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+    ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>>;
+}
+
+/// Draw `figure` of `size` px as SVG at `svg` and as PNG at `png`.
+///
+/// # Errors
+/// [`FigureError`] naming the file that could not be drawn or written.
+pub fn draw(
+    figure: &impl Figure,
+    size: (u32, u32),
+    svg: &Path,
+    png: &Path,
+) -> Result<(), FigureError> {
+    let err = |path: &Path| {
+        let path = path.to_path_buf();
+        move |e: &dyn std::fmt::Display| FigureError {
+            path: path.clone(),
+            message: e.to_string(),
+        }
+    };
+    if !font_registered() {
+        return Err(err(svg)(&"the embedded font does not load"));
+    }
+    let root = SVGBackend::new(svg, size).into_drawing_area();
+    figure.plot(&root).map_err(|e| err(svg)(&e))?;
+    root.present().map_err(|e| err(svg)(&e))?;
+    let root = BitMapBackend::new(png, size).into_drawing_area();
+    figure.plot(&root).map_err(|e| err(png)(&e))?;
+    root.present().map_err(|e| err(png)(&e))?;
+    Ok(())
+}

@@ -1,0 +1,334 @@
+//! The discrepancy workflow (`hgcd record`, `hgcd analyze`) on logs of the simulated point mass
+//! with one physical effect hidden in the plant at a time, or none: the effect is named and
+//! measured against the simulator's own parameters, never against what the code printed; and bad
+//! logs get one line. `cargo test --release --test discrepancy -- --nocapture` prints the
+//! confusion table of docs/discrepancy.md §6.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+
+use hgcd::config::Config;
+use hgcd::discrepancy::{self, AnalyzeRequest, Effect, RecordRequest};
+use hgcd::grid::{GridFile, MassGrid};
+use hgcd::transport::Pacing;
+
+mod common;
+use common::hgcd;
+
+/// The nominal model: the simulator's own field, uniform 120 g under gravity along −z, on the
+/// ±40 mm cube (the calibration would find it within 1 %: tests/calibration.rs).
+fn nominal_grid(dir: &Path) -> PathBuf {
+    let path = dir.join("grid.toml");
+    let grid = MassGrid::uniform(
+        0.12,
+        9.81,
+        Vector3::z(),
+        Vector3::repeat(-0.04),
+        0.04,
+        [3, 3, 3],
+    );
+    GridFile::from(grid).save_atomic(&path).unwrap();
+    path
+}
+
+/// A hidden effect: what the plant gets, and the truth of the parameter analyze must find.
+#[derive(Clone, Copy, Debug)]
+enum Hidden {
+    None,
+    Payload(f64),
+    Coulomb(f64),
+    Viscous(f64),
+    /// Degrees, about x (false) or y (true).
+    Tilt(f64, bool),
+    /// N/m, anchor mm.
+    Spring(f64, [f64; 3]),
+    /// ms.
+    Delay(f64),
+}
+
+impl Hidden {
+    fn effect(self) -> Effect {
+        match self {
+            Hidden::None => Effect::None,
+            Hidden::Payload(_) => Effect::Payload,
+            Hidden::Coulomb(_) => Effect::CoulombFriction,
+            Hidden::Viscous(_) => Effect::ViscousDamping,
+            Hidden::Tilt(..) => Effect::GravityTilt,
+            Hidden::Spring(..) => Effect::Spring,
+            Hidden::Delay(_) => Effect::TimeDelay,
+        }
+    }
+
+    fn apply(self, config: &mut Config) {
+        let sim = &mut config.sim;
+        match self {
+            Hidden::None => {}
+            Hidden::Payload(kg) => sim.probe_mass_kg = kg,
+            Hidden::Coulomb(n) => sim.coulomb_friction_n = n,
+            Hidden::Viscous(b) => sim.damping_n_s_per_m = b,
+            Hidden::Tilt(deg, about_y) => {
+                let (s, c) = deg.to_radians().sin_cos();
+                sim.gravity_direction = if about_y { [s, 0.0, c] } else { [0.0, -s, c] };
+            }
+            Hidden::Spring(k, anchor) => {
+                sim.spring_n_per_m = k;
+                sim.spring_anchor_mm = anchor;
+            }
+            Hidden::Delay(ms) => sim.force_delay_ms = ms,
+        }
+    }
+
+    /// (the parameter's name in summary.json, its true value in SI units)
+    fn truth(self) -> Option<(&'static str, f64)> {
+        match self {
+            Hidden::None => None,
+            Hidden::Payload(kg) => Some(("mass_kg", kg)),
+            Hidden::Coulomb(n) => Some(("force_n", n)),
+            Hidden::Viscous(b) => Some(("damping_n_s_per_m", b)),
+            Hidden::Tilt(deg, _) => Some(("angle_deg", deg)),
+            Hidden::Spring(k, _) => Some(("stiffness_n_per_m", k)),
+            Hidden::Delay(ms) => Some(("delay_s", ms * 1e-3)),
+        }
+    }
+}
+
+/// Record 40 s of the point mass with `hidden` and noise seed `seed`, analyse it against the
+/// nominal grid; the summary.
+fn record_and_analyze(dir: &Path, grid: &Path, hidden: Hidden, seed: u64) -> serde_json::Value {
+    let mut config = Config::default();
+    config.sim.seed = seed;
+    config.servo.lock_memory = false;
+    hidden.apply(&mut config);
+    let log = dir.join("log.csv");
+    let request = RecordRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        pacing: Pacing::Virtual,
+        grid: Some(grid.to_path_buf()),
+        out: log.clone(),
+        duration: 40.0,
+    };
+    let recording = discrepancy::record(
+        &config,
+        &request,
+        Arc::new(AtomicBool::new(false)),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert!(!recording.interrupted);
+    let out = dir.join("analysis");
+    discrepancy::analyze(
+        &AnalyzeRequest {
+            grid: grid.to_path_buf(),
+            log,
+            out: out.clone(),
+        },
+        &mut |_| {},
+    )
+    .unwrap();
+    serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
+}
+
+/// Every candidate alone at two magnitudes (small and large for a lab device) and two noise
+/// seeds, and four clean logs.
+fn suite() -> Vec<(Hidden, u64)> {
+    let hidden = [
+        Hidden::Payload(0.01),
+        Hidden::Payload(0.05),
+        Hidden::Coulomb(0.02),
+        Hidden::Coulomb(0.08),
+        Hidden::Viscous(0.5),
+        Hidden::Viscous(3.0),
+        Hidden::Tilt(2.0, true),
+        Hidden::Tilt(8.0, false),
+        Hidden::Spring(10.0, [0.0, 0.0, 0.0]),
+        Hidden::Spring(60.0, [30.0, -20.0, 50.0]),
+        Hidden::Delay(2.0),
+        Hidden::Delay(8.0),
+    ];
+    let mut cases: Vec<(Hidden, u64)> = hidden.iter().flat_map(|&h| [(h, 1), (h, 2)]).collect();
+    cases.extend((1..=4).map(|seed| (Hidden::None, seed)));
+    cases
+}
+
+#[test]
+fn each_hidden_effect_is_named_measured_and_removed_and_clean_logs_name_none() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let names: Vec<&str> = std::iter::once(Effect::None)
+        .chain(Effect::CANDIDATES)
+        .map(Effect::name)
+        .collect();
+    // confusion[hidden][named]
+    let mut confusion = vec![vec![0usize; names.len()]; names.len()];
+    let (mut hidden_cases, mut named_right) = (0, 0);
+    for (hidden, seed) in suite() {
+        let summary = record_and_analyze(dir.path(), &grid, hidden, seed);
+        let named = summary["effect"].as_str().unwrap();
+        let (before, after) = (
+            summary["error_before"].as_f64().unwrap(),
+            summary["error_after"].as_f64().unwrap(),
+        );
+        let truth = hidden.effect().name();
+        let row = names.iter().position(|n| *n == truth).unwrap();
+        let column = names.iter().position(|n| *n == named).unwrap();
+        confusion[row][column] += 1;
+        let case = format!("{hidden:?}, seed {seed}: named {named}, {before:.4} → {after:.4} N");
+        println!("{case}");
+        if hidden.effect() == Effect::None {
+            assert_eq!(named, "none", "{case}");
+            continue;
+        }
+        hidden_cases += 1;
+        if named != truth {
+            continue;
+        }
+        named_right += 1;
+        // Held-out error at least halved.
+        assert!(after <= 0.5 * before, "{case}");
+        let (key, value) = hidden.truth().unwrap();
+        let fitted = summary["parameters"][key].as_f64().unwrap();
+        assert!(
+            (fitted / value - 1.0).abs() <= 0.2,
+            "{case}: {key} = {fitted}, truth {value}"
+        );
+    }
+    println!("\n| hidden \\ named | {} |", names.join(" | "));
+    println!("| --- |{}", " --- |".repeat(names.len()));
+    for (name, row) in names.iter().zip(&confusion) {
+        let cells: Vec<String> = row.iter().map(|n| n.to_string()).collect();
+        println!("| {name} | {} |", cells.join(" | "));
+    }
+    assert!(
+        named_right as f64 >= 0.95 * hidden_cases as f64,
+        "{named_right} of {hidden_cases} named right"
+    );
+}
+
+#[test]
+fn a_tilt_is_measured_about_the_right_axis_and_the_gap_shrinks_in_position_too() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let summary = record_and_analyze(dir.path(), &grid, Hidden::Tilt(5.0, true), 3);
+    assert_eq!(summary["effect"], "gravity_tilt");
+    // Gravity turned from −z toward −x: a rotation about y.
+    let axis: Vec<f64> =
+        serde_json::from_value(summary["parameters"]["rotation_axis"].clone()).unwrap();
+    assert!(axis[1].abs() > 0.99, "{axis:?}");
+    // The closed-loop simulation of the run tracks the measured position better with the tilt.
+    let before = summary["position_error_before_m"].as_f64().unwrap();
+    let after = summary["position_error_after_m"].as_f64().unwrap();
+    assert!(after < 0.5 * before, "{before} → {after} m");
+    // Everything the report links to is there.
+    let out = dir.path().join("analysis");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    for name in [
+        "residual_velocity",
+        "residual_position",
+        "residual_lagged_command",
+        "residual_spectrum",
+        "before_after",
+    ] {
+        assert!(report.contains(&format!("({name}.svg)")), "{name}");
+        for ext in ["svg", "png"] {
+            let bytes = std::fs::metadata(out.join(format!("{name}.{ext}")))
+                .unwrap()
+                .len();
+            assert!(bytes > 5_000, "{name}.{ext}: {bytes} bytes");
+        }
+    }
+    let model = std::fs::read_to_string(out.join("model.toml")).unwrap();
+    assert!(model.contains("name = \"gravity_tilt\""), "{model}");
+    GridFile::load(&out.join("grid.toml")).unwrap();
+}
+
+/// `hgcd analyze` on `log` (text) against `grid`: exit status and stderr.
+fn analyze_cli(dir: &Path, grid: &Path, log: &str) -> (bool, String) {
+    let path = dir.join("bad.csv");
+    std::fs::write(&path, log).unwrap();
+    let out = hgcd()
+        .args(["--log-level", "warn", "analyze", "--grid"])
+        .arg(grid)
+        .arg("--log")
+        .arg(&path)
+        .arg("--out")
+        .arg(dir.join("bad-out"))
+        .output()
+        .unwrap();
+    let stderr: String = String::from_utf8_lossy(&out.stderr)
+        .lines()
+        .filter(|l| !l.starts_with("analyze: "))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    (out.status.success(), stderr)
+}
+
+#[test]
+fn bad_logs_get_one_clear_line_and_no_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let rows = |n: usize, f: &dyn Fn(usize) -> String| -> String {
+        let mut s = String::from("t,x,y,z,fx,fy,fz\n");
+        for k in 0..n {
+            s += &f(k);
+        }
+        s
+    };
+    let good = |k: usize| {
+        let t = k as f64 * 1e-3;
+        format!("{t},{},0,0,0,0,1.18\n", 0.01 * (6.0 * t).sin())
+    };
+    for (log, says) in [
+        ("t,x,y,z,fx,fy\n0,0,0,0,0,0\n".to_string(), "no column `fz`"),
+        (
+            rows(20_000, &|k| {
+                if k == 500 {
+                    "0.5,0,0,0,0,0,NaN\n".into()
+                } else {
+                    good(k)
+                }
+            }),
+            "line 502: `fz` is NaN",
+        ),
+        (
+            rows(20_000, &|k| if k == 700 { good(699) } else { good(k) }),
+            "repeats the row before",
+        ),
+        (
+            rows(20_000, &|k| if k == 900 { good(100) } else { good(k) }),
+            "goes back",
+        ),
+        (rows(3000, &good), "3.0 s of data"),
+        (
+            rows(20_000, &|k| {
+                format!("{},0.5,0,0,0,0,1.18\n", k as f64 * 1e-3)
+            }),
+            "lie outside the grid",
+        ),
+        (
+            rows(20_000, &|k| format!("{},0,0,0,0,0,1.18\n", k as f64 * 1e-3)),
+            "does not excite the model",
+        ),
+        (
+            format!("# device = sim-other-unit\n{}", rows(20_000, &good)),
+            "recorded on sim-other-unit",
+        ),
+    ] {
+        let mut foreign = GridFile::load(&grid).unwrap();
+        if says.contains("other-unit") {
+            foreign.device = Some(hgcd::grid::DeviceRecord {
+                id: "sim-point-mass".into(),
+                spec: None,
+            });
+        }
+        let grid_here = dir.path().join("grid-here.toml");
+        foreign.save_atomic(&grid_here).unwrap();
+        let (ok, stderr) = analyze_cli(dir.path(), &grid_here, &log);
+        assert!(!ok, "{says}");
+        assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+        assert!(stderr.contains(says), "{stderr}");
+        assert!(!dir.path().join("bad-out/summary.json").exists(), "{says}");
+    }
+}
