@@ -46,6 +46,17 @@ pub enum LogError {
         path.display(), RATE_RANGE.0, RATE_RANGE.1
     )]
     Rate { path: PathBuf, rate: f64 },
+    #[error(
+        "log {}: a gap of {:.1} ms after t = {after} s (rows come every {:.2} ms): analyze needs \
+         evenly spaced rows",
+        path.display(), step * 1e3, period * 1e3
+    )]
+    Gap {
+        path: PathBuf,
+        after: f64,
+        step: f64,
+        period: f64,
+    },
     #[error("writing the log {}", path.display())]
     Write {
         path: PathBuf,
@@ -236,16 +247,11 @@ impl Log {
             .windows(2)
             .position(|w| w[1] - w[0] > GAP_STEPS * period)
         {
-            return Err(LogError::Row {
+            return Err(LogError::Gap {
                 path: path.to_path_buf(),
-                line: 0,
-                problem: format!(
-                    "a gap of {:.1} ms after t = {} s (rows come every {:.2} ms): analyze needs \
-                     evenly spaced rows",
-                    (self.time[k + 1] - self.time[k]) * 1e3,
-                    self.time[k],
-                    period * 1e3
-                ),
+                after: self.time[k],
+                step: self.time[k + 1] - self.time[k],
+                period,
             });
         }
         Ok(())
@@ -372,5 +378,11 @@ mod tests {
         says(&repeat, "line 4: time 0 s repeats");
         let slow = rows(200, 0.1);
         says(&slow, "rows come at 10 Hz");
+        let mut gap = String::from("t,x,y,z,fx,fy,fz\n");
+        for k in 0..12_000 {
+            let t = k as f64 * 1e-3 + if k >= 500 { 0.019 } else { 0.0 };
+            let _ = writeln!(gap, "{t},{},0,0,0,0,1.2", k as f64 * 1e-6);
+        }
+        says(&gap, "a gap of 20.0 ms after t = 0.499 s");
     }
 }
