@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 /// Layers, lowest first. A module may use modules of lower layers only.
 const LAYERS: &[&[&str]] = &[
-    &["protocol", "newest", "estimate", "sys"],
+    &["protocol", "newest", "estimate", "sys", "figure"],
     &["config"],
     &["grid"],
     &["sim", "control"],
@@ -14,7 +14,7 @@ const LAYERS: &[&[&str]] = &[
     &["app"],
     &["calibrate"],
     &["daemon"],
-    &["validate"],
+    &["validate", "discrepancy"],
 ];
 
 fn layer(module: &str) -> Option<usize> {
