@@ -361,6 +361,9 @@ fn vertical_field() -> MassGrid {
 
 #[test]
 fn the_c_wall_holds_a_probe_mass_at_its_weight_over_the_stiffness() {
+    // Built before the gated daemon starts: on a loaded machine the build can outlast the time
+    // a gated device waits for the test (GATE_WAIT), and the daemon would end.
+    c_wall();
     let (running, gate) = start(&vertical_field());
     let relay = Relay::start(running.dir.path(), &running.socket);
     // 0.5 N/mm at the handle's height: the 30 g probe sinks to m_p g / k = 0.589 mm.
@@ -669,6 +672,7 @@ fn stop_under(example: impl FnOnce(&Path) -> Command, owner: &str) -> Output {
 
 #[test]
 fn the_c_client_says_when_the_daemon_goes_away() {
+    c_wall(); // before the gated daemon starts, as above
     let output = stop_under(|socket| c_wall_on(socket, &[]), "virtual_wall.c");
     assert_one_line_error(
         &output,
