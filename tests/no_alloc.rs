@@ -240,6 +240,7 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
         steady_radius: 5e-5,
         settle_timeout: 5.0,
         max_force: 8.0,
+        drop: 0.001,
     };
     let (tx, _rx) = crossbeam_channel::bounded(4096);
     let mut experiment = ExperimentController::new(
@@ -259,7 +260,8 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
     )
     .unwrap();
     let rests = experiment.into_rests();
-    assert_eq!(rests.len(), 2 * 27 * 2, "the experiment completes");
+    // Two runs of 27 points, two repetitions each, each read from above and from below.
+    assert_eq!(rests.len(), 2 * 27 * 2 * 2, "the experiment completes");
     assert!(rests.iter().all(|r| r.settled));
     assert_quiet("validation experiment", &seen, 10_000);
 }
