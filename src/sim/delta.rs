@@ -12,7 +12,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::linkage::{Drives, Environment, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use crate::config::SimConfig;
 
 /// Geometry and masses of the delta (SI units).
@@ -229,26 +229,14 @@ pub fn nominal_drives() -> Drives {
 
 /// The `sim:delta` plant a `[sim]` section describes.
 pub fn from_config(sim: &SimConfig) -> Result<Linkage<Delta>, Unreachable> {
-    let mut variation = UnitVariation::new(sim.unit_seed);
-    let delta = Delta::unit(&mut variation);
-    let nominal = nominal_drives();
-    let drives = Drives {
-        coulomb: variation.vary3(nominal.coulomb),
-        viscous: variation.vary3(nominal.viscous),
-        ..nominal
-    };
-    Linkage::new(
-        delta,
-        drives,
-        Environment::from_config(sim),
-        &sim.start_position(),
-    )
+    Linkage::unit_from_config(sim, Delta::unit, nominal_drives())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::sim::linkage::checks::{self, cube, env, G};
+    use crate::sim::linkage::Environment;
     use crate::sim::Plant;
 
     fn delta_at(x_mm: [f64; 3], env: Environment) -> Linkage<Delta> {

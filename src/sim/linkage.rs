@@ -191,6 +191,31 @@ impl<M: Mechanism> Linkage<M> {
         })
     }
 
+    /// The unit `sim.unit_seed` picks, at rest at `sim.start_position_mm` in `[sim]`'s
+    /// environment: `unit` varies the mechanism, then the drives' friction varies.
+    ///
+    /// # Errors
+    /// [`Unreachable`] when the handle cannot start at `sim.start_position_mm`.
+    pub fn unit_from_config(
+        sim: &SimConfig,
+        unit: impl FnOnce(&mut UnitVariation) -> M,
+        nominal: Drives,
+    ) -> Result<Self, Unreachable> {
+        let mut variation = UnitVariation::new(sim.unit_seed);
+        let mechanism = unit(&mut variation);
+        let drives = Drives {
+            coulomb: variation.vary3(nominal.coulomb),
+            viscous: variation.vary3(nominal.viscous),
+            ..nominal
+        };
+        Self::new(
+            mechanism,
+            drives,
+            Environment::from_config(sim),
+            &sim.start_position(),
+        )
+    }
+
     pub fn mechanism(&self) -> &M {
         &self.mechanism
     }

@@ -10,7 +10,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::linkage::{Drives, Environment, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use crate::config::SimConfig;
 
 /// Geometry and masses of the arm (SI units).
@@ -261,26 +261,14 @@ pub fn published_drives() -> Drives {
 
 /// The `sim:phantom` plant a `[sim]` section describes.
 pub fn from_config(sim: &SimConfig) -> Result<Linkage<Phantom>, Unreachable> {
-    let mut variation = UnitVariation::new(sim.unit_seed);
-    let arm = Phantom::unit(&mut variation);
-    let nominal = published_drives();
-    let drives = Drives {
-        coulomb: variation.vary3(nominal.coulomb),
-        viscous: variation.vary3(nominal.viscous),
-        ..nominal
-    };
-    Linkage::new(
-        arm,
-        drives,
-        Environment::from_config(sim),
-        &sim.start_position(),
-    )
+    Linkage::unit_from_config(sim, Phantom::unit, published_drives())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::sim::linkage::checks::{self, env, G};
+    use crate::sim::linkage::Environment;
     use crate::sim::Plant;
 
     fn arm_at(x_mm: [f64; 3], env: Environment) -> Linkage<Phantom> {
