@@ -505,29 +505,31 @@ pub const REPORT_DESCRIPTOR: [u8; 31] = [
     0xC0, //             End Collection
 ];
 
-/// The descriptor of a v1 device that also offers the device-info feature report: the v1
-/// descriptor with one feature item (report ID 3, 63 bytes) before its End Collection.
-pub const REPORT_DESCRIPTOR_WITH_DEVICE_INFO: [u8; 39] = [
-    0x06, 0x00, 0xFF, // Usage Page (Vendor Defined 0xFF00)
-    0x09, 0x01, //       Usage (0x01: hgcd haptic device)
-    0xA1, 0x01, //       Collection (Application)
-    0x15, 0x00, //         Logical Minimum (0)
-    0x26, 0xFF, 0x00, //   Logical Maximum (255)
-    0x75, 0x08, //         Report Size (8)
-    0x85, 0x01, //         Report ID (1): input report
-    0x09, 0x02, //         Usage (0x02: state)
-    0x95, 0x17, //         Report Count (23)
-    0x81, 0x02, //         Input (Data, Variable, Absolute)
-    0x85, 0x02, //         Report ID (2): output report
-    0x09, 0x03, //         Usage (0x03: force command)
-    0x95, 0x13, //         Report Count (19)
-    0x91, 0x02, //         Output (Data, Variable, Absolute)
-    0x85, 0x03, //         Report ID (3): device-info feature report
-    0x09, 0x04, //         Usage (0x04: device info)
-    0x95, 0x3F, //         Report Count (63)
-    0xB1, 0x02, //         Feature (Data, Variable, Absolute)
-    0xC0, //             End Collection
+/// The feature item a device that offers the device-info report adds (report ID 3, 63 bytes).
+const DEVICE_INFO_ITEM: [u8; 8] = [
+    0x85, 0x03, // Report ID (3): device-info feature report
+    0x09, 0x04, // Usage (0x04: device info)
+    0x95, 0x3F, // Report Count (63)
+    0xB1, 0x02, // Feature (Data, Variable, Absolute)
 ];
+
+/// The descriptor of a v1 device that also offers the device-info feature report: the v1
+/// descriptor with the device-info feature item before its End Collection.
+pub const REPORT_DESCRIPTOR_WITH_DEVICE_INFO: [u8; 39] = {
+    let mut d = [0; 39];
+    let end = REPORT_DESCRIPTOR.len() - 1;
+    let mut i = 0;
+    while i < end {
+        d[i] = REPORT_DESCRIPTOR[i];
+        i += 1;
+    }
+    while i < end + DEVICE_INFO_ITEM.len() {
+        d[i] = DEVICE_INFO_ITEM[i - end];
+        i += 1;
+    }
+    d[i] = REPORT_DESCRIPTOR[end];
+    d
+};
 
 #[cfg(test)]
 mod tests {
