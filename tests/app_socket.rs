@@ -14,7 +14,7 @@ use hgcd::grid::GridFile;
 
 mod common;
 use common::daemon::{Running, TestDaemon};
-use common::{hgcd, serial, truth_field_27, with_device_id};
+use common::{hgcd, serial, succeeded, truth_field_27, with_device_id};
 
 /// A daemon serving the simulated point mass in virtual time, with its own socket and state dir.
 fn start(config: Config, grid: Option<&GridFile>) -> Running {
@@ -467,12 +467,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
         .arg("status")
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "hgcd status failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = succeeded(&out);
     assert!(stdout.contains("device        sim:point-mass"), "{stdout}");
     // The four held connections and the status query itself.
     assert!(stdout.contains("clients       5 "), "{stdout}");

@@ -21,7 +21,7 @@ use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;
-use common::{file_names, hgcd, serial, truth_field_125};
+use common::{file_names, hgcd, serial, succeeded, truth_field_125};
 
 /// A config file (paper defaults) whose simulated device has the truth field; extra TOML appended.
 fn setup(dir: &Path, extra: &str) -> (PathBuf, MassGrid) {
@@ -92,11 +92,7 @@ fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
         .arg(&state)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    succeeded(&out);
     let file = GridFile::load(&state.join("sim-point-mass.toml")).unwrap();
     let grid = &file.grid;
     assert_eq!(grid.dims, [3, 3, 3]);

@@ -21,7 +21,7 @@ use hgcd::grid::MassGrid;
 mod common;
 use common::daemon::TestDaemon;
 use common::tap::{Gate, Tap};
-use common::{with_device_id, WAIT};
+use common::{output_within, with_device_id, WAIT};
 
 /// The example `name`, built by cargo with the profile this test was built with (a no-op when
 /// `cargo test` has built the examples already).
@@ -164,28 +164,15 @@ fn relay(app: UnixStream, daemon: UnixStream, gate: &Gate) {
 /// Run the example `virtual_wall` with `args` against `socket`; its output. It must end within
 /// [`RUN_LIMIT`] (it runs a few seconds of device time, a few seconds of wall-clock time).
 fn virtual_wall(socket: &Path, args: &[&str]) -> Output {
-    let child = Command::new(example("virtual_wall"))
+    let mut command = Command::new(example("virtual_wall"));
+    command
         .arg("--socket")
         .arg(socket)
         .args(args)
         // A panic would print its backtrace: the test below checks there is none.
         .env("RUST_BACKTRACE", "1")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let pid = child.id() as i32;
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || tx.send(child.wait_with_output()));
-    match rx.recv_timeout(RUN_LIMIT) {
-        Ok(out) => out.unwrap(),
-        Err(_) => {
-            // SAFETY: kill(2) on our own child, which has not been reaped (its waiter is stuck).
-            unsafe { libc::kill(pid, libc::SIGKILL) };
-            panic!("virtual_wall did not end within {RUN_LIMIT:?}");
-        }
-    }
+        .stdin(Stdio::null());
+    output_within(command, RUN_LIMIT)
 }
 
 /// How long an example may run before the test gives up on it.

@@ -1,12 +1,13 @@
 //! Helpers shared by the integration tests: known truth fields for the simulator, the binary
-//! under test, file listings, bounded waits, and the tap transport ([`tap`]).
+//! under test and its output, file listings, bounded waits, and the tap transport ([`tap`]).
 #![allow(dead_code)]
 
 pub mod daemon;
 pub mod tap;
 
+use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::Command;
+use std::process::{Child, ChildStderr, Command, Output, Stdio};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -84,6 +85,50 @@ pub fn hgcd() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_hgcd"));
     c.current_dir(std::env::temp_dir());
     c
+}
+
+/// The stdout of a command that must have succeeded (its stderr fails the test otherwise).
+pub fn succeeded(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Run `command` to its end with its output captured; one still going after `limit` is killed
+/// and fails the test.
+pub fn output_within(mut command: Command, limit: Duration) -> Output {
+    let program = command.get_program().to_string_lossy().into_owned();
+    let child = command
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as i32;
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || tx.send(child.wait_with_output()));
+    match rx.recv_timeout(limit) {
+        Ok(out) => out.unwrap(),
+        Err(_) => {
+            // SAFETY: kill(2) on our own child, which has not been reaped (its waiter is stuck).
+            unsafe { libc::kill(pid, libc::SIGKILL) };
+            panic!("{program} did not end within {limit:?}");
+        }
+    }
+}
+
+/// Spawn `command` with its stderr piped and read that until it says `ready` (failing the test
+/// if it ends first): the child, the rest of its stderr, and what it has said so far.
+pub fn spawn_until(command: &mut Command, ready: &str) -> (Child, BufReader<ChildStderr>, String) {
+    let mut child = command.stderr(Stdio::piped()).spawn().unwrap();
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut log = String::new();
+    while !log.contains(ready) {
+        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
+    }
+    (child, stderr, log)
 }
 
 /// Names of the entries of `dir`, sorted.
