@@ -1,7 +1,6 @@
 //! The device path end to end: simulated firmware, byte protocol, servo loop and safety layer, in
 //! virtual time. Assertions compare with the simulator's physics, not with printed output.
 
-use std::os::unix::net::UnixListener;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -14,7 +13,6 @@ use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
 use hgcd::grid::GridFile;
 use hgcd::protocol::OutputReport;
 use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions, ServoReport};
-use hgcd::sim::socket;
 use hgcd::sim::SimDevice;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
@@ -22,7 +20,7 @@ use hgcd::transport::{Pacing, Transport};
 
 mod common;
 use common::tap::{Fault, Tap};
-use common::{pd_hold, truth_field_27, Ticks};
+use common::{pd_hold, serve_one_host, truth_field_27, Ticks};
 
 fn sim_transport(config: &Config) -> SimTransport {
     SimTransport::new(
@@ -380,18 +378,9 @@ fn garbled_reports_are_counted_and_skipped() {
 fn socket_transport_carries_the_same_protocol() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("device.sock");
-    let listener = UnixListener::bind(&path).unwrap();
     let mut config = Config::default();
     config.sim.start_position_mm = [0.0, 0.0, 5.0];
-    let device_config = config.clone();
-    let server_stop = Arc::new(AtomicBool::new(false));
-    let flag = server_stop.clone();
-    let server = std::thread::spawn(move || {
-        let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
-        let host = socket::accept(&listener, &flag).unwrap().unwrap();
-        socket::serve_host(host, &mut device, true, &flag).unwrap();
-        device
-    });
+    let (server_stop, server) = serve_one_host(&path, &config);
     let mut transport = SocketTransport::connect(&path).unwrap();
     let hold = pd_hold();
     let set_point = hold.set_point;

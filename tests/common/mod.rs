@@ -6,14 +6,19 @@ pub mod daemon;
 pub mod tap;
 
 use std::io::{BufRead, BufReader};
+use std::os::unix::net::UnixListener;
 use std::path::Path;
 use std::process::{Child, ChildStderr, Command, Output, Stdio};
-use std::sync::{Mutex, MutexGuard};
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 
+use hgcd::config::Config;
 use hgcd::grid::{DeviceRecord, GridFile, MassGrid};
+use hgcd::sim::{socket, SimDevice};
 
 /// Gravity tilted about 3.3° away from −z (v_G = normalised (0.05, −0.03, 1)).
 pub fn tilted_v_g() -> Vector3<f64> {
@@ -172,6 +177,22 @@ pub fn pd_hold() -> hgcd::control::pd::PdHold {
         gains: hgcd::control::pd::LinearisedGains::from_rise_time(0.1, 1.0),
         field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
     }
+}
+
+/// The simulated point mass of `config` serving one host in lock-step on a new socket at `path`:
+/// the flag that stops it, and its thread, which gives the device back.
+pub fn serve_one_host(path: &Path, config: &Config) -> (Arc<AtomicBool>, JoinHandle<SimDevice>) {
+    let listener = UnixListener::bind(path).unwrap();
+    let config = config.clone();
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let device = std::thread::spawn(move || {
+        let mut device = SimDevice::from_config("point-mass", &config).unwrap();
+        let host = socket::accept(&listener, &flag).unwrap().unwrap();
+        socket::serve_host(host, &mut device, true, &flag).unwrap();
+        device
+    });
+    (stop, device)
 }
 
 /// Runs `.0` and ends the run after `.1` ticks.
