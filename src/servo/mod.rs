@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use crossbeam_channel::Sender;
 use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::config::{Config, EstimateConfig, SafetyConfig};
@@ -98,8 +99,8 @@ pub enum ServoEvent {
 /// Ticks between two [`ServoEvent::Stats`].
 pub const STATS_EVERY: u64 = 500;
 
-/// The loop's counters at one moment.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+/// The loop's counters at one moment; `status` carries them flattened (`docs/app-protocol.md` §5).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StatsSnapshot {
     pub ticks: u64,
     pub late: u64,
@@ -112,8 +113,10 @@ pub struct StatsSnapshot {
     /// Longest interval between two reports so far, µs.
     pub worst_period_us: f64,
     /// Reports received more than one period after they were due.
+    #[serde(default)]
     pub late_wakeups: u64,
     /// Largest lateness of a report against its timestamp so far, µs.
+    #[serde(default)]
     pub worst_lateness_us: f64,
 }
 
