@@ -34,45 +34,36 @@ pub fn scrambled_mass(i: usize, j: usize, k: usize) -> f64 {
 
 /// The 3×3×3 truth field on the paper's grid (L = 40 mm, ±40 mm), gravity tilted.
 pub fn truth_field_27() -> MassGrid {
-    let mut g = MassGrid::uniform(
+    MassGrid::uniform(
         0.1,
         9.81,
         tilted_v_g(),
         Vector3::new(-0.04, -0.04, -0.04),
         0.04,
         [3, 3, 3],
-    );
-    for k in 0..3 {
-        for j in 0..3 {
-            for i in 0..3 {
-                let n = g.index(i, j, k);
-                g.masses[n] = scrambled_mass(i, j, k);
-            }
-        }
-    }
-    g
+    )
+    .with_masses(scrambled_mass)
 }
 
 /// The same field on a 5×5×5 lattice (±80 mm): the inner 27 vertices as in [`truth_field_27`],
 /// the outer shell 0.15 kg, so moves beyond the calibration grid stay physical.
 pub fn truth_field_125() -> MassGrid {
-    let mut g = MassGrid::uniform(
+    let inner = 1..4;
+    MassGrid::uniform(
         0.15,
         9.81,
         tilted_v_g(),
         Vector3::new(-0.08, -0.08, -0.08),
         0.04,
         [5, 5, 5],
-    );
-    for k in 1..4 {
-        for j in 1..4 {
-            for i in 1..4 {
-                let n = g.index(i, j, k);
-                g.masses[n] = scrambled_mass(i - 1, j - 1, k - 1);
-            }
+    )
+    .with_masses(|i, j, k| {
+        if [i, j, k].iter().all(|n| inner.contains(n)) {
+            scrambled_mass(i - 1, j - 1, k - 1)
+        } else {
+            0.15
         }
-    }
-    g
+    })
 }
 
 /// A grid file of `grid` made for the device with id `id`.
