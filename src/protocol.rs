@@ -61,6 +61,9 @@ impl Status {
     pub const DEFINED: u16 = 0x001f;
 
     /// Build from raw bits, rejecting reserved bits.
+    ///
+    /// # Errors
+    /// [`ProtocolError::ReservedStatusBits`] when a reserved bit is set.
     pub fn from_bits(bits: u16) -> Result<Self, ProtocolError> {
         if bits & !Self::DEFINED != 0 {
             return Err(ProtocolError::ReservedStatusBits(bits));
@@ -212,6 +215,12 @@ fn write_vector(
 
 impl InputReport {
     /// Decode an input report (report ID included as byte 0).
+    ///
+    /// # Errors
+    /// [`ProtocolError::Length`], [`ProtocolError::UnknownReportId`] or [`ProtocolError::Version`]
+    /// for a bad header, [`ProtocolError::OutOfRange`] for a position beyond ±[`MAX_POSITION`],
+    /// [`ProtocolError::ReservedStatusBits`] or [`ProtocolError::ReservedBytes`] for reserved bits
+    /// or bytes set.
     pub fn decode(bytes: &[u8]) -> Result<Self, ProtocolError> {
         check_header(bytes, INPUT_REPORT_ID, INPUT_REPORT_LEN)?;
         let sequence = u16::from_le_bytes([bytes[2], bytes[3]]);
@@ -229,7 +238,10 @@ impl InputReport {
         })
     }
 
-    /// Encode into `out`; fails only for a position outside ±[`MAX_POSITION`] or non-finite.
+    /// Encode into `out`.
+    ///
+    /// # Errors
+    /// [`ProtocolError::OutOfRange`] for a position outside ±[`MAX_POSITION`] or non-finite.
     pub fn encode(&self, out: &mut [u8; INPUT_REPORT_LEN]) -> Result<(), ProtocolError> {
         *out = [0; INPUT_REPORT_LEN];
         out[0] = INPUT_REPORT_ID;
@@ -256,6 +268,12 @@ impl OutputReport {
     }
 
     /// Decode an output report (what emulated device firmware does).
+    ///
+    /// # Errors
+    /// [`ProtocolError::Length`], [`ProtocolError::UnknownReportId`] or [`ProtocolError::Version`]
+    /// for a bad header, [`ProtocolError::OutOfRange`] for a force beyond ±[`MAX_FORCE`],
+    /// [`ProtocolError::ReservedFlagBits`] or [`ProtocolError::ReservedBytes`] for reserved bits
+    /// or bytes set.
     pub fn decode(bytes: &[u8]) -> Result<Self, ProtocolError> {
         check_header(bytes, OUTPUT_REPORT_ID, OUTPUT_REPORT_LEN)?;
         let sequence = u16::from_le_bytes([bytes[2], bytes[3]]);
@@ -274,7 +292,10 @@ impl OutputReport {
         })
     }
 
-    /// Encode into `out`; fails for a non-finite force or one outside ±[`MAX_FORCE`] per axis.
+    /// Encode into `out`.
+    ///
+    /// # Errors
+    /// [`ProtocolError::OutOfRange`] for a non-finite force or one outside ±[`MAX_FORCE`] per axis.
     pub fn encode(&self, out: &mut [u8; OUTPUT_REPORT_LEN]) -> Result<(), ProtocolError> {
         *out = [0; OUTPUT_REPORT_LEN];
         out[0] = OUTPUT_REPORT_ID;
@@ -322,6 +343,13 @@ impl DeviceInfo {
     }
 
     /// Decode a device-info report (report ID included as byte 0), with the checks of §5a.
+    ///
+    /// # Errors
+    /// [`ProtocolError::Length`], [`ProtocolError::UnknownReportId`] or [`ProtocolError::Version`]
+    /// for a bad header, [`ProtocolError::ReservedInfoFlags`] or [`ProtocolError::ReservedBytes`]
+    /// for reserved bits or bytes set, [`ProtocolError::InfoOutOfRange`] for the report rate or
+    /// force limit, [`ProtocolError::OutOfRange`] for the workspace box and
+    /// [`ProtocolError::Text`] for the model or serial.
     pub fn decode(bytes: &[u8]) -> Result<Self, ProtocolError> {
         check_header(bytes, DEVICE_INFO_REPORT_ID, DEVICE_INFO_LEN)?;
         let flags = bytes[2];
@@ -379,8 +407,11 @@ impl DeviceInfo {
         })
     }
 
-    /// Encode into `out`; fails for a value the report cannot carry (the checks of
-    /// [`DeviceInfo::decode`], and strings longer than their field).
+    /// Encode into `out`.
+    ///
+    /// # Errors
+    /// For a value the report cannot carry: those of [`DeviceInfo::decode`], and
+    /// [`ProtocolError::Text`] for a string longer than its field.
     pub fn encode(&self, out: &mut [u8; DEVICE_INFO_LEN]) -> Result<(), ProtocolError> {
         *out = [0; DEVICE_INFO_LEN];
         out[0] = DEVICE_INFO_REPORT_ID;

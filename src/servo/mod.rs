@@ -211,6 +211,10 @@ pub struct ServoCore {
 }
 
 impl ServoCore {
+    /// A core for `options`, with everything the loop needs allocated.
+    ///
+    /// # Errors
+    /// [`FoawError`] for estimator parameters out of range.
     pub fn new(options: &ServoOptions) -> Result<Self, FoawError> {
         let est = &options.estimate;
         Ok(Self {
@@ -276,6 +280,9 @@ impl ServoCore {
     }
 
     /// Handle one input report that arrived at `arrived` (transport clock, s).
+    ///
+    /// # Errors
+    /// The [`ProtocolError`] of a report that does not decode.
     pub fn tick(
         &mut self,
         bytes: &[u8],
@@ -356,6 +363,10 @@ impl ServoCore {
 /// Run the loop on the calling thread until `stop` is set, the duration elapses, the controller is
 /// done, or (with `stop_on_fault`) a fault occurs. Always ends by writing a zero-force report
 /// with motors disabled, even when the controller panics (the panic then continues).
+///
+/// # Errors
+/// [`ServoError::Estimator`] for estimator parameters out of range, [`ServoError::Transport`] when
+/// the device cannot be read or written.
 pub fn run(
     transport: &mut dyn Transport,
     controller: &mut dyn Controller,

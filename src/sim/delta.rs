@@ -228,6 +228,9 @@ pub fn nominal_drives() -> Drives {
 }
 
 /// The `sim:delta` plant a `[sim]` section describes.
+///
+/// # Errors
+/// [`Unreachable`] when the handle cannot start at `sim.start_position_mm`.
 pub fn from_config(sim: &SimConfig) -> Result<Linkage<Delta>, Unreachable> {
     Linkage::unit_from_config(sim, Delta::unit, nominal_drives())
 }

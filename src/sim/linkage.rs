@@ -161,7 +161,10 @@ struct Dynamics {
 }
 
 impl<M: Mechanism> Linkage<M> {
-    /// At rest with the handle at `start` (m), or [`Unreachable`] when the handle cannot be there.
+    /// At rest with the handle at `start` (m).
+    ///
+    /// # Errors
+    /// [`Unreachable`] when the handle cannot be there within the joint limits.
     pub fn new(
         mechanism: M,
         drives: Drives,

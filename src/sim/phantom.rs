@@ -260,6 +260,9 @@ pub fn published_drives() -> Drives {
 }
 
 /// The `sim:phantom` plant a `[sim]` section describes.
+///
+/// # Errors
+/// [`Unreachable`] when the handle cannot start at `sim.start_position_mm`.
 pub fn from_config(sim: &SimConfig) -> Result<Linkage<Phantom>, Unreachable> {
     Linkage::unit_from_config(sim, Phantom::unit, published_drives())
 }
