@@ -1,7 +1,7 @@
 //! The `hgcd` binary as a user runs it.
 
 mod common;
-use common::{hgcd, serial, spawn_until, succeeded};
+use common::{failed, hgcd, serial, spawn_until, succeeded};
 
 /// `hgcd` with a config file, an application socket and a state directory of the test's own.
 fn hgcd_in(
@@ -126,8 +126,7 @@ fn bad_input_gets_one_clear_line() {
         ])
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = failed(&out);
     assert!(stderr.contains("safety.max_force_n"), "{stderr}");
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
 
@@ -142,15 +141,13 @@ fn bad_input_gets_one_clear_line() {
         ])
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("known: point-mass"));
+    assert!(failed(&out).contains("known: point-mass"));
 
     let out = hgcd()
         .args(["--config", "/nonexistent/hgcd.toml", "status"])
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/hgcd.toml"));
+    assert!(failed(&out).contains("/nonexistent/hgcd.toml"));
 }
 
 #[test]

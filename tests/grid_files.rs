@@ -9,7 +9,7 @@ use std::time::Duration;
 
 mod common;
 use common::{
-    file_names, hgcd, output_within, serial, spawn_until, truth_field_27, with_device_id,
+    failed, file_names, hgcd, output_within, serial, spawn_until, truth_field_27, with_device_id,
 };
 
 /// `hgcd run` with the config file `config` on the simulated device for half a second of virtual
@@ -175,8 +175,7 @@ fn without_room_for_the_grid_calibration_refuses_before_it_starts() {
     // probe) passed, the calibration ran to the end and failed at the write.
     limit_file_size(&mut command, 2048);
     let out = output_within(command, DEADLINE);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{stderr}");
+    let stderr = failed(&out);
     assert!(
         stderr.contains(&format!("grid file in {}", dir.path().display()))
             && stderr.contains("File too large"),
@@ -220,9 +219,7 @@ fn without_room_for_the_grid_the_daemon_refuses_a_calibration_and_runs_on() {
         .args(["--config", "/dev/null", "--socket"])
         .arg(&socket)
         .args(["calibrate", "--via-daemon", "--yes"]);
-    let out = output_within(calibrate, DEADLINE);
-    let text = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{text}");
+    let text = failed(&output_within(calibrate, DEADLINE));
     assert!(
         text.contains("calibration failed: cannot write a") && text.contains("File too large"),
         "{text}"

@@ -93,6 +93,13 @@ pub fn succeeded(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// The stderr of a command that must have failed.
+pub fn failed(out: &Output) -> String {
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "{stderr}");
+    stderr
+}
+
 /// Run `command` to its end with its output captured; one still going after `limit` is killed
 /// and fails the test.
 pub fn output_within(mut command: Command, limit: Duration) -> Output {
