@@ -48,9 +48,9 @@ pub fn truth_field_27() -> MassGrid {
 /// The same field on a 5×5×5 lattice (±80 mm): the inner 27 vertices as in [`truth_field_27`],
 /// the outer shell 0.15 kg, so moves beyond the calibration grid stay physical.
 pub fn truth_field_125() -> MassGrid {
-    let inner = 1..4;
+    let (inner, shell) = (1..4, 0.15);
     MassGrid::uniform(
-        0.15,
+        shell,
         9.81,
         tilted_v_g(),
         Vector3::new(-0.08, -0.08, -0.08),
@@ -61,7 +61,7 @@ pub fn truth_field_125() -> MassGrid {
         if [i, j, k].iter().all(|n| inner.contains(n)) {
             scrambled_mass(i - 1, j - 1, k - 1)
         } else {
-            0.15
+            shell
         }
     })
 }
