@@ -61,6 +61,9 @@ impl Status {
     pub const DEFINED: u16 = 0x001f;
 
     /// Build from raw bits, rejecting reserved bits.
+    ///
+    /// # Errors
+    /// [`ProtocolError::ReservedStatusBits`] when a reserved bit is set.
     pub fn from_bits(bits: u16) -> Result<Self, ProtocolError> {
         if bits & !Self::DEFINED != 0 {
             return Err(ProtocolError::ReservedStatusBits(bits));
@@ -212,6 +215,12 @@ fn write_vector(
 
 impl InputReport {
     /// Decode an input report (report ID included as byte 0).
+    ///
+    /// # Errors
+    /// [`ProtocolError::Length`], [`ProtocolError::UnknownReportId`] or [`ProtocolError::Version`]
+    /// for a bad header, [`ProtocolError::OutOfRange`] for a position beyond ±[`MAX_POSITION`],
+    /// [`ProtocolError::ReservedStatusBits`] or [`ProtocolError::ReservedBytes`] for reserved bits
+    /// or bytes set.
     pub fn decode(bytes: &[u8]) -> Result<Self, ProtocolError> {
         check_header(bytes, INPUT_REPORT_ID, INPUT_REPORT_LEN)?;
         let sequence = u16::from_le_bytes([bytes[2], bytes[3]]);
@@ -229,7 +238,10 @@ impl InputReport {
         })
     }
 
-    /// Encode into `out`; fails only for a position outside ±[`MAX_POSITION`] or non-finite.
+    /// Encode into `out`.
+    ///
+    /// # Errors
+    /// [`ProtocolError::OutOfRange`] for a position outside ±[`MAX_POSITION`] or non-finite.
     pub fn encode(&self, out: &mut [u8; INPUT_REPORT_LEN]) -> Result<(), ProtocolError> {
         *out = [0; INPUT_REPORT_LEN];
         out[0] = INPUT_REPORT_ID;
@@ -256,6 +268,12 @@ impl OutputReport {
     }
 
     /// Decode an output report (what emulated device firmware does).
+    ///
+    /// # Errors
+    /// [`ProtocolError::Length`], [`ProtocolError::UnknownReportId`] or [`ProtocolError::Version`]
+    /// for a bad header, [`ProtocolError::OutOfRange`] for a force beyond ±[`MAX_FORCE`],
+    /// [`ProtocolError::ReservedFlagBits`] or [`ProtocolError::ReservedBytes`] for reserved bits
+    /// or bytes set.
     pub fn decode(bytes: &[u8]) -> Result<Self, ProtocolError> {
         check_header(bytes, OUTPUT_REPORT_ID, OUTPUT_REPORT_LEN)?;
         let sequence = u16::from_le_bytes([bytes[2], bytes[3]]);
@@ -274,7 +292,10 @@ impl OutputReport {
         })
     }
 
-    /// Encode into `out`; fails for a non-finite force or one outside ±[`MAX_FORCE`] per axis.
+    /// Encode into `out`.
+    ///
+    /// # Errors
+    /// [`ProtocolError::OutOfRange`] for a non-finite force or one outside ±[`MAX_FORCE`] per axis.
     pub fn encode(&self, out: &mut [u8; OUTPUT_REPORT_LEN]) -> Result<(), ProtocolError> {
         *out = [0; OUTPUT_REPORT_LEN];
         out[0] = OUTPUT_REPORT_ID;
@@ -322,6 +343,13 @@ impl DeviceInfo {
     }
 
     /// Decode a device-info report (report ID included as byte 0), with the checks of §5a.
+    ///
+    /// # Errors
+    /// [`ProtocolError::Length`], [`ProtocolError::UnknownReportId`] or [`ProtocolError::Version`]
+    /// for a bad header, [`ProtocolError::ReservedInfoFlags`] or [`ProtocolError::ReservedBytes`]
+    /// for reserved bits or bytes set, [`ProtocolError::InfoOutOfRange`] for the report rate or
+    /// force limit, [`ProtocolError::OutOfRange`] for the workspace box and
+    /// [`ProtocolError::Text`] for the model or serial.
     pub fn decode(bytes: &[u8]) -> Result<Self, ProtocolError> {
         check_header(bytes, DEVICE_INFO_REPORT_ID, DEVICE_INFO_LEN)?;
         let flags = bytes[2];
@@ -379,8 +407,11 @@ impl DeviceInfo {
         })
     }
 
-    /// Encode into `out`; fails for a value the report cannot carry (the checks of
-    /// [`DeviceInfo::decode`], and strings longer than their field).
+    /// Encode into `out`.
+    ///
+    /// # Errors
+    /// For a value the report cannot carry: those of [`DeviceInfo::decode`], and
+    /// [`ProtocolError::Text`] for a string longer than its field.
     pub fn encode(&self, out: &mut [u8; DEVICE_INFO_LEN]) -> Result<(), ProtocolError> {
         *out = [0; DEVICE_INFO_LEN];
         out[0] = DEVICE_INFO_REPORT_ID;
@@ -505,29 +536,31 @@ pub const REPORT_DESCRIPTOR: [u8; 31] = [
     0xC0, //             End Collection
 ];
 
-/// The descriptor of a v1 device that also offers the device-info feature report: the v1
-/// descriptor with one feature item (report ID 3, 63 bytes) before its End Collection.
-pub const REPORT_DESCRIPTOR_WITH_DEVICE_INFO: [u8; 39] = [
-    0x06, 0x00, 0xFF, // Usage Page (Vendor Defined 0xFF00)
-    0x09, 0x01, //       Usage (0x01: hgcd haptic device)
-    0xA1, 0x01, //       Collection (Application)
-    0x15, 0x00, //         Logical Minimum (0)
-    0x26, 0xFF, 0x00, //   Logical Maximum (255)
-    0x75, 0x08, //         Report Size (8)
-    0x85, 0x01, //         Report ID (1): input report
-    0x09, 0x02, //         Usage (0x02: state)
-    0x95, 0x17, //         Report Count (23)
-    0x81, 0x02, //         Input (Data, Variable, Absolute)
-    0x85, 0x02, //         Report ID (2): output report
-    0x09, 0x03, //         Usage (0x03: force command)
-    0x95, 0x13, //         Report Count (19)
-    0x91, 0x02, //         Output (Data, Variable, Absolute)
-    0x85, 0x03, //         Report ID (3): device-info feature report
-    0x09, 0x04, //         Usage (0x04: device info)
-    0x95, 0x3F, //         Report Count (63)
-    0xB1, 0x02, //         Feature (Data, Variable, Absolute)
-    0xC0, //             End Collection
+/// The feature item a device that offers the device-info report adds (report ID 3, 63 bytes).
+const DEVICE_INFO_ITEM: [u8; 8] = [
+    0x85, 0x03, // Report ID (3): device-info feature report
+    0x09, 0x04, // Usage (0x04: device info)
+    0x95, 0x3F, // Report Count (63)
+    0xB1, 0x02, // Feature (Data, Variable, Absolute)
 ];
+
+/// The descriptor of a v1 device that also offers the device-info feature report: the v1
+/// descriptor with the device-info feature item before its End Collection.
+pub const REPORT_DESCRIPTOR_WITH_DEVICE_INFO: [u8; 39] = {
+    let mut d = [0; 39];
+    let end = REPORT_DESCRIPTOR.len() - 1;
+    let mut i = 0;
+    while i < end {
+        d[i] = REPORT_DESCRIPTOR[i];
+        i += 1;
+    }
+    while i < end + DEVICE_INFO_ITEM.len() {
+        d[i] = DEVICE_INFO_ITEM[i - end];
+        i += 1;
+    }
+    d[i] = REPORT_DESCRIPTOR[end];
+    d
+};
 
 #[cfg(test)]
 mod tests {

@@ -8,13 +8,13 @@ use std::os::unix::net::UnixStream;
 use std::thread;
 use std::time::{Duration, Instant};
 
-use hgcd::client::{CalibrationStage, Client, Compensating, Reply, Role};
+use hgcd::client::{CalibrationStage, Client, Compensating, Reply, Role, Status};
 use hgcd::config::Config;
 use hgcd::grid::GridFile;
 
 mod common;
 use common::daemon::{Running, TestDaemon};
-use common::{hgcd, serial, truth_field_27, with_device_id};
+use common::{hgcd, serial, succeeded, truth_field_27, with_device_id};
 
 /// A daemon serving the simulated point mass in virtual time, with its own socket and state dir.
 fn start(config: Config, grid: Option<&GridFile>) -> Running {
@@ -47,6 +47,19 @@ fn next_reply(replies: &mut BufReader<UnixStream>) -> Reply {
         "connection closed"
     );
     serde_json::from_str(&line).unwrap()
+}
+
+/// `out`, all a connection got, ends in a fatal error saying `why`, and the connection closed
+/// `closed_after` its start: not before the 300 ms deadline, nor seconds after it.
+fn assert_closed_at_the_deadline(out: &str, why: &str, closed_after: Duration) {
+    assert!(
+        out.contains(why) && out.contains("\"fatal\":true"),
+        "{out:?}"
+    );
+    assert!(
+        closed_after >= Duration::from_millis(300) && closed_after < Duration::from_secs(5),
+        "closed after {closed_after:?}"
+    );
 }
 
 const HELLO_OBSERVE: &[u8] = b"{\"type\":\"hello\",\"version\":1,\"role\":\"observe\"}\n";
@@ -202,6 +215,24 @@ impl Script<'_> {
         }
     }
 
+    /// The welcome, which must grant `role` and number the client `client_id`.
+    fn expect_welcome(&mut self, peer: &mut Peer, role: Role, client_id: u64) {
+        let welcome = self.expect(peer, |r| matches!(r, Reply::Welcome { .. }));
+        assert!(
+            matches!(welcome, Reply::Welcome { role: r, client_id: id, .. } if r == role && id == client_id),
+            "{welcome:?}"
+        );
+    }
+
+    /// Ask for the status and wait for it.
+    fn status(&mut self, peer: &mut Peer) -> Box<Status> {
+        self.send(peer, r#"{"type":"status"}"#);
+        let Reply::Status(status) = self.expect(peer, is_status) else {
+            unreachable!()
+        };
+        status
+    }
+
     /// The fatal error that ends `peer`'s connection, and the end of the stream.
     fn expect_fatal(&mut self, peer: &mut Peer) -> String {
         let Reply::Error { message, fatal } =
@@ -245,19 +276,8 @@ fn the_scripted_session_matches_its_golden_transcript() {
         &mut a,
         r#"{"type":"hello","version":1,"role":"control","name":"golden"}"#,
     );
-    let welcome = s.expect(&mut a, |r| matches!(r, Reply::Welcome { .. }));
-    assert!(matches!(
-        welcome,
-        Reply::Welcome {
-            role: Role::Control,
-            client_id: 1,
-            ..
-        }
-    ));
-    s.send(&mut a, r#"{"type":"status"}"#);
-    let Reply::Status(status) = s.expect(&mut a, is_status) else {
-        unreachable!()
-    };
+    s.expect_welcome(&mut a, Role::Control, 1);
+    let status = s.status(&mut a);
     assert_eq!(
         (status.mode, status.owner.as_deref()),
         (Compensating::Scalar, Some("golden"))
@@ -312,10 +332,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
             _ => {}
         }
     }
-    s.send(&mut a, r#"{"type":"status"}"#);
-    let Reply::Status(status) = s.expect(&mut a, is_status) else {
-        unreachable!()
-    };
+    let status = s.status(&mut a);
     assert!(!status.calibrating);
     assert!(GridFile::load(&grid_file).is_ok());
 
@@ -325,15 +342,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
         &mut b,
         r#"{"type":"hello","version":1,"role":"control","name":"second"}"#,
     );
-    let welcome = s.expect(&mut b, |r| matches!(r, Reply::Welcome { .. }));
-    assert!(matches!(
-        welcome,
-        Reply::Welcome {
-            role: Role::Observe,
-            client_id: 2,
-            ..
-        }
-    ));
+    s.expect_welcome(&mut b, Role::Observe, 2);
     s.expect(&mut b, is_error);
     s.send(
         &mut b,
@@ -426,20 +435,9 @@ fn a_client_trickling_bytes_is_closed_at_the_hello_deadline() {
     let closed_after = connected.elapsed();
     trickler.join().unwrap();
 
-    assert!(
-        out.contains("no hello within the time limit") && out.contains("\"fatal\":true"),
-        "{out:?}"
-    );
     // The deadline starts at accept, after connect: never early. A loaded machine may be late,
     // but nowhere near the 15 s the trickle would last.
-    assert!(
-        closed_after >= Duration::from_millis(300),
-        "closed after {closed_after:?}"
-    );
-    assert!(
-        closed_after < Duration::from_secs(5),
-        "closed after {closed_after:?}"
-    );
+    assert_closed_at_the_deadline(&out, "no hello within the time limit", closed_after);
     stop(daemon);
 }
 
@@ -469,12 +467,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
         .arg("status")
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "hgcd status failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = succeeded(&out);
     assert!(stdout.contains("device        sim:point-mass"), "{stdout}");
     // The four held connections and the status query itself.
     assert!(stdout.contains("clients       5 "), "{stdout}");
@@ -540,18 +533,7 @@ fn a_status_only_connection_is_closed_at_its_deadline() {
     let out = read_until_closed(spare, Duration::from_secs(30));
     let closed_after = connected.elapsed();
     assert!(out.contains("\"type\":\"status\""), "{out:?}");
-    assert!(
-        out.contains("status-only connection: its time limit") && out.contains("\"fatal\":true"),
-        "{out:?}"
-    );
-    assert!(
-        closed_after >= Duration::from_millis(300),
-        "closed after {closed_after:?}"
-    );
-    assert!(
-        closed_after < Duration::from_secs(5),
-        "closed after {closed_after:?}"
-    );
+    assert_closed_at_the_deadline(&out, "status-only connection: its time limit", closed_after);
     // The client that holds the place is not touched, and the spare place is free again.
     let gone = Instant::now() + Duration::from_secs(10);
     while held.status().unwrap().clients != 1 {

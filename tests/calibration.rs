@@ -21,7 +21,7 @@ use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;
-use common::{file_names, hgcd, serial, truth_field_125};
+use common::{failed, file_names, hgcd, serial, succeeded, truth_field_125};
 
 /// A config file (paper defaults) whose simulated device has the truth field; extra TOML appended.
 fn setup(dir: &Path, extra: &str) -> (PathBuf, MassGrid) {
@@ -92,11 +92,7 @@ fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
         .arg(&state)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    succeeded(&out);
     let file = GridFile::load(&state.join("sim-point-mass.toml")).unwrap();
     let grid = &file.grid;
     assert_eq!(grid.dims, [3, 3, 3]);
@@ -271,8 +267,7 @@ fn unwritable_state_dir_fails_before_calibrating() {
         .arg(blocker.join("state"))
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = failed(&out);
     assert!(
         stderr.contains("cannot create the state directory") && stderr.contains("--state-dir"),
         "{stderr}"
@@ -342,8 +337,7 @@ fn a_failed_calibration_tells_the_user_why_and_writes_nothing() {
     let failure = outcome.unwrap_err();
     let out_file = dir.path().join("grid.toml");
     let out = calibrate_to(&cfg, &out_file);
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = failed(&out);
     let last = stderr.trim().lines().last().unwrap();
     assert!(last.contains(&failure.to_string()), "{stderr}");
     assert!(!out_file.exists());

@@ -1,7 +1,7 @@
 //! The `hgcd` binary as a user runs it.
 
 mod common;
-use common::{hgcd, serial};
+use common::{failed, hgcd, serial, spawn_until, succeeded};
 
 /// `hgcd` with a config file, an application socket and a state directory of the test's own.
 fn hgcd_in(
@@ -34,12 +34,7 @@ fn run_on_a_simulated_device_in_real_time_prints_timing_statistics() {
         .output()
         .unwrap();
     let elapsed = started.elapsed().as_secs_f64();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = succeeded(&out);
     let count = |after: &str| -> u64 {
         let words: Vec<&str> = stdout.split_whitespace().collect();
         words
@@ -78,12 +73,7 @@ fn virtual_time_runs_as_fast_as_the_cpu_allows() {
         ])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = succeeded(&out);
     assert!(stdout.contains("servo loop: 2000"), "{stdout}");
     // 20 s of device time; only a sanity bound on the wall clock, not a performance claim.
     assert!(started.elapsed().as_secs_f64() < 20.0);
@@ -91,34 +81,24 @@ fn virtual_time_runs_as_fast_as_the_cpu_allows() {
 
 #[test]
 fn sigterm_stops_the_daemon_with_status_0_and_status_works_while_it_runs() {
-    use std::io::{BufRead, BufReader, Read};
+    use std::io::Read;
     let _serial = serial();
     let cfg = empty_config();
     let dir = tempfile::tempdir().unwrap();
     let socket = dir.path().join("s.sock");
-    let mut child = hgcd_in(&cfg, &socket, dir.path())
-        .args(["run", "--device", "sim:point-mass"])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut stderr = BufReader::new(child.stderr.take().unwrap());
-    let mut log = String::new();
-    while !log.contains("hgcd running on") {
-        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
-    }
+    let (child, mut stderr, mut log) = spawn_until(
+        hgcd_in(&cfg, &socket, dir.path())
+            .args(["run", "--device", "sim:point-mass"])
+            .stdout(std::process::Stdio::piped()),
+        "hgcd running on",
+    );
     let status = hgcd()
         .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
         .arg(&socket)
         .arg("status")
         .output()
         .unwrap();
-    let text = String::from_utf8_lossy(&status.stdout);
-    assert!(
-        status.status.success(),
-        "{}",
-        String::from_utf8_lossy(&status.stderr)
-    );
+    let text = succeeded(&status);
     assert!(text.contains("sim:point-mass (sim-point-mass)"), "{text}");
     assert!(text.contains("compensation  none"), "{text}");
     // SAFETY: kill(2) on our own child.
@@ -146,8 +126,7 @@ fn bad_input_gets_one_clear_line() {
         ])
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = failed(&out);
     assert!(stderr.contains("safety.max_force_n"), "{stderr}");
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
 
@@ -162,15 +141,13 @@ fn bad_input_gets_one_clear_line() {
         ])
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("known: point-mass"));
+    assert!(failed(&out).contains("known: point-mass"));
 
     let out = hgcd()
         .args(["--config", "/nonexistent/hgcd.toml", "status"])
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/hgcd.toml"));
+    assert!(failed(&out).contains("/nonexistent/hgcd.toml"));
 }
 
 #[test]
@@ -203,7 +180,7 @@ fn missing_hid_device_is_reported_clearly() {
 /// seconds of device time, and the device exited after the first host).
 #[test]
 fn hgcd_sim_device_serves_host_after_host_and_run_duration_counts_its_time() {
-    use std::io::{BufRead, BufReader, Read};
+    use std::io::Read;
     let _serial = serial();
     let cfg = empty_config();
     // The default 10 ms watchdog: in lock-step it counts device time, which a loaded machine
@@ -211,24 +188,19 @@ fn hgcd_sim_device_serves_host_after_host_and_run_duration_counts_its_time() {
     std::fs::write(cfg.path(), "[sim]\nserial = \"SIM-0042\"\n").unwrap();
     let dir = tempfile::tempdir().unwrap();
     let device = dir.path().join("device.sock");
-    let mut sim = hgcd()
-        .args([
-            "--config",
-            cfg.path().to_str().unwrap(),
-            "sim-device",
-            "--lockstep",
-            "--listen",
-        ])
-        .arg(&device)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut stderr = BufReader::new(sim.stderr.take().unwrap());
-    let mut log = String::new();
-    while !log.contains("simulated device listening") {
-        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
-    }
+    let (sim, mut stderr, mut log) = spawn_until(
+        hgcd()
+            .args([
+                "--config",
+                cfg.path().to_str().unwrap(),
+                "sim-device",
+                "--lockstep",
+                "--listen",
+            ])
+            .arg(&device)
+            .stdout(std::process::Stdio::piped()),
+        "simulated device listening",
+    );
     let spec = format!("socket:{}", device.display());
     for host in 1..=2 {
         let out = hgcd_in(&cfg, &dir.path().join("app.sock"), dir.path())
@@ -488,7 +460,6 @@ fn terminate_the_process_serving(path: &std::path::Path) {
 
 #[test]
 fn every_command_ends_quietly_when_its_reader_goes_away() {
-    use std::io::{BufRead, BufReader};
     // Before: a write to a closed pipe panicked (exit status 101, and a message when stderr was
     // still there). Now the command does its work, drops what it cannot print and exits with the
     // status it would have had.
@@ -531,18 +502,12 @@ fn every_command_ends_quietly_when_its_reader_goes_away() {
     check(&["status"], 1);
 
     // The commands that talk to a daemon, with one running (flat out, in virtual time).
-    let mut daemon = hgcd_in(&cfg, &socket, dir.path())
-        .args(["run", "--device", "sim:point-mass", "--virtual-time"])
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut log = BufReader::new(daemon.stderr.take().unwrap());
-    let mut line = String::new();
-    while !line.contains("hgcd running on") {
-        line.clear();
-        assert!(log.read_line(&mut line).unwrap() > 0, "the daemon ended");
-    }
+    let (mut daemon, mut log, _) = spawn_until(
+        hgcd_in(&cfg, &socket, dir.path())
+            .args(["run", "--device", "sim:point-mass", "--virtual-time"])
+            .stdout(std::process::Stdio::null()),
+        "hgcd running on",
+    );
     // Keep the daemon's log flowing so it never blocks on it.
     let drain = std::thread::spawn(move || std::io::copy(&mut log, &mut std::io::sink()));
     check(&["status"], 0);
@@ -598,7 +563,6 @@ fn unprivileged(
 
 #[test]
 fn a_normal_user_calibrates_and_runs_a_simulated_device_without_naming_a_state_dir() {
-    use std::io::{BufRead, BufReader};
     use std::os::unix::fs::PermissionsExt;
     // SAFETY: geteuid and access have no preconditions; the path is a NUL-terminated literal.
     let (root, system_writable) = unsafe {
@@ -633,18 +597,13 @@ fn a_normal_user_calibrates_and_runs_a_simulated_device_without_naming_a_state_d
     // what it logged.
     let run_daemon = || {
         let mut daemon = hgcd_as_user(&["run", "--device", "sim:point-mass", "--virtual-time"]);
-        let mut daemon = daemon
-            .arg("--socket")
-            .arg(&socket)
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap();
-        let mut log = String::new();
-        let mut stderr = BufReader::new(daemon.stderr.take().unwrap());
-        while !log.contains("hgcd running on") {
-            assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
-        }
+        let (mut daemon, mut stderr, mut log) = spawn_until(
+            daemon
+                .arg("--socket")
+                .arg(&socket)
+                .stdout(std::process::Stdio::null()),
+            "hgcd running on",
+        );
         let status = hgcd::client::Client::connect(&socket, hgcd::client::Role::Observe, "test")
             .unwrap()
             .status()
@@ -666,13 +625,9 @@ fn a_normal_user_calibrates_and_runs_a_simulated_device_without_naming_a_state_d
     // The advice, as given (with the daemon's --config): the grid goes to the user's state dir.
     let args: Vec<&str> = advice.split_whitespace().skip(1).collect();
     let out = hgcd_as_user(&args).output().unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = succeeded(&out);
     let grid = home.path().join(".local/state/hgcd/sim-point-mass.toml");
-    assert!(grid.is_file(), "{}", String::from_utf8_lossy(&out.stdout));
+    assert!(grid.is_file(), "{stdout}");
 
     // `hgcd run` finds it the same way.
     let (status, log) = run_daemon();
@@ -748,11 +703,7 @@ fn help_and_devices_show_what_a_newcomer_can_use() {
             ])
             .output()
             .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        succeeded(&out);
     }
     // Where the daemon is not, `status` says how to point at it.
     let out = hgcd()

@@ -21,7 +21,7 @@ use hgcd::grid::MassGrid;
 mod common;
 use common::daemon::TestDaemon;
 use common::tap::{Gate, Tap};
-use common::{with_device_id, WAIT};
+use common::{output_within, with_device_id, WAIT};
 
 /// The example `name`, built by cargo with the profile this test was built with (a no-op when
 /// `cargo test` has built the examples already).
@@ -164,28 +164,15 @@ fn relay(app: UnixStream, daemon: UnixStream, gate: &Gate) {
 /// Run the example `virtual_wall` with `args` against `socket`; its output. It must end within
 /// [`RUN_LIMIT`] (it runs a few seconds of device time, a few seconds of wall-clock time).
 fn virtual_wall(socket: &Path, args: &[&str]) -> Output {
-    let child = Command::new(example("virtual_wall"))
+    let mut command = Command::new(example("virtual_wall"));
+    command
         .arg("--socket")
         .arg(socket)
         .args(args)
         // A panic would print its backtrace: the test below checks there is none.
         .env("RUST_BACKTRACE", "1")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let pid = child.id() as i32;
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || tx.send(child.wait_with_output()));
-    match rx.recv_timeout(RUN_LIMIT) {
-        Ok(out) => out.unwrap(),
-        Err(_) => {
-            // SAFETY: kill(2) on our own child, which has not been reaped (its waiter is stuck).
-            unsafe { libc::kill(pid, libc::SIGKILL) };
-            panic!("virtual_wall did not end within {RUN_LIMIT:?}");
-        }
-    }
+        .stdin(Stdio::null());
+    output_within(command, RUN_LIMIT)
 }
 
 /// How long an example may run before the test gives up on it.
@@ -201,6 +188,30 @@ fn reported_penetration(stdout: &str) -> f64 {
     mm * 1e-3
 }
 
+/// `virtual_wall` at 1 N/mm for 3 s on `running`'s device in lock-step, the daemon stopped after:
+/// the example succeeds and reports a mean penetration within 5 % of `expected` (m). What it
+/// printed.
+fn sinks_into_the_wall(running: Running, expected: f64) -> String {
+    let (socket, relay) = running.lock_step_socket();
+    let out = virtual_wall(&socket, &["--stiffness", "1", "--duration", "3"]);
+    relay.join().unwrap();
+    running.stop();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let penetration = reported_penetration(&stdout);
+    assert!(
+        (penetration / expected - 1.0).abs() < 0.05,
+        "penetration {:.3} mm, expected {:.3} mm: {stdout}",
+        penetration * 1e3,
+        expected * 1e3
+    );
+    stdout
+}
+
 #[test]
 fn virtual_wall_on_an_uncalibrated_daemon_holds_the_handle_at_its_weight_over_k() {
     // As a newcomer meets it: the default simulated device (120 g, no friction), no grid.
@@ -210,25 +221,9 @@ fn virtual_wall_on_an_uncalibrated_daemon_holds_the_handle_at_its_weight_over_k(
     // The uncompensated handle falls onto the lower stop, 80 mm below the wall, before the example
     // starts: there the wall's spring asks for 80 N, far beyond the daemon's 8 N limit.
     running.gate.advance(500);
-    let (socket, relay) = running.lock_step_socket();
-    let out = virtual_wall(&socket, &["--stiffness", "1", "--duration", "3"]);
-    relay.join().unwrap();
-    running.stop();
-    let (stdout, stderr) = (
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr),
-    );
-    assert!(out.status.success(), "{stdout}{stderr}");
     // Resting on the wall, the spring carries the whole uncompensated weight.
-    let penetration = reported_penetration(&stdout);
-    let expected = m * g / k; // 1.18 mm
-    assert!(
-        (penetration / expected - 1.0).abs() < 0.05,
-        "penetration {:.3} mm, expected {:.3} mm: {stdout}",
-        penetration * 1e3,
-        expected * 1e3
-    );
-    // It says why: no compensation, so the handle's own weight is on the wall.
+    let stdout = sinks_into_the_wall(running, m * g / k); // 1.18 mm
+                                                          // It says why: no compensation, so the handle's own weight is on the wall.
     assert!(stdout.contains("gravity compensation: none"), "{stdout}");
     assert!(stdout.contains("own weight"), "{stdout}");
 }
@@ -240,24 +235,7 @@ fn virtual_wall_with_compensation_sinks_only_the_probe() {
     config.sim.probe_mass_kg = 0.03;
     let (m_p, g, k) = (0.03, config.sim.g, 1000.0);
     let running = Running::start(config.clone(), Some(config.sim.mass_kg));
-    let (socket, relay) = running.lock_step_socket();
-    let out = virtual_wall(&socket, &["--stiffness", "1", "--duration", "3"]);
-    relay.join().unwrap();
-    running.stop();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let penetration = reported_penetration(&stdout);
-    let expected = m_p * g / k; // 0.29 mm
-    assert!(
-        (penetration / expected - 1.0).abs() < 0.05,
-        "penetration {:.3} mm, expected {:.3} mm: {stdout}",
-        penetration * 1e3,
-        expected * 1e3
-    );
+    let stdout = sinks_into_the_wall(running, m_p * g / k); // 0.29 mm
     assert!(stdout.contains("gravity compensation: scalar"), "{stdout}");
 }
 

@@ -17,7 +17,7 @@ use hgcd::grid::{DeviceIdentity, GridFile, MassGrid};
 use hgcd::protocol::DeviceInfo;
 
 mod common;
-use common::hgcd;
+use common::{hgcd, succeeded};
 
 const MODEL: &str = "Test linkage";
 /// Workspace centre and half-extents, m: the handle is 150 mm in front of the base, 60 mm up.
@@ -228,11 +228,7 @@ fn hgcd_calibrates_each_unit_inside_its_declared_workspace_into_a_grid_named_aft
             ],
         );
         let sessions = device.join().unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        succeeded(&out);
         // The handle stayed inside the workspace: it never met a stop.
         assert!(!sessions[0].touched_stop, "{sessions:?}");
         let grid_path = dir

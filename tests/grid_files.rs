@@ -1,7 +1,6 @@
 //! What `hgcd` does with what it finds where a grid should be, and with a disk that has no room
 //! for one (issue 7, items 8 and 9).
 
-use std::io::{BufRead, BufReader};
 use std::os::unix::fs::{symlink, PermissionsExt};
 use std::os::unix::process::CommandExt;
 use std::path::Path;
@@ -9,7 +8,9 @@ use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
 mod common;
-use common::{file_names, hgcd, serial, truth_field_27, with_device_id};
+use common::{
+    failed, file_names, hgcd, output_within, serial, spawn_until, truth_field_27, with_device_id,
+};
 
 /// `hgcd run` with the config file `config` on the simulated device for half a second of virtual
 /// time, with grids in `state`.
@@ -34,28 +35,14 @@ fn run_in(config: &Path, dir: &Path, state: &Path) -> Command {
 
 const NO_CONFIG: &str = "/dev/null";
 
-/// Run `command` to its end; a run still going after 60 s is killed and fails the test (the
-/// FIFO used to block `hgcd run` for ever).
-fn output_within_deadline(mut command: Command) -> Output {
-    let child = command
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let pid = child.id() as i32;
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let _ = tx.send(child.wait_with_output());
-    });
-    match rx.recv_timeout(Duration::from_secs(60)) {
-        Ok(out) => out.unwrap(),
-        Err(_) => {
-            // SAFETY: kill(2) on our own child, which has not been reaped (it is still running).
-            unsafe { libc::kill(pid, libc::SIGKILL) };
-            panic!("hgcd did not finish within 60 s");
-        }
-    }
+/// [`run_in`] without a config file, in `dir` with grids there too, to its end.
+fn run_without_config(dir: &Path) -> Output {
+    output_within(run_in(Path::new(NO_CONFIG), dir, dir), DEADLINE)
 }
+
+/// How long a run may take before it is killed and fails the test (the FIFO used to block
+/// `hgcd run` for ever).
+const DEADLINE: Duration = Duration::from_secs(60);
 
 /// The run failed with one line on stderr that contains `needle`.
 fn refused_with(out: &Output, needle: &str) {
@@ -72,7 +59,7 @@ fn a_fifo_where_the_grid_should_be_is_refused_at_once() {
     let c = std::ffi::CString::new(grid.as_os_str().as_encoded_bytes()).unwrap();
     // SAFETY: `c` is a valid NUL-terminated path for the duration of the call.
     assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
-    let out = output_within_deadline(run_in(Path::new(NO_CONFIG), dir.path(), dir.path()));
+    let out = run_without_config(dir.path());
     refused_with(&out, "is a FIFO (named pipe), not a regular file");
 }
 
@@ -80,7 +67,7 @@ fn a_fifo_where_the_grid_should_be_is_refused_at_once() {
 fn a_link_to_dev_zero_where_the_grid_should_be_is_refused_without_reading_it() {
     let dir = tempfile::tempdir().unwrap();
     symlink("/dev/zero", dir.path().join("sim-point-mass.toml")).unwrap();
-    let out = output_within_deadline(run_in(Path::new(NO_CONFIG), dir.path(), dir.path()));
+    let out = run_without_config(dir.path());
     refused_with(&out, "is a character device, not a regular file");
 }
 
@@ -88,7 +75,7 @@ fn a_link_to_dev_zero_where_the_grid_should_be_is_refused_without_reading_it() {
 fn a_dangling_link_is_not_taken_for_a_missing_grid() {
     let dir = tempfile::tempdir().unwrap();
     symlink("moved-away.toml", dir.path().join("sim-point-mass.toml")).unwrap();
-    let out = output_within_deadline(run_in(Path::new(NO_CONFIG), dir.path(), dir.path()));
+    let out = run_without_config(dir.path());
     refused_with(
         &out,
         "is a symbolic link to moved-away.toml, which does not exist",
@@ -96,7 +83,7 @@ fn a_dangling_link_is_not_taken_for_a_missing_grid() {
     // Unless uncompensated running is allowed: then it runs.
     let allow = dir.path().join("allow.toml");
     std::fs::write(&allow, "[compensation]\nallow_uncompensated = true\n").unwrap();
-    let out = output_within_deadline(run_in(&allow, dir.path(), dir.path()));
+    let out = output_within(run_in(&allow, dir.path(), dir.path()), DEADLINE);
     assert!(out.status.success(), "{out:?}");
 }
 
@@ -187,9 +174,8 @@ fn without_room_for_the_grid_calibration_refuses_before_it_starts() {
     // Files may grow to 2 KiB only: less than the grid needs. The room check of old (a 5-byte
     // probe) passed, the calibration ran to the end and failed at the write.
     limit_file_size(&mut command, 2048);
-    let out = output_within_deadline(command);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{stderr}");
+    let out = output_within(command, DEADLINE);
+    let stderr = failed(&out);
     assert!(
         stderr.contains(&format!("grid file in {}", dir.path().display()))
             && stderr.contains("File too large"),
@@ -219,30 +205,21 @@ fn without_room_for_the_grid_the_daemon_refuses_a_calibration_and_runs_on() {
         .arg("--state-dir")
         .arg(dir.path())
         .args(["run", "--device", "sim:point-mass"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
+        .stdout(Stdio::null());
     limit_file_size(&mut daemon, 2048);
-    let mut daemon = daemon.spawn().unwrap();
-    let mut stderr = BufReader::new(daemon.stderr.take().unwrap());
-    let mut log = String::new();
-    while !log.contains("hgcd running on") {
-        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
-    }
+    let (mut daemon, mut stderr, log) = spawn_until(&mut daemon, "hgcd running on");
     // Keep draining the log, so the daemon never waits on a full pipe.
     let log = std::thread::spawn(move || {
         let mut rest = String::new();
         let _ = std::io::Read::read_to_string(&mut stderr, &mut rest);
         log + &rest
     });
-    let out = output_within_deadline({
-        let mut c = hgcd();
-        c.args(["--config", "/dev/null", "--socket"])
-            .arg(&socket)
-            .args(["calibrate", "--via-daemon", "--yes"]);
-        c
-    });
-    let text = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{text}");
+    let mut calibrate = hgcd();
+    calibrate
+        .args(["--config", "/dev/null", "--socket"])
+        .arg(&socket)
+        .args(["calibrate", "--via-daemon", "--yes"]);
+    let text = failed(&output_within(calibrate, DEADLINE));
     assert!(
         text.contains("calibration failed: cannot write a") && text.contains("File too large"),
         "{text}"
@@ -253,7 +230,7 @@ fn without_room_for_the_grid_the_daemon_refuses_a_calibration_and_runs_on() {
         .args(["--config", "/dev/null", "--socket"])
         .arg(&socket)
         .arg("status");
-    let status = output_within_deadline(status);
+    let status = output_within(status, DEADLINE);
     assert!(status.status.success(), "{status:?}");
     // SAFETY: kill(2) on our own child.
     assert_eq!(unsafe { libc::kill(daemon.id() as i32, libc::SIGTERM) }, 0);

@@ -5,21 +5,22 @@
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
-use std::os::unix::net::UnixListener;
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use crossbeam_channel::Sender;
 use nalgebra::Vector3;
 
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
 use hgcd::control::calibration::{Calibration, CalibrationParams};
+use hgcd::control::Controller;
 use hgcd::discrepancy::record::{RecordParams, Recorder};
 use hgcd::grid::GridFile;
 use hgcd::protocol::OUTPUT_REPORT_LEN;
-use hgcd::servo::{self, ServoOptions};
-use hgcd::sim::socket;
+use hgcd::servo::{self, ServoEvent, ServoOptions};
 use hgcd::sim::SimDevice;
 use hgcd::transport::hid::OutputWriter;
 use hgcd::transport::sim::SimTransport;
@@ -31,7 +32,7 @@ use hgcd::validate::probe::{ContactPlan, Probe, ProbeParams};
 mod common;
 use common::daemon::TestDaemon;
 use common::tap::Tap;
-use common::{pd_hold, truth_field_27, with_device_id, Ticks};
+use common::{pd_hold, serve_one_host, truth_field_27, with_device_id, Ticks};
 
 struct Counting;
 
@@ -107,6 +108,42 @@ fn config() -> Config {
     config
 }
 
+/// The simulated `model` in virtual time behind a counting tap.
+fn counting_sim(model: &str, config: &Config) -> (Tap<SimTransport>, Arc<Seen>) {
+    counting(SimTransport::new(
+        SimDevice::from_config(model, config).unwrap(),
+        Pacing::Virtual,
+    ))
+}
+
+/// [`config`] with the simulated masses of [`truth_field_27`], its grid file kept in `dir`.
+fn config_with_truth(dir: &Path) -> Config {
+    let mut config = config();
+    let truth = dir.join("truth.toml");
+    GridFile::from(truth_field_27())
+        .save_atomic(&truth)
+        .unwrap();
+    config.sim.mass_grid = Some(truth);
+    config
+}
+
+/// Run `controller` on `transport` until `options` end it.
+fn run(
+    transport: &mut dyn Transport,
+    controller: &mut dyn Controller,
+    options: &ServoOptions,
+    events: Option<&Sender<ServoEvent>>,
+) {
+    servo::run(
+        transport,
+        controller,
+        options,
+        &AtomicBool::new(false),
+        events,
+    )
+    .unwrap();
+}
+
 fn assert_quiet(what: &str, seen: &Seen, at_least: u64) {
     let reads = seen.reads.load(Ordering::Relaxed);
     assert!(reads >= at_least, "{what}: only {reads} reports");
@@ -117,87 +154,45 @@ fn assert_quiet(what: &str, seen: &Seen, at_least: u64) {
     );
 }
 
-#[test]
-fn a_simulated_device_in_virtual_time_with_a_pd_hold() {
+/// A PD hold on the simulated device `sim:MODEL` allocates nothing per tick, its events (if any)
+/// sent to `events`.
+fn quiet_pd_hold_on(model: &str, events: Option<&Sender<ServoEvent>>) {
     let config = config();
-    let sim = SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    );
-    let (mut tap, seen) = counting(sim);
+    let (mut tap, seen) = counting_sim(model, &config);
     let mut options = ServoOptions::from_config(&config);
     options.duration = Some(2.0);
-    let (events, _rx) = crossbeam_channel::bounded(16);
-    servo::run(
-        &mut tap,
-        &mut pd_hold(),
-        &options,
-        &AtomicBool::new(false),
-        Some(&events),
-    )
-    .unwrap();
-    assert_quiet("sim", &seen, 2000);
-}
-
-/// A PD hold on the simulated device `sim:MODEL` allocates nothing per tick.
-fn quiet_pd_hold_on(model: &str) {
-    let config = config();
-    let sim = SimTransport::new(
-        SimDevice::from_config(model, &config).unwrap(),
-        Pacing::Virtual,
-    );
-    let (mut tap, seen) = counting(sim);
-    let mut options = ServoOptions::from_config(&config);
-    options.duration = Some(2.0);
-    servo::run(
-        &mut tap,
-        &mut pd_hold(),
-        &options,
-        &AtomicBool::new(false),
-        None,
-    )
-    .unwrap();
+    run(&mut tap, &mut pd_hold(), &options, events);
     assert_quiet(model, &seen, 2000);
 }
 
 #[test]
+fn a_simulated_device_in_virtual_time_with_a_pd_hold() {
+    let (events, _rx) = crossbeam_channel::bounded(16);
+    quiet_pd_hold_on("point-mass", Some(&events));
+}
+
+#[test]
 fn the_phantom_in_virtual_time_with_a_pd_hold() {
-    quiet_pd_hold_on("phantom");
+    quiet_pd_hold_on("phantom", None);
 }
 
 #[test]
 fn the_delta_in_virtual_time_with_a_pd_hold() {
-    quiet_pd_hold_on("delta");
+    quiet_pd_hold_on("delta", None);
 }
 
 #[test]
 fn a_calibration_on_a_simulated_device() {
-    let mut config = config();
     let dir = tempfile::tempdir().unwrap();
-    let truth = dir.path().join("truth.toml");
-    GridFile::from(truth_field_27())
-        .save_atomic(&truth)
-        .unwrap();
-    config.sim.mass_grid = Some(truth);
+    let mut config = config_with_truth(dir.path());
     config.sim.damping_n_s_per_m = 1.0;
-    let sim = SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    );
-    let (mut tap, seen) = counting(sim);
+    let (mut tap, seen) = counting_sim("point-mass", &config);
     let (tx, _rx) = crossbeam_channel::bounded(4096);
     let mut calibration =
         Calibration::new(CalibrationParams::from_config(&config), Some(tx)).unwrap();
     let mut options = ServoOptions::from_config(&config);
     options.stop_on_fault = true;
-    servo::run(
-        &mut tap,
-        &mut calibration,
-        &options,
-        &AtomicBool::new(false),
-        None,
-    )
-    .unwrap();
+    run(&mut tap, &mut calibration, &options, None);
     assert!(
         matches!(calibration.outcome(), Some(Ok(_))),
         "the calibration completes"
@@ -210,19 +205,10 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
     use hgcd::control::compensation::{
         Compensation, CompensationMode, ForceOffset, GravityModel, OutsideGrid,
     };
-    let mut config = config();
     let dir = tempfile::tempdir().unwrap();
-    let truth = dir.path().join("truth.toml");
-    GridFile::from(truth_field_27())
-        .save_atomic(&truth)
-        .unwrap();
-    config.sim.mass_grid = Some(truth);
+    let mut config = config_with_truth(dir.path());
     config.sim.probe_mass_kg = 0.03;
-    let sim = SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    );
-    let (mut tap, seen) = counting(sim);
+    let (mut tap, seen) = counting_sim("point-mass", &config);
     // Uncompensated, then the scalar model: the second run swaps it in on the servo thread.
     let model = GravityModel::new(
         GridFile::from(truth_field_27()),
@@ -252,16 +238,10 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
     );
     let mut options = ServoOptions::from_config(&config);
     options.stop_on_fault = true;
-    servo::run(
-        &mut tap,
-        &mut experiment,
-        &options,
-        &AtomicBool::new(false),
-        None,
-    )
-    .unwrap();
+    run(&mut tap, &mut experiment, &options, None);
     let rests = experiment.into_rests();
-    assert_eq!(rests.len(), 2 * 2 * 27 * 2, "the experiment completes");
+    // Two runs of 27 points, two repetitions each, each read from above and from below.
+    assert_eq!(rests.len(), 2 * 27 * 2 * 2, "the experiment completes");
     assert!(rests.iter().all(|r| r.settled));
     assert_quiet("validation experiment", &seen, 10_000);
 }
@@ -271,11 +251,7 @@ fn an_identification_run_of_hgcd_record() {
     use hgcd::control::compensation::{CompensationMode, GravityModel, OutsideGrid};
     let mut config = config();
     config.sim.force_delay_ms = 3.0;
-    let sim = SimTransport::new(
-        SimDevice::from_config("point-mass", &config).unwrap(),
-        Pacing::Virtual,
-    );
-    let (mut tap, seen) = counting(sim);
+    let (mut tap, seen) = counting_sim("point-mass", &config);
     let model = GravityModel::new(
         GridFile::from(truth_field_27()),
         CompensationMode::Scalar,
@@ -284,14 +260,7 @@ fn an_identification_run_of_hgcd_record() {
     .unwrap();
     let params = RecordParams::inside(&model, 12.0);
     let mut recorder = Recorder::new(params, model, config.servo_period());
-    servo::run(
-        &mut tap,
-        &mut recorder,
-        &ServoOptions::from_config(&config),
-        &AtomicBool::new(false),
-        None,
-    )
-    .unwrap();
+    run(&mut tap, &mut recorder, &ServoOptions::from_config(&config), None);
     assert!(recorder.into_rows().len() >= 12_000, "the run completes");
     assert_quiet("identification run", &seen, 10_000);
 }
@@ -301,26 +270,11 @@ fn a_device_behind_the_socket_transport() {
     let config = config();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("device.sock");
-    let listener = UnixListener::bind(&path).unwrap();
-    let device_config = config.clone();
-    let stop_device = Arc::new(AtomicBool::new(false));
-    let flag = stop_device.clone();
-    let device = std::thread::spawn(move || {
-        let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
-        let host = socket::accept(&listener, &flag).unwrap().unwrap();
-        socket::serve_host(host, &mut device, true, &flag).unwrap();
-    });
+    let (stop_device, device) = serve_one_host(&path, &config);
     let (mut tap, seen) = counting(SocketTransport::connect(&path).unwrap());
     let mut options = ServoOptions::from_config(&config);
     options.watchdog = 5.0; // wall clock in lock-step: generous on a loaded machine
-    servo::run(
-        &mut tap,
-        &mut Ticks(pd_hold(), 1000),
-        &options,
-        &AtomicBool::new(false),
-        None,
-    )
-    .unwrap();
+    run(&mut tap, &mut Ticks(pd_hold(), 1000), &options, None);
     drop(tap);
     stop_device.store(true, Ordering::SeqCst);
     device.join().unwrap();

@@ -1,27 +1,26 @@
 //! The device path end to end: simulated firmware, byte protocol, servo loop and safety layer, in
 //! virtual time. Assertions compare with the simulator's physics, not with printed output.
 
-use std::os::unix::net::UnixListener;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
+use crossbeam_channel::Sender;
 use nalgebra::Vector3;
 
 use hgcd::config::Config;
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
-use hgcd::grid::{GridFile, MassGrid};
+use hgcd::grid::GridFile;
 use hgcd::protocol::OutputReport;
-use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions};
-use hgcd::sim::socket;
+use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions, ServoReport};
 use hgcd::sim::SimDevice;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
-use hgcd::transport::Pacing;
+use hgcd::transport::{Pacing, Transport};
 
 mod common;
 use common::tap::{Fault, Tap};
-use common::truth_field_27;
+use common::{pd_hold, serve_one_host, truth_field_27, Ticks};
 
 fn sim_transport(config: &Config) -> SimTransport {
     SimTransport::new(
@@ -49,6 +48,41 @@ fn options(config: &Config, duration: f64) -> ServoOptions {
     o
 }
 
+/// Run `controller` on `transport` for `duration` s of device time with `config`'s servo
+/// options, its events to `events`.
+fn run_for(
+    transport: &mut dyn Transport,
+    controller: &mut dyn Controller,
+    config: &Config,
+    duration: f64,
+    events: Option<&Sender<ServoEvent>>,
+) -> ServoReport {
+    let stop = AtomicBool::new(false);
+    servo::run(
+        transport,
+        controller,
+        &options(config, duration),
+        &stop,
+        events,
+    )
+    .unwrap()
+}
+
+/// The watchdog fault among `events` came within a tick of its `deadline` (s).
+fn assert_detected_at_the_deadline(events: &[ServoEvent], deadline: f64) {
+    let silent_for = events
+        .iter()
+        .find_map(|e| match e {
+            ServoEvent::WatchdogFault { silent_for } => Some(*silent_for),
+            _ => None,
+        })
+        .expect("a watchdog event");
+    assert!(
+        silent_for >= deadline && silent_for <= deadline + 1e-3 + 1e-9,
+        "detected after {silent_for} s, deadline {deadline} s"
+    );
+}
+
 #[test]
 fn zero_force_falls_with_g_until_the_workspace_limit() {
     let config = Config::default();
@@ -57,15 +91,7 @@ fn zero_force_falls_with_g_until_the_workspace_limit() {
         inner: ZeroForce,
         states: Vec::with_capacity(1000),
     };
-    let stop = AtomicBool::new(false);
-    let report = servo::run(
-        &mut transport,
-        &mut rec,
-        &options(&config, 0.5),
-        &stop,
-        None,
-    )
-    .unwrap();
+    let report = run_for(&mut transport, &mut rec, &config, 0.5, None);
     assert_eq!(report.exit, ExitReason::DurationReached);
 
     // Least-squares fit z = c0 + c1 t + c2 t² over the free flight (well before the floor at
@@ -117,15 +143,7 @@ fn pd_hold_with_exact_gravity_stays_within_50_micrometres_for_10_s() {
         },
         states: Vec::with_capacity(10_100),
     };
-    let stop = AtomicBool::new(false);
-    let report = servo::run(
-        &mut transport,
-        &mut rec,
-        &options(&config, 10.0),
-        &stop,
-        None,
-    )
-    .unwrap();
+    let report = run_for(&mut transport, &mut rec, &config, 10.0, None);
     assert_eq!(report.exit, ExitReason::DurationReached);
     assert!(report.stats.ticks >= 9_999);
     let worst = rec
@@ -141,11 +159,11 @@ fn pd_hold_with_exact_gravity_stays_within_50_micrometres_for_10_s() {
     assert!((truth - set_point).norm() < 5e-5);
 }
 
+/// [`pd_hold`] 10 mm above the origin.
 fn pushing_hold() -> PdHold {
     PdHold {
         set_point: Vector3::new(0.0, 0.0, 0.01),
-        gains: LinearisedGains::from_rise_time(0.1, 1.0),
-        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
+        ..pd_hold()
     }
 }
 
@@ -178,36 +196,25 @@ fn silent_device_trips_the_watchdog_and_force_is_zeroed_at_the_fault() {
     config.sim.stop_reporting_after_s = Some(1.0);
     let mut transport = Tap::new(sim_transport(&config)).recording();
     let (tx, rx) = crossbeam_channel::bounded(64);
-    let stop = AtomicBool::new(false);
-    let report = servo::run(
-        &mut transport,
-        &mut pushing_hold(),
-        &options(&config, 1.5),
-        &stop,
-        Some(&tx),
-    )
-    .unwrap();
+    let report = run_for(&mut transport, &mut pushing_hold(), &config, 1.5, Some(&tx));
     assert_eq!(report.stats.watchdog_faults, 1);
     let events: Vec<_> = rx.try_iter().collect();
-    let silent_for = events
-        .iter()
-        .find_map(|e| match e {
-            ServoEvent::WatchdogFault { silent_for } => Some(*silent_for),
-            _ => None,
-        })
-        .expect("a watchdog event");
     let deadline = config.servo.watchdog_ms * 1e-3;
-    assert!(
-        silent_for >= deadline && silent_for <= deadline + 1e-3 + 1e-9,
-        "detected after {silent_for} s, deadline {deadline} s"
-    );
+    assert_detected_at_the_deadline(&events, deadline);
     assert_zeroed_at_the_fault(&transport.writes().all(), 1.0, deadline);
 
     // With stop_on_fault the run ends at the fault instead.
     let mut transport = sim_transport(&config);
     let mut o = options(&config, 5.0);
     o.stop_on_fault = true;
-    let report = servo::run(&mut transport, &mut pushing_hold(), &o, &stop, None).unwrap();
+    let report = servo::run(
+        &mut transport,
+        &mut pushing_hold(),
+        &o,
+        &AtomicBool::new(false),
+        None,
+    )
+    .unwrap();
     assert!(matches!(report.exit, ExitReason::Fault(_)));
     assert!(transport.device().time() < 1.0 + 2.0 * deadline);
     assert_eq!(
@@ -223,15 +230,7 @@ fn a_device_that_only_babbles_trips_the_watchdog_too() {
     let mut transport = Tap::new(sim_transport(&config))
         .recording()
         .faults(|_, t| (t > 1.0).then_some(Fault::BadVersion));
-    let stop = AtomicBool::new(false);
-    let report = servo::run(
-        &mut transport,
-        &mut pushing_hold(),
-        &options(&config, 1.5),
-        &stop,
-        None,
-    )
-    .unwrap();
+    let report = run_for(&mut transport, &mut pushing_hold(), &config, 1.5, None);
     assert_eq!(report.stats.watchdog_faults, 1);
     assert!(report.stats.garbled > 400);
     assert_zeroed_at_the_fault(
@@ -249,37 +248,23 @@ fn a_device_silent_for_a_while_is_a_fault_until_its_reports_resume() {
         .recording()
         .faults(|_, t| (t > 1.0 && t <= 1.1 + 1e-9).then_some(Fault::Silence));
     let (tx, rx) = crossbeam_channel::bounded(64);
-    let stop = AtomicBool::new(false);
     let mut hold = Recorder {
         inner: pushing_hold(),
         states: Vec::with_capacity(2100),
     };
     let set_point = hold.inner.set_point;
-    let report = servo::run(
-        &mut transport,
-        &mut hold,
-        &options(&config, 2.0),
-        &stop,
-        Some(&tx),
-    )
-    .unwrap();
+    let report = run_for(&mut transport, &mut hold, &config, 2.0, Some(&tx));
     assert_eq!(report.stats.watchdog_faults, 1);
     let deadline = config.servo.watchdog_ms * 1e-3;
     let events: Vec<_> = rx.try_iter().collect();
-    let silent_for = events.iter().find_map(|e| match e {
-        ServoEvent::WatchdogFault { silent_for } => Some(*silent_for),
-        _ => None,
-    });
-    let resumed_after = events.iter().find_map(|e| match e {
-        ServoEvent::ReportsResumed { after } => Some(*after),
-        _ => None,
-    });
-    let silent_for = silent_for.expect("a watchdog event");
-    assert!(
-        silent_for >= deadline && silent_for <= deadline + 1e-3 + 1e-9,
-        "detected after {silent_for} s, deadline {deadline} s"
-    );
-    let after = resumed_after.expect("reports resumed");
+    assert_detected_at_the_deadline(&events, deadline);
+    let after = events
+        .iter()
+        .find_map(|e| match e {
+            ServoEvent::ReportsResumed { after } => Some(*after),
+            _ => None,
+        })
+        .expect("reports resumed");
     assert!((after - 0.101).abs() < 1e-6, "resumed after {after} s");
     // While the device was silent the loop wrote once: the fault's zero, at the deadline.
     let writes = transport.writes().all();
@@ -381,15 +366,7 @@ fn garbled_reports_are_counted_and_skipped() {
         3 => Some(Fault::Short),
         _ => None,
     });
-    let stop = AtomicBool::new(false);
-    let report = servo::run(
-        &mut transport,
-        &mut ZeroForce,
-        &options(&config, 1.0),
-        &stop,
-        None,
-    )
-    .unwrap();
+    let report = run_for(&mut transport, &mut ZeroForce, &config, 1.0, None);
     // 2 of every 7 reports are bad; the good ones drive the loop. Skipped good-report sequence
     // numbers show up as missed reports, not as faults.
     assert!((report.stats.garbled as f64 - 1000.0 * 2.0 / 7.0).abs() <= 2.0);
@@ -401,39 +378,15 @@ fn garbled_reports_are_counted_and_skipped() {
 fn socket_transport_carries_the_same_protocol() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("device.sock");
-    let listener = UnixListener::bind(&path).unwrap();
     let mut config = Config::default();
     config.sim.start_position_mm = [0.0, 0.0, 5.0];
-    let device_config = config.clone();
-    let server_stop = Arc::new(AtomicBool::new(false));
-    let flag = server_stop.clone();
-    let server = std::thread::spawn(move || {
-        let mut device = SimDevice::from_config("point-mass", &device_config).unwrap();
-        let host = socket::accept(&listener, &flag).unwrap().unwrap();
-        socket::serve_host(host, &mut device, true, &flag).unwrap();
-        device
-    });
+    let (server_stop, server) = serve_one_host(&path, &config);
     let mut transport = SocketTransport::connect(&path).unwrap();
-    let set_point = Vector3::new(0.0, 0.0, 0.005);
-    let mut hold = PdHold {
-        set_point,
-        gains: LinearisedGains::from_rise_time(0.1, 1.0),
-        field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
-    };
+    let hold = pd_hold();
+    let set_point = hold.set_point;
     let stop = AtomicBool::new(false);
     // Lock-step: the device advances one period per exchanged report pair, so count ticks.
-    struct Ticks<'a>(&'a mut PdHold, u64);
-    impl Controller for Ticks<'_> {
-        fn tick(&mut self, s: &DeviceState) -> ControlOutput {
-            let out = self.0.tick(s);
-            if s.tick + 1 >= self.1 {
-                ControlOutput::done(out.force)
-            } else {
-                out
-            }
-        }
-    }
-    let mut c = Ticks(&mut hold, 500);
+    let mut c = Ticks(hold, 500);
     let mut o = ServoOptions::from_config(&config);
     o.watchdog = 1.0; // wall-clock watchdog: generous on a loaded CI machine
     let report = servo::run(&mut transport, &mut c, &o, &stop, None).unwrap();

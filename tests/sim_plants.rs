@@ -28,14 +28,26 @@ impl Controller for Hold {
     }
 }
 
-/// `sim:MODEL` on `config`, run under `hold` for `seconds` of device time; the transport after.
-fn run(model: &str, config: &Config, hold: &mut Hold, seconds: f64) -> SimTransport {
+/// `sim:MODEL` on `config`, held at `set_point` with the gains [`K_P`], [`K_D`] and
+/// `feed_forward` for 3 s of device time; the transport after.
+fn hold(
+    model: &str,
+    config: &Config,
+    set_point: Vector3<f64>,
+    feed_forward: Vector3<f64>,
+) -> SimTransport {
     let device = SimDevice::from_config(model, config).unwrap();
     let mut transport = SimTransport::new(device, Pacing::Virtual);
     let mut options = ServoOptions::from_config(config);
-    options.duration = Some(seconds);
+    options.duration = Some(3.0);
+    let mut hold = Hold {
+        set_point,
+        k_p: K_P,
+        k_d: K_D,
+        feed_forward,
+    };
     let stop = AtomicBool::new(false);
-    servo::run(&mut transport, hold, &options, &stop, None).unwrap();
+    servo::run(&mut transport, &mut hold, &options, &stop, None).unwrap();
     transport
 }
 
@@ -64,13 +76,7 @@ const K_D: f64 = 5.0;
 fn a_pd_hold_settles_where_the_gravity_force_puts_it(model: &str) -> Vector3<f64> {
     let config = quiet(0.0);
     let set_point = Vector3::new(0.010, -0.010, 0.010);
-    let mut hold = Hold {
-        set_point,
-        k_p: K_P,
-        k_d: K_D,
-        feed_forward: Vector3::zeros(),
-    };
-    let transport = run(model, &config, &mut hold, 3.0);
+    let transport = hold(model, &config, set_point, Vector3::zeros());
     let plant = transport.device().plant();
     let x = plant.position();
     // Without friction the handle keeps a limit cycle of about one encoder count there.
@@ -84,13 +90,8 @@ fn a_pd_hold_settles_where_the_gravity_force_puts_it(model: &str) -> Vector3<f64
 /// the direction of gravity.
 fn the_holding_force_fed_forward_holds_the_set_point(model: &str, config: &Config) {
     let set_point = Vector3::new(-0.030, 0.020, 0.035);
-    let mut hold = Hold {
-        set_point,
-        k_p: K_P,
-        k_d: K_D,
-        feed_forward: holding_force_at(model, config, &set_point),
-    };
-    let transport = run(model, config, &mut hold, 3.0);
+    let feed_forward = holding_force_at(model, config, &set_point);
+    let transport = hold(model, config, set_point, feed_forward);
     let x = transport.device().plant().position();
     assert!((x - set_point).amax() < 0.04e-3, "{x:?}");
 }
@@ -100,13 +101,7 @@ fn the_holding_force_fed_forward_holds_the_set_point(model: &str, config: &Confi
 fn friction_leaves_the_handle_within_its_band(model: &str, band_n: f64) {
     let config = quiet(1.0);
     let set_point = Vector3::new(0.020, 0.030, -0.020);
-    let mut hold = Hold {
-        set_point,
-        k_p: K_P,
-        k_d: K_D,
-        feed_forward: Vector3::zeros(),
-    };
-    let transport = run(model, &config, &mut hold, 3.0);
+    let transport = hold(model, &config, set_point, Vector3::zeros());
     let plant = transport.device().plant();
     assert_eq!(plant.velocity(), Vector3::zeros(), "stuck, not creeping");
     let residual = (set_point - plant.position()) * K_P - plant.holding_force();

@@ -1,43 +1,41 @@
 //! The systemd unit and udev rules: checked with `systemd-analyze` when the machine has it.
 
-use std::path::Path;
-use std::process::Command;
+use std::process::{Command, Output};
 
-fn systemd_analyze() -> Option<()> {
-    Command::new("systemd-analyze")
+/// `systemd-analyze ARGS UNIT` on the unit as installed, with ExecStart pointing at the binary
+/// under test (verify checks that the command exists); `None`, and the test is skipped, where
+/// the machine has no systemd-analyze.
+fn analyze_unit(args: &[&str]) -> Option<Output> {
+    let installed = Command::new("systemd-analyze")
         .arg("--version")
         .output()
-        .ok()
-        .filter(|o| o.status.success())
-        .map(|_| ())
-}
-
-/// The unit as installed, with ExecStart pointing at the binary under test (verify checks that
-/// the command exists).
-fn unit_copy(dir: &Path) -> std::path::PathBuf {
+        .is_ok_and(|o| o.status.success());
+    if !installed {
+        eprintln!("systemd-analyze not installed: skipped");
+        return None;
+    }
+    let dir = tempfile::tempdir().unwrap();
     let text = std::fs::read_to_string("systemd/hgcd@.service").unwrap();
-    let path = dir.join("hgcd@test.service");
+    let unit = dir.path().join("hgcd@test.service");
     std::fs::write(
-        &path,
+        &unit,
         text.replace("/usr/bin/hgcd", env!("CARGO_BIN_EXE_hgcd")),
     )
     .unwrap();
-    path
+    Some(
+        Command::new("systemd-analyze")
+            .args(args)
+            .arg(&unit)
+            .output()
+            .unwrap(),
+    )
 }
 
 #[test]
 fn unit_passes_systemd_analyze_verify() {
-    if systemd_analyze().is_none() {
-        eprintln!("systemd-analyze not installed: skipped");
+    let Some(out) = analyze_unit(&["verify"]) else {
         return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let unit = unit_copy(dir.path());
-    let out = Command::new("systemd-analyze")
-        .arg("verify")
-        .arg(&unit)
-        .output()
-        .unwrap();
+    };
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     assert!(
@@ -48,17 +46,9 @@ fn unit_passes_systemd_analyze_verify() {
 
 #[test]
 fn unit_exposure_is_at_most_2_5() {
-    if systemd_analyze().is_none() {
-        eprintln!("systemd-analyze not installed: skipped");
+    let Some(out) = analyze_unit(&["security", "--offline=true", "--no-pager"]) else {
         return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let unit = unit_copy(dir.path());
-    let out = Command::new("systemd-analyze")
-        .args(["security", "--offline=true", "--no-pager"])
-        .arg(&unit)
-        .output()
-        .unwrap();
+    };
     let stdout = String::from_utf8_lossy(&out.stdout);
     let line = stdout
         .lines()

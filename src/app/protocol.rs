@@ -195,44 +195,7 @@ pub struct Status {
     pub uptime_s: f64,
     /// The servo loop's counters, flattened into the status object.
     #[serde(flatten)]
-    pub servo: ServoCounters,
-}
-
-/// The servo loop's counters as `status` carries them (`docs/app-protocol.md` §5).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct ServoCounters {
-    pub ticks: u64,
-    pub late: u64,
-    pub missed: u64,
-    pub overruns: u64,
-    pub garbled: u64,
-    pub watchdog_faults: u64,
-    /// µs.
-    pub worst_compute_us: f64,
-    /// µs.
-    pub worst_period_us: f64,
-    #[serde(default)]
-    pub late_wakeups: u64,
-    /// µs.
-    #[serde(default)]
-    pub worst_lateness_us: f64,
-}
-
-impl From<StatsSnapshot> for ServoCounters {
-    fn from(s: StatsSnapshot) -> Self {
-        Self {
-            ticks: s.ticks,
-            late: s.late,
-            missed: s.missed,
-            overruns: s.overruns,
-            garbled: s.garbled,
-            watchdog_faults: s.watchdog_faults,
-            worst_compute_us: s.worst_compute_us,
-            worst_period_us: s.worst_period_us,
-            late_wakeups: s.late_wakeups,
-            worst_lateness_us: s.worst_lateness_us,
-        }
-    }
+    pub servo: StatsSnapshot,
 }
 
 /// Why a request line was refused.

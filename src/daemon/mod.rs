@@ -415,7 +415,7 @@ impl Hub {
         }
         for e in events.try_iter() {
             if let ServoEvent::Stats(s) = &e {
-                self.status.servo = (*s).into();
+                self.status.servo = *s;
             }
             self.log.log(&e);
         }

@@ -63,6 +63,20 @@ impl MassGrid {
         }
     }
 
+    /// The same lattice with vertex (i, j, k) given the mass `mass(i, j, k)`, kg.
+    pub fn with_masses(mut self, mass: impl Fn(usize, usize, usize) -> f64) -> Self {
+        let [ni, nj, nk] = self.dims;
+        for k in 0..nk {
+            for j in 0..nj {
+                for i in 0..ni {
+                    let n = self.index(i, j, k);
+                    self.masses[n] = mass(i, j, k);
+                }
+            }
+        }
+        self
+    }
+
     /// Number of vertices.
     pub fn vertex_count(&self) -> usize {
         self.masses.len()
@@ -201,23 +215,15 @@ pub(super) mod tests {
     use super::*;
 
     pub(crate) fn sample() -> MassGrid {
-        let mut g = MassGrid::uniform(
+        MassGrid::uniform(
             0.1,
             9.81,
             Vector3::z(),
             Vector3::new(-0.04, -0.04, -0.04),
             0.04,
             [3, 3, 3],
-        );
-        for k in 0..3 {
-            for j in 0..3 {
-                for i in 0..3 {
-                    let n = g.index(i, j, k);
-                    g.masses[n] = 0.05 + 0.01 * i as f64 + 0.02 * j as f64 + 0.04 * k as f64;
-                }
-            }
-        }
-        g
+        )
+        .with_masses(|i, j, k| 0.05 + 0.01 * i as f64 + 0.02 * j as f64 + 0.04 * k as f64)
     }
 
     #[test]

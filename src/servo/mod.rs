@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use crossbeam_channel::Sender;
 use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::config::{Config, EstimateConfig, SafetyConfig};
@@ -98,8 +99,8 @@ pub enum ServoEvent {
 /// Ticks between two [`ServoEvent::Stats`].
 pub const STATS_EVERY: u64 = 500;
 
-/// The loop's counters at one moment.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+/// The loop's counters at one moment; `status` carries them flattened (`docs/app-protocol.md` §5).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StatsSnapshot {
     pub ticks: u64,
     pub late: u64,
@@ -112,8 +113,10 @@ pub struct StatsSnapshot {
     /// Longest interval between two reports so far, µs.
     pub worst_period_us: f64,
     /// Reports received more than one period after they were due.
+    #[serde(default)]
     pub late_wakeups: u64,
     /// Largest lateness of a report against its timestamp so far, µs.
+    #[serde(default)]
     pub worst_lateness_us: f64,
 }
 
@@ -208,6 +211,10 @@ pub struct ServoCore {
 }
 
 impl ServoCore {
+    /// A core for `options`, with everything the loop needs allocated.
+    ///
+    /// # Errors
+    /// [`FoawError`] for estimator parameters out of range.
     pub fn new(options: &ServoOptions) -> Result<Self, FoawError> {
         let est = &options.estimate;
         Ok(Self {
@@ -273,6 +280,9 @@ impl ServoCore {
     }
 
     /// Handle one input report that arrived at `arrived` (transport clock, s).
+    ///
+    /// # Errors
+    /// The [`ProtocolError`] of a report that does not decode.
     pub fn tick(
         &mut self,
         bytes: &[u8],
@@ -353,6 +363,10 @@ impl ServoCore {
 /// Run the loop on the calling thread until `stop` is set, the duration elapses, the controller is
 /// done, or (with `stop_on_fault`) a fault occurs. Always ends by writing a zero-force report
 /// with motors disabled, even when the controller panics (the panic then continues).
+///
+/// # Errors
+/// [`ServoError::Estimator`] for estimator parameters out of range, [`ServoError::Transport`] when
+/// the device cannot be read or written.
 pub fn run(
     transport: &mut dyn Transport,
     controller: &mut dyn Controller,

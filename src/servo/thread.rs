@@ -181,6 +181,9 @@ pub fn spawn_event_logger(events: Receiver<ServoEvent>) -> JoinHandle<()> {
 /// Run `controller` on `transport` on a new thread set up for real time (`servo_config`). Loop
 /// events go to `events`, or to a logger thread when None. Joining gives the loop's result and
 /// the controller back.
+///
+/// # Errors
+/// The [`std::io::Error`] of a thread that cannot be spawned.
 pub fn spawn<C: Controller + 'static>(
     mut transport: Box<dyn Transport>,
     mut controller: C,

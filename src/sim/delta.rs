@@ -12,7 +12,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::linkage::{Drives, Environment, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use crate::config::SimConfig;
 
 /// Geometry and masses of the delta (SI units).
@@ -228,49 +228,23 @@ pub fn nominal_drives() -> Drives {
 }
 
 /// The `sim:delta` plant a `[sim]` section describes.
+///
+/// # Errors
+/// [`Unreachable`] when the handle cannot start at `sim.start_position_mm`.
 pub fn from_config(sim: &SimConfig) -> Result<Linkage<Delta>, Unreachable> {
-    let mut variation = UnitVariation::new(sim.unit_seed);
-    let delta = Delta::unit(&mut variation);
-    let nominal = nominal_drives();
-    let drives = Drives {
-        coulomb: variation.vary3(nominal.coulomb),
-        viscous: variation.vary3(nominal.viscous),
-        ..nominal
-    };
-    Linkage::new(
-        delta,
-        drives,
-        Environment::from_config(sim),
-        &sim.start_position(),
-    )
+    Linkage::unit_from_config(sim, Delta::unit, nominal_drives())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sim::linkage::checks::{self, cube, env, G};
+    use crate::sim::linkage::Environment;
     use crate::sim::Plant;
-
-    const G: f64 = 9.81;
-
-    fn env(friction_scale: f64, payload: f64) -> Environment {
-        Environment {
-            gravity: Vector3::new(0.0, 0.0, -G),
-            payload,
-            friction_scale,
-        }
-    }
 
     fn delta_at(x_mm: [f64; 3], env: Environment) -> Linkage<Delta> {
         let x = Vector3::from(x_mm) * 1e-3;
         Linkage::new(Delta::nominal(), nominal_drives(), env, &x).unwrap()
-    }
-
-    /// Handle positions over the ±40 mm cube, mm.
-    fn cube(steps: u32) -> impl Iterator<Item = [f64; 3]> {
-        let at = move |n: u32| -40.0 + 80.0 * f64::from(n) / f64::from(steps);
-        (0..=steps).flat_map(move |i| {
-            (0..=steps).flat_map(move |j| (0..=steps).map(move |k| [at(i), at(j), at(k)]))
-        })
     }
 
     #[test]
@@ -297,58 +271,21 @@ mod tests {
     fn jacobians_and_velocity_products_match_finite_differences() {
         let delta = Delta::nominal();
         let qd = Vector3::new(0.9, -1.3, 0.6);
-        let zero = Vector3::zeros();
-        let h = 1e-6;
-        let points = |q: &Vector3<f64>, qd: &Vector3<f64>| {
-            let handle = delta.handle(q, qd);
-            let mut all = vec![handle];
-            delta.masses(q, qd, &handle, &mut |_, p| all.push(*p));
-            all
-        };
         for x in cube(2) {
             let q = delta.joints_at(&(Vector3::from(x) * 1e-3)).unwrap();
-            for (n, p) in points(&q, &qd).iter().enumerate() {
-                let at = |q: &Vector3<f64>| points(q, &zero)[n];
-                for j in 0..3 {
-                    let mut e = Vector3::zeros();
-                    e[j] = h;
-                    let column = (at(&(q + e)).position - at(&(q - e)).position) / (2.0 * h);
-                    assert!(
-                        (column - p.jacobian.column(j)).amax() < 1e-8,
-                        "point {n} at {x:?}"
-                    );
-                }
-                let jdot = (at(&(q + qd * h)).jacobian - at(&(q - qd * h)).jacobian) / (2.0 * h);
-                assert!((jdot * qd - p.bias).amax() < 1e-6, "point {n} at {x:?}");
-            }
+            checks::assert_points_match_finite_differences(&delta, &q, &qd, 1e-6);
         }
     }
 
     #[test]
     fn gravity_torque_is_the_gradient_of_the_potential_energy_for_any_gravity() {
-        let tilted = Environment {
-            gravity: -Vector3::new(0.17, -0.05, 1.0).normalize() * G,
-            payload: 0.03,
-            friction_scale: 1.0,
-        };
-        let mut plant = delta_at([0.0; 3], tilted);
+        let mut plant = delta_at([0.0; 3], checks::tilted());
         for x in cube(2) {
             let q = plant
                 .mechanism()
                 .joints_at(&(Vector3::from(x) * 1e-3))
                 .unwrap();
-            let mut fd = Vector3::zeros();
-            for j in 0..3 {
-                let h = 1e-6;
-                let mut e = Vector3::zeros();
-                e[j] = h;
-                plant.set_state(q + e, Vector3::zeros());
-                let up = plant.potential_energy();
-                plant.set_state(q - e, Vector3::zeros());
-                fd[j] = (up - plant.potential_energy()) / (2.0 * h);
-            }
-            plant.set_state(q, Vector3::zeros());
-            assert!((plant.gravity_torque() - fd).amax() < 1e-8, "{x:?}");
+            checks::assert_gravity_torque_is_the_gradient(&mut plant, &q);
         }
     }
 
@@ -361,15 +298,8 @@ mod tests {
         let d = Delta::nominal();
         assert!(f.z < -(d.m_platform + 1.5 * d.m_rods) * G);
         assert!((f.z + 0.880).abs() < 0.005, "{f:?}");
-        let (mut least, mut most, mut steepest, mut sideways) =
-            (f64::INFINITY, 0.0f64, 0.0f64, 0.0f64);
-        for x in cube(10) {
-            let f = -delta_at(x, env(1.0, 0.0)).holding_force();
-            least = least.min(f.norm());
-            most = most.max(f.norm());
-            steepest = steepest.max((-f.z / f.norm()).acos().to_degrees());
-            sideways = sideways.max(f.xy().norm());
-        }
+        let (least, most, steepest, sideways) =
+            checks::gravity_force_spread(|x| delta_at(x, env(1.0, 0.0)), &-Vector3::z());
         // docs/simulated-devices.md: 0.75 to 1.18 N, up to 18.5° from vertical, 0.27 N sideways.
         assert!((0.74..0.77).contains(&least), "{least}");
         assert!((1.16..1.20).contains(&most), "{most}");
@@ -392,41 +322,18 @@ mod tests {
     fn frictionless_motion_conserves_energy() {
         // Largest energy error over 0.15 s of free motion (thrown up, falling back), relative to
         // the largest kinetic energy on the way.
-        let drift = |dt: f64| {
+        checks::assert_energy_is_conserved(|dt| {
             let mut plant = delta_at([0.0; 3], env(0.0, 0.03));
             plant.set_state(plant.joints(), Vector3::new(-3.0, -2.0, -1.0));
-            let start = plant.kinetic_energy() + plant.potential_energy();
-            let (lo, hi) = plant.mechanism().limits;
-            let (mut worst, mut scale) = (0.0f64, 0.0f64);
-            for _ in 0..(0.15 / dt).round() as usize {
-                plant.step(&Vector3::zeros(), dt);
-                let q = plant.joints();
-                assert!(q.min() > lo && q.max() < hi, "hit a stop: {q:?}");
-                scale = scale.max(plant.kinetic_energy());
-                worst =
-                    worst.max((plant.kinetic_energy() + plant.potential_energy() - start).abs());
-            }
-            worst / scale
-        };
-        let (coarse, fine) = (drift(1e-4), drift(2.5e-5));
-        assert!(coarse < 2e-3, "{coarse}");
-        assert!(fine < coarse / 3.0, "{fine} vs {coarse}");
+            let (worst, peak) = checks::free_motion_energy(&mut plant, 0.15, dt);
+            worst / peak
+        });
     }
 
     #[test]
     fn the_holding_force_holds_a_frictionless_delta_still_for_seconds() {
         for x in [[0.0, 0.0, 0.0], [30.0, -25.0, 35.0], [-40.0, 40.0, -40.0]] {
-            let mut plant = delta_at(x, env(0.0, 0.03));
-            let start = plant.position();
-            let hold = plant.holding_force();
-            for _ in 0..30_000 {
-                plant.step(&hold, 1e-4);
-            }
-            assert!(
-                (plant.position() - start).norm() < 1e-6,
-                "{x:?}: {:?}",
-                plant.position()
-            );
+            checks::assert_holding_force_holds_still(delta_at(x, env(0.0, 0.03)));
         }
     }
 
@@ -483,19 +390,7 @@ mod tests {
     #[test]
     fn units_differ_by_a_few_percent_and_seed_zero_is_the_nominal_delta() {
         assert_eq!(Delta::unit(&mut UnitVariation::new(0)), Delta::nominal());
-        let force = |seed: u64| {
-            let sim = SimConfig {
-                unit_seed: seed,
-                ..SimConfig::default()
-            };
-            from_config(&sim).unwrap().holding_force()
-        };
-        let (nominal, one, two) = (force(0), force(1), force(2));
-        assert_eq!(nominal, delta_at([0.0; 3], env(1.0, 0.0)).holding_force());
-        for f in [one, two] {
-            let change = (f - nominal).norm() / nominal.norm();
-            assert!((0.002..0.05).contains(&change), "{change}");
-        }
-        assert_ne!(one, two);
+        let nominal = delta_at([0.0; 3], env(1.0, 0.0)).holding_force();
+        checks::assert_units_differ(from_config, nominal, 0.002..0.05);
     }
 }

@@ -83,8 +83,11 @@ impl SimDevice {
     }
 
     /// The device `sim:MODEL` a config describes (`[sim]` section, report rate from `[servo]`).
-    /// Fails on a model not in [`crate::config::SIM_MODELS`], a mass grid that does not load, or
-    /// a start position a linkage cannot reach.
+    ///
+    /// # Errors
+    /// [`SimError::UnknownModel`] for a model not in [`crate::config::SIM_MODELS`],
+    /// [`SimError::Grid`] for a mass grid that does not load, [`SimError::Unreachable`] for a start
+    /// position a linkage cannot reach.
     pub fn from_config(model: &str, config: &Config) -> Result<Self, SimError> {
         let sim = &config.sim;
         let unreachable = |model| SimError::Unreachable {
@@ -176,6 +179,9 @@ impl SimDevice {
     }
 
     /// Firmware receive path: decode an output report and latch its force command.
+    ///
+    /// # Errors
+    /// The [`ProtocolError`] of a report that does not decode (counted as rejected, not latched).
     pub fn receive_output(&mut self, bytes: &[u8]) -> Result<(), ProtocolError> {
         match OutputReport::decode(bytes) {
             Ok(report) => {

@@ -161,7 +161,10 @@ struct Dynamics {
 }
 
 impl<M: Mechanism> Linkage<M> {
-    /// At rest with the handle at `start` (m), or [`Unreachable`] when the handle cannot be there.
+    /// At rest with the handle at `start` (m).
+    ///
+    /// # Errors
+    /// [`Unreachable`] when the handle cannot be there within the joint limits.
     pub fn new(
         mechanism: M,
         drives: Drives,
@@ -189,6 +192,31 @@ impl<M: Mechanism> Linkage<M> {
             q,
             qd: Vector3::zeros(),
         })
+    }
+
+    /// The unit `sim.unit_seed` picks, at rest at `sim.start_position_mm` in `[sim]`'s
+    /// environment: `unit` varies the mechanism, then the drives' friction varies.
+    ///
+    /// # Errors
+    /// [`Unreachable`] when the handle cannot start at `sim.start_position_mm`.
+    pub fn unit_from_config(
+        sim: &SimConfig,
+        unit: impl FnOnce(&mut UnitVariation) -> M,
+        nominal: Drives,
+    ) -> Result<Self, Unreachable> {
+        let mut variation = UnitVariation::new(sim.unit_seed);
+        let mechanism = unit(&mut variation);
+        let drives = Drives {
+            coulomb: variation.vary3(nominal.coulomb),
+            viscous: variation.vary3(nominal.viscous),
+            ..nominal
+        };
+        Self::new(
+            mechanism,
+            drives,
+            Environment::from_config(sim),
+            &sim.start_position(),
+        )
     }
 
     pub fn mechanism(&self) -> &M {
@@ -418,5 +446,184 @@ impl<M: Mechanism> Plant for Linkage<M> {
         self.mechanism
             .handle(&counts.component_mul(&self.resolution), &zero)
             .position
+    }
+}
+
+/// Checks every linkage plant's tests run: kinematics against finite differences, gravity as the
+/// gradient of the potential energy, energy conservation and holding still.
+#[cfg(test)]
+pub(crate) mod checks {
+    use super::*;
+
+    /// Standard gravity, m/s².
+    pub(crate) const G: f64 = 9.81;
+
+    /// Gravity straight down −z, with `payload` (kg) on the handle and friction scaled by
+    /// `friction_scale`.
+    pub(crate) fn env(friction_scale: f64, payload: f64) -> Environment {
+        Environment {
+            gravity: Vector3::new(0.0, 0.0, -G),
+            payload,
+            friction_scale,
+        }
+    }
+
+    /// Gravity tilted off every device axis, with a 30 g payload.
+    pub(crate) fn tilted() -> Environment {
+        Environment {
+            gravity: -Vector3::new(0.17, -0.05, 1.0).normalize() * G,
+            payload: 0.03,
+            friction_scale: 1.0,
+        }
+    }
+
+    /// Handle positions over the ±40 mm calibration cube, `steps` intervals an edge, mm.
+    pub(crate) fn cube(steps: u32) -> impl Iterator<Item = [f64; 3]> {
+        let at = move |n: u32| -40.0 + 80.0 * f64::from(n) / f64::from(steps);
+        (0..=steps).flat_map(move |i| {
+            (0..=steps).flat_map(move |j| (0..=steps).map(move |k| [at(i), at(j), at(k)]))
+        })
+    }
+
+    /// The handle and every lumped mass at (q, q̇): each Jacobian column is ∂x/∂q_j by central
+    /// differences (within 1e-8) and each bias is J̇ q̇ (within `bias_tolerance`).
+    pub(crate) fn assert_points_match_finite_differences<M: Mechanism>(
+        mechanism: &M,
+        q: &Vector3<f64>,
+        qd: &Vector3<f64>,
+        bias_tolerance: f64,
+    ) {
+        let zero = Vector3::zeros();
+        let h = 1e-6;
+        let points = |q: &Vector3<f64>, qd: &Vector3<f64>| {
+            let handle = mechanism.handle(q, qd);
+            let mut all = vec![handle];
+            mechanism.masses(q, qd, &handle, &mut |_, p| all.push(*p));
+            all
+        };
+        for (n, p) in points(q, qd).iter().enumerate() {
+            let at = |q: &Vector3<f64>| points(q, &zero)[n];
+            for j in 0..3 {
+                let mut e = Vector3::zeros();
+                e[j] = h;
+                let column = (at(&(q + e)).position - at(&(q - e)).position) / (2.0 * h);
+                assert!(
+                    (column - p.jacobian.column(j)).amax() < 1e-8,
+                    "point {n} at {q:?}"
+                );
+            }
+            // J̇ q̇ = d/dt (J) q̇ along the motion.
+            let jdot = (at(&(q + qd * h)).jacobian - at(&(q - qd * h)).jacobian) / (2.0 * h);
+            assert!(
+                (jdot * qd - p.bias).amax() < bias_tolerance,
+                "point {n} at {q:?}"
+            );
+        }
+    }
+
+    /// At joints `q` the gravity torque is ∂U/∂q by central differences, within 1e-8 N m.
+    pub(crate) fn assert_gravity_torque_is_the_gradient<M: Mechanism>(
+        plant: &mut Linkage<M>,
+        q: &Vector3<f64>,
+    ) {
+        let h = 1e-6;
+        let mut fd = Vector3::zeros();
+        for j in 0..3 {
+            let mut e = Vector3::zeros();
+            e[j] = h;
+            plant.set_state(q + e, Vector3::zeros());
+            let up = plant.potential_energy();
+            plant.set_state(q - e, Vector3::zeros());
+            fd[j] = (up - plant.potential_energy()) / (2.0 * h);
+        }
+        plant.set_state(*q, Vector3::zeros());
+        assert!((plant.gravity_torque() - fd).amax() < 1e-8, "{q:?}");
+    }
+
+    /// Free motion for `duration` s in steps of `dt`, asserting no stop is reached: (largest
+    /// error of the total energy, largest kinetic energy on the way), J.
+    pub(crate) fn free_motion_energy<M: Mechanism>(
+        plant: &mut Linkage<M>,
+        duration: f64,
+        dt: f64,
+    ) -> (f64, f64) {
+        let start = plant.kinetic_energy() + plant.potential_energy();
+        let (lo, hi) = plant.mechanism().joint_limits();
+        let (mut worst, mut peak) = (0.0f64, 0.0f64);
+        for _ in 0..(duration / dt).round() as usize {
+            plant.step(&Vector3::zeros(), dt);
+            let q = plant.joints();
+            assert!(
+                (0..3).all(|j| q[j] > lo[j] && q[j] < hi[j]),
+                "hit a stop: {q:?}"
+            );
+            peak = peak.max(plant.kinetic_energy());
+            worst = worst.max((plant.kinetic_energy() + plant.potential_energy() - start).abs());
+        }
+        (worst, peak)
+    }
+
+    /// `drift(dt)`, a relative energy error of free motion, is below 2e-3 at 0.1 ms and falls
+    /// with dt: the error is the integrator's, first order in dt, not the model's.
+    pub(crate) fn assert_energy_is_conserved(drift: impl Fn(f64) -> f64) {
+        let (coarse, fine) = (drift(1e-4), drift(2.5e-5));
+        assert!(coarse < 2e-3, "{coarse}");
+        assert!(fine < coarse / 3.0, "{fine} vs {coarse}");
+    }
+
+    /// A frictionless plant given its own holding force stays within 1 µm for 3 s.
+    pub(crate) fn assert_holding_force_holds_still<M: Mechanism>(mut plant: Linkage<M>) {
+        let start = plant.position();
+        let hold = plant.holding_force();
+        for _ in 0..30_000 {
+            plant.step(&hold, 1e-4);
+        }
+        assert!(
+            (plant.position() - start).norm() < 1e-6,
+            "from {start:?} drifted to {:?}",
+            plant.position()
+        );
+    }
+
+    /// Over the calibration cube (11 points an edge) the gravity force −holding force of
+    /// `plant_at(x_mm)`: (least, most, N; largest angle from `direction`, degrees; largest part
+    /// across the z axis, N).
+    pub(crate) fn gravity_force_spread<M: Mechanism>(
+        plant_at: impl Fn([f64; 3]) -> Linkage<M>,
+        direction: &Vector3<f64>,
+    ) -> (f64, f64, f64, f64) {
+        let (mut least, mut most, mut steepest, mut sideways) =
+            (f64::INFINITY, 0.0f64, 0.0f64, 0.0f64);
+        for x in cube(10) {
+            let f = -plant_at(x).holding_force();
+            least = least.min(f.norm());
+            most = most.max(f.norm());
+            steepest = steepest.max((f.dot(direction) / f.norm()).acos().to_degrees());
+            sideways = sideways.max(f.xy().norm());
+        }
+        (least, most, steepest, sideways)
+    }
+
+    /// Units 1 and 2 of `from_config` hold their home pose with forces that differ from each
+    /// other and from the nominal unit's `nominal` (unit 0) by a relative `change`.
+    pub(crate) fn assert_units_differ<M: Mechanism>(
+        from_config: fn(&SimConfig) -> Result<Linkage<M>, Unreachable>,
+        nominal: Vector3<f64>,
+        change: std::ops::Range<f64>,
+    ) {
+        let force = |seed: u64| {
+            let sim = SimConfig {
+                unit_seed: seed,
+                ..SimConfig::default()
+            };
+            from_config(&sim).unwrap().holding_force()
+        };
+        let (zero, one, two) = (force(0), force(1), force(2));
+        assert_eq!(zero, nominal);
+        for f in [one, two] {
+            let c = (f - nominal).norm() / nominal.norm();
+            assert!(change.contains(&c), "{c}");
+        }
+        assert_ne!(one, two);
     }
 }

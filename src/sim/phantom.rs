@@ -10,7 +10,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::linkage::{Drives, Environment, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use crate::config::SimConfig;
 
 /// Geometry and masses of the arm (SI units).
@@ -260,37 +260,19 @@ pub fn published_drives() -> Drives {
 }
 
 /// The `sim:phantom` plant a `[sim]` section describes.
+///
+/// # Errors
+/// [`Unreachable`] when the handle cannot start at `sim.start_position_mm`.
 pub fn from_config(sim: &SimConfig) -> Result<Linkage<Phantom>, Unreachable> {
-    let mut variation = UnitVariation::new(sim.unit_seed);
-    let arm = Phantom::unit(&mut variation);
-    let nominal = published_drives();
-    let drives = Drives {
-        coulomb: variation.vary3(nominal.coulomb),
-        viscous: variation.vary3(nominal.viscous),
-        ..nominal
-    };
-    Linkage::new(
-        arm,
-        drives,
-        Environment::from_config(sim),
-        &sim.start_position(),
-    )
+    Linkage::unit_from_config(sim, Phantom::unit, published_drives())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sim::linkage::checks::{self, env, G};
+    use crate::sim::linkage::Environment;
     use crate::sim::Plant;
-
-    const G: f64 = 9.81;
-
-    fn env(friction_scale: f64, payload: f64) -> Environment {
-        Environment {
-            gravity: Vector3::new(0.0, 0.0, -G),
-            payload,
-            friction_scale,
-        }
-    }
 
     fn arm_at(x_mm: [f64; 3], env: Environment) -> Linkage<Phantom> {
         let x = Vector3::from(x_mm) * 1e-3;
@@ -344,25 +326,9 @@ mod tests {
 
     #[test]
     fn gravity_torque_is_the_gradient_of_the_potential_energy_for_any_gravity() {
-        let tilted = Environment {
-            gravity: -Vector3::new(0.17, -0.05, 1.0).normalize() * G,
-            payload: 0.03,
-            friction_scale: 1.0,
-        };
-        let mut plant = arm_at([0.0; 3], tilted);
+        let mut plant = arm_at([0.0; 3], checks::tilted());
         for q in poses() {
-            let mut fd = Vector3::zeros();
-            for j in 0..3 {
-                let h = 1e-6;
-                let mut e = Vector3::zeros();
-                e[j] = h;
-                plant.set_state(q + e, Vector3::zeros());
-                let up = plant.potential_energy();
-                plant.set_state(q - e, Vector3::zeros());
-                fd[j] = (up - plant.potential_energy()) / (2.0 * h);
-            }
-            plant.set_state(q, Vector3::zeros());
-            assert!((plant.gravity_torque() - fd).amax() < 1e-8, "{q:?}");
+            checks::assert_gravity_torque_is_the_gradient(&mut plant, &q);
         }
     }
 
@@ -383,30 +349,8 @@ mod tests {
     fn jacobians_and_velocity_products_match_finite_differences() {
         let arm = Phantom::published();
         let qd = Vector3::new(0.7, -1.1, 0.9);
-        let zero = Vector3::zeros();
-        let h = 1e-6;
         for q in poses() {
-            // Every lumped mass and the handle go through the same point kinematics.
-            let handle = arm.handle(&q, &qd);
-            let mut points = vec![handle];
-            arm.masses(&q, &qd, &handle, &mut |_, p| points.push(*p));
-            for (n, p) in points.iter().enumerate() {
-                let at = |q: &Vector3<f64>| {
-                    let handle = arm.handle(q, &zero);
-                    let mut all = vec![handle];
-                    arm.masses(q, &zero, &handle, &mut |_, p| all.push(*p));
-                    all[n]
-                };
-                for j in 0..3 {
-                    let mut e = Vector3::zeros();
-                    e[j] = h;
-                    let column = (at(&(q + e)).position - at(&(q - e)).position) / (2.0 * h);
-                    assert!((column - p.jacobian.column(j)).amax() < 1e-8);
-                }
-                // J̇ q̇ = d/dt (J) q̇ along the motion.
-                let jdot = (at(&(q + qd * h)).jacobian - at(&(q - qd * h)).jacobian) / (2.0 * h);
-                assert!((jdot * qd - p.bias).amax() < 1e-7, "point {n} at {q:?}");
-            }
+            checks::assert_points_match_finite_differences(&arm, &q, &qd, 1e-7);
         }
     }
 
@@ -423,20 +367,8 @@ mod tests {
 
     #[test]
     fn over_the_calibration_cube_the_gravity_force_varies_and_turns_far_from_vertical() {
-        let (mut least, mut most, mut steepest, mut sideways) =
-            (f64::INFINITY, 0.0f64, 0.0f64, 0.0f64);
-        for i in 0..=10 {
-            for j in 0..=10 {
-                for k in 0..=10 {
-                    let x = [i, j, k].map(|n| -40.0 + 8.0 * f64::from(n));
-                    let f = -arm_at(x, env(1.0, 0.0)).holding_force();
-                    least = least.min(f.norm());
-                    most = most.max(f.norm());
-                    steepest = steepest.max((f.z / f.norm()).acos().to_degrees());
-                    sideways = sideways.max(f.xy().norm());
-                }
-            }
-        }
+        let (least, most, steepest, sideways) =
+            checks::gravity_force_spread(|x| arm_at(x, env(1.0, 0.0)), &Vector3::z());
         // design.md: 0.075–0.13 N, up to about 66° from vertical, horizontal parts up to 0.11 N.
         assert!((0.072..0.078).contains(&least), "{least}");
         assert!((0.128..0.136).contains(&most), "{most}");
@@ -446,46 +378,20 @@ mod tests {
 
     #[test]
     fn frictionless_motion_conserves_energy() {
-        // Largest energy error over 0.3 s of free motion, relative to the kinetic energy.
-        let drift = |dt: f64| {
+        // Largest energy error over 0.3 s of free motion, relative to the starting kinetic energy.
+        checks::assert_energy_is_conserved(|dt| {
             let mut plant = arm_at([0.0; 3], env(0.0, 0.0));
             plant.set_state(Vector3::new(0.1, 0.05, -0.05), Vector3::new(0.8, 0.3, 0.4));
-            let start = plant.kinetic_energy() + plant.potential_energy();
-            let scale = plant.kinetic_energy();
-            let (lo, hi) = plant.mechanism().limits;
-            let mut worst = 0.0f64;
-            for _ in 0..(0.3 / dt).round() as usize {
-                plant.step(&Vector3::zeros(), dt);
-                let q = plant.joints();
-                assert!(
-                    (0..3).all(|j| q[j] > lo[j] && q[j] < hi[j]),
-                    "hit a stop: {q:?}"
-                );
-                worst =
-                    worst.max((plant.kinetic_energy() + plant.potential_energy() - start).abs());
-            }
-            worst / scale
-        };
-        let (coarse, fine) = (drift(1e-4), drift(2.5e-5));
-        assert!(coarse < 2e-3, "{coarse}");
-        // The error is the integrator's, first order in dt, not the model's.
-        assert!(fine < coarse / 3.0, "{fine} vs {coarse}");
+            let start = plant.kinetic_energy();
+            let (worst, _) = checks::free_motion_energy(&mut plant, 0.3, dt);
+            worst / start
+        });
     }
 
     #[test]
     fn the_holding_force_holds_a_frictionless_arm_still_for_seconds() {
         for x in [[0.0, 0.0, 0.0], [30.0, -25.0, 35.0], [-40.0, 40.0, -40.0]] {
-            let mut plant = arm_at(x, env(0.0, 0.03));
-            let start = plant.position();
-            let hold = plant.holding_force();
-            for _ in 0..30_000 {
-                plant.step(&hold, 1e-4);
-            }
-            assert!(
-                (plant.position() - start).norm() < 1e-6,
-                "{x:?}: drifted to {:?}",
-                plant.position()
-            );
+            checks::assert_holding_force_holds_still(arm_at(x, env(0.0, 0.03)));
         }
     }
 
@@ -642,19 +548,7 @@ mod tests {
                 assert!((a / b - 1.0).abs() <= UnitVariation::SPREAD + 1e-12);
             }
         }
-        let force = |seed: u64| {
-            let sim = SimConfig {
-                unit_seed: seed,
-                ..SimConfig::default()
-            };
-            from_config(&sim).unwrap().holding_force()
-        };
-        let (nominal, one, two) = (force(0), force(1), force(2));
-        assert_eq!(nominal, arm_at([0.0; 3], env(1.0, 0.0)).holding_force());
-        for f in [one, two] {
-            let change = (f - nominal).norm() / nominal.norm();
-            assert!((0.005..0.5).contains(&change), "{change}");
-        }
-        assert_ne!(one, two);
+        let nominal = arm_at([0.0; 3], env(1.0, 0.0)).holding_force();
+        checks::assert_units_differ(from_config, nominal, 0.005..0.5);
     }
 }

@@ -69,6 +69,9 @@ impl PointMass {
     }
 
     /// The plant a `[sim]` config section describes: a uniform mass, or the field of `mass_grid`.
+    ///
+    /// # Errors
+    /// The [`GridError`] of a `mass_grid` that does not load.
     pub fn from_config(sim: &SimConfig) -> Result<Self, GridError> {
         let (lo, hi) = sim.workspace();
         let field = match &sim.mass_grid {

@@ -51,6 +51,10 @@ pub struct Served {
 /// device it is served is a fresh one from `power_on`. In lock-step mode each input report waits
 /// for the host's reply (deterministic, as fast as both sides allow); otherwise reports go out in
 /// real time, one per period.
+///
+/// # Errors
+/// Those of [`accept`] and [`serve_host`], and `power_on`'s error wrapped in an I/O error;
+/// serving then ends.
 pub fn serve<E>(
     listener: &UnixListener,
     mut power_on: impl FnMut() -> Result<SimDevice, E>,
@@ -85,6 +89,9 @@ where
 }
 
 /// Wait for the next host on `listener`; None once `stop` is set.
+///
+/// # Errors
+/// The I/O error of a failed accept or wait.
 pub fn accept(listener: &UnixListener, stop: &AtomicBool) -> std::io::Result<Option<UnixStream>> {
     listener.set_nonblocking(true)?;
     loop {
@@ -105,6 +112,10 @@ pub fn accept(listener: &UnixListener, stop: &AtomicBool) -> std::io::Result<Opt
 
 /// Serve `device` to the host connected on `stream` until the host leaves, breaks the framing or
 /// `stop` is set. The first report shows the device as it is; each later one follows one period.
+///
+/// # Errors
+/// The I/O error of setting up `stream` or waiting on it (a host that leaves is
+/// [`HostEnd::Left`], not an error).
 pub fn serve_host(
     stream: UnixStream,
     device: &mut SimDevice,

@@ -43,6 +43,9 @@ impl HidDeviceEntry {
 }
 
 /// Every HID device visible to this process.
+///
+/// # Errors
+/// [`TransportError::Hid`] when hidapi cannot start.
 pub fn list_devices() -> Result<Vec<HidDeviceEntry>, TransportError> {
     let api = HidApi::new().map_err(|source| TransportError::Hid {
         spec: "hid".into(),
@@ -93,6 +96,9 @@ pub struct OutputWriter {
 
 impl OutputWriter {
     /// Start the thread; `write` hands one report to the device (on the writer thread).
+    ///
+    /// # Errors
+    /// The [`std::io::Error`] of a thread that cannot be spawned.
     pub fn spawn<W>(mut write: W) -> std::io::Result<Self>
     where
         W: FnMut(&[u8; OUTPUT_REPORT_LEN]) -> std::io::Result<()> + Send + 'static,
@@ -151,6 +157,11 @@ impl Drop for OutputWriter {
 
 impl HidTransport {
     /// Open the first device matching VID, PID and (if given) serial number.
+    ///
+    /// # Errors
+    /// [`TransportError::NotFound`] when none is plugged in, [`TransportError::Busy`] when another
+    /// hgcd holds it, [`TransportError::Hid`] or [`TransportError::Open`] when it or its writer
+    /// thread cannot be opened.
     pub fn open(vid: u16, pid: u16, serial: Option<&str>) -> Result<Self, TransportError> {
         let spec = match serial {
             Some(s) => format!("hid:{vid:04x}:{pid:04x}:{s}"),

@@ -133,6 +133,10 @@ pub trait Transport: Send {
     /// Wait at most `timeout` for the next input report. Returns the newest *valid* report
     /// available (older queued ones are skipped, as after an overrun; see `Burst`), a garbled
     /// one only when nothing valid came, `Ok(None)` when nothing came in time.
+    ///
+    /// # Errors
+    /// [`TransportError::Disconnected`] when the device is gone; from a socket device also
+    /// [`TransportError::Framing`] and [`TransportError::Stalled`].
     fn read_input(
         &mut self,
         buf: &mut [u8; MAX_REPORT_LEN],
@@ -141,6 +145,9 @@ pub trait Transport: Send {
 
     /// Hand an output report to the device. Must not block the caller for longer than a small
     /// fraction of a servo period.
+    ///
+    /// # Errors
+    /// [`TransportError::Disconnected`] when the device is gone.
     fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError>;
 
     /// Seconds on this transport's clock: virtual time for batch simulations, monotonic otherwise.
@@ -178,8 +185,10 @@ pub trait Transport: Send {
 
 /// Who the device behind `transport`, opened with `spec`, is: the spec it resolved to and its
 /// device-info report. Logs what the device said about itself, or, once, that it said nothing
-/// and hgcd falls back to its spec and config. Errors: [`TransportError::Rate`] for a device whose
-/// native rate is not `servo.rate_hz`.
+/// and hgcd falls back to its spec and config.
+///
+/// # Errors
+/// [`TransportError::Rate`] for a device whose native rate is not `servo.rate_hz`.
 pub fn identify(
     transport: &dyn Transport,
     spec: &DeviceSpec,
@@ -285,6 +294,10 @@ pub enum Pacing {
 }
 
 /// Open the device `spec` names. `pacing` applies to simulated devices only.
+///
+/// # Errors
+/// Those of [`hid::HidTransport::open`] and [`socket::SocketTransport::connect`], and
+/// [`TransportError::Simulation`] for a simulated device its `[sim]` section cannot build.
 pub fn open(
     spec: &DeviceSpec,
     config: &Config,

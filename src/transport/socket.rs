@@ -55,6 +55,10 @@ pub struct SocketTransport {
 
 impl SocketTransport {
     /// Connect to the device side listening at `path` and ask for its device-info report.
+    ///
+    /// # Errors
+    /// [`TransportError::Open`] when nobody listens at `path`; [`TransportError::Disconnected`]
+    /// or [`TransportError::Framing`] when the device fails while it is asked.
     pub fn connect(path: &Path) -> Result<Self, TransportError> {
         let spec = format!("socket:{}", path.display());
         let stream = UnixStream::connect(path).map_err(|source| TransportError::Open {

@@ -1,18 +1,24 @@
 //! Helpers shared by the integration tests: known truth fields for the simulator, the binary
-//! under test, file listings, bounded waits, and the tap transport ([`tap`]).
+//! under test and its output, file listings, bounded waits, and the tap transport ([`tap`]).
 #![allow(dead_code)]
 
 pub mod daemon;
 pub mod tap;
 
+use std::io::{BufRead, BufReader};
+use std::os::unix::net::UnixListener;
 use std::path::Path;
-use std::process::Command;
-use std::sync::{Mutex, MutexGuard};
+use std::process::{Child, ChildStderr, Command, Output, Stdio};
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 
+use hgcd::config::Config;
 use hgcd::grid::{DeviceRecord, GridFile, MassGrid};
+use hgcd::sim::{socket, SimDevice};
 
 /// Gravity tilted about 3.3° away from −z (v_G = normalised (0.05, −0.03, 1)).
 pub fn tilted_v_g() -> Vector3<f64> {
@@ -28,45 +34,36 @@ pub fn scrambled_mass(i: usize, j: usize, k: usize) -> f64 {
 
 /// The 3×3×3 truth field on the paper's grid (L = 40 mm, ±40 mm), gravity tilted.
 pub fn truth_field_27() -> MassGrid {
-    let mut g = MassGrid::uniform(
+    MassGrid::uniform(
         0.1,
         9.81,
         tilted_v_g(),
         Vector3::new(-0.04, -0.04, -0.04),
         0.04,
         [3, 3, 3],
-    );
-    for k in 0..3 {
-        for j in 0..3 {
-            for i in 0..3 {
-                let n = g.index(i, j, k);
-                g.masses[n] = scrambled_mass(i, j, k);
-            }
-        }
-    }
-    g
+    )
+    .with_masses(scrambled_mass)
 }
 
 /// The same field on a 5×5×5 lattice (±80 mm): the inner 27 vertices as in [`truth_field_27`],
 /// the outer shell 0.15 kg, so moves beyond the calibration grid stay physical.
 pub fn truth_field_125() -> MassGrid {
-    let mut g = MassGrid::uniform(
-        0.15,
+    let (inner, shell) = (1..4, 0.15);
+    MassGrid::uniform(
+        shell,
         9.81,
         tilted_v_g(),
         Vector3::new(-0.08, -0.08, -0.08),
         0.04,
         [5, 5, 5],
-    );
-    for k in 1..4 {
-        for j in 1..4 {
-            for i in 1..4 {
-                let n = g.index(i, j, k);
-                g.masses[n] = scrambled_mass(i - 1, j - 1, k - 1);
-            }
+    )
+    .with_masses(|i, j, k| {
+        if [i, j, k].iter().all(|n| inner.contains(n)) {
+            scrambled_mass(i - 1, j - 1, k - 1)
+        } else {
+            shell
         }
-    }
-    g
+    })
 }
 
 /// A grid file of `grid` made for the device with id `id`.
@@ -84,6 +81,57 @@ pub fn hgcd() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_hgcd"));
     c.current_dir(std::env::temp_dir());
     c
+}
+
+/// The stdout of a command that must have succeeded (its stderr fails the test otherwise).
+pub fn succeeded(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// The stderr of a command that must have failed.
+pub fn failed(out: &Output) -> String {
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "{stderr}");
+    stderr
+}
+
+/// Run `command` to its end with its output captured; one still going after `limit` is killed
+/// and fails the test.
+pub fn output_within(mut command: Command, limit: Duration) -> Output {
+    let program = command.get_program().to_string_lossy().into_owned();
+    let child = command
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as i32;
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || tx.send(child.wait_with_output()));
+    match rx.recv_timeout(limit) {
+        Ok(out) => out.unwrap(),
+        Err(_) => {
+            // SAFETY: kill(2) on our own child, which has not been reaped (its waiter is stuck).
+            unsafe { libc::kill(pid, libc::SIGKILL) };
+            panic!("{program} did not end within {limit:?}");
+        }
+    }
+}
+
+/// Spawn `command` with its stderr piped and read that until it says `ready` (failing the test
+/// if it ends first): the child, the rest of its stderr, and what it has said so far.
+pub fn spawn_until(command: &mut Command, ready: &str) -> (Child, BufReader<ChildStderr>, String) {
+    let mut child = command.stderr(Stdio::piped()).spawn().unwrap();
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut log = String::new();
+    while !log.contains(ready) {
+        assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
+    }
+    (child, stderr, log)
 }
 
 /// Names of the entries of `dir`, sorted.
@@ -127,6 +175,22 @@ pub fn pd_hold() -> hgcd::control::pd::PdHold {
         gains: hgcd::control::pd::LinearisedGains::from_rise_time(0.1, 1.0),
         field: MassGrid::uniform(0.12, 9.81, Vector3::z(), Vector3::zeros(), 0.1, [2, 2, 2]),
     }
+}
+
+/// The simulated point mass of `config` serving one host in lock-step on a new socket at `path`:
+/// the flag that stops it, and its thread, which gives the device back.
+pub fn serve_one_host(path: &Path, config: &Config) -> (Arc<AtomicBool>, JoinHandle<SimDevice>) {
+    let listener = UnixListener::bind(path).unwrap();
+    let config = config.clone();
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let device = std::thread::spawn(move || {
+        let mut device = SimDevice::from_config("point-mass", &config).unwrap();
+        let host = socket::accept(&listener, &flag).unwrap().unwrap();
+        socket::serve_host(host, &mut device, true, &flag).unwrap();
+        device
+    });
+    (stop, device)
 }
 
 /// Runs `.0` and ends the run after `.1` ticks.
