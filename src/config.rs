@@ -637,6 +637,9 @@ pub struct CompensationConfig {
     /// Run without compensation when the grid is corrupt or made for another device (a missing
     /// grid always runs uncompensated, so the device can be calibrated through the daemon).
     pub allow_uncompensated: bool,
+    /// An `hgcd-model/1` file (`hgcd analyze`'s model.toml): its effect is added to the grid's
+    /// compensation when it is a force of the position alone (payload, gravity tilt, spring).
+    pub effect_file: Option<PathBuf>,
 }
 
 #[derive(Clone, Debug, Deserialize, PartialEq)]

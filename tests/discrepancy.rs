@@ -332,3 +332,46 @@ fn bad_logs_get_one_clear_line_and_no_report() {
         assert!(!dir.path().join("bad-out/summary.json").exists(), "{says}");
     }
 }
+
+#[test]
+fn hgcd_run_compensates_a_named_payload_or_spring_and_leaves_friction_alone() {
+    use hgcd::config::DeviceSpec;
+    use hgcd::grid::DeviceIdentity;
+    use hgcd::sim::SimDevice;
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let device = DeviceIdentity {
+        spec: "sim:point-mass".parse::<DeviceSpec>().unwrap(),
+        info: None,
+    };
+    let points = [
+        Vector3::new(0.0, 0.0, 0.0),
+        Vector3::new(0.03, -0.02, 0.01),
+        Vector3::new(-0.035, 0.03, -0.025),
+    ];
+    for hidden in [
+        Hidden::Payload(0.03),
+        Hidden::Spring(40.0, [10.0, 0.0, -20.0]),
+        Hidden::Coulomb(0.05),
+    ] {
+        let summary = record_and_analyze(dir.path(), &grid, hidden, 1);
+        assert_eq!(summary["effect"], hidden.effect().name());
+        let mut config = Config::default();
+        config.compensation.effect_file = Some(dir.path().join("analysis/model.toml"));
+        let model = hgcd::daemon::load_model(&config, &device, &grid)
+            .unwrap()
+            .unwrap();
+        for x in points {
+            // What holds the plant with the hidden effect still at x (friction holds nothing).
+            let mut plant = Config::default();
+            plant.sim.start_position_mm = (x * 1e3).into();
+            hidden.apply(&mut plant);
+            let truth = SimDevice::from_config("point-mass", &plant)
+                .unwrap()
+                .plant()
+                .holding_force();
+            let error = (model.force(&x) - truth).norm();
+            assert!(error < 2e-3, "{hidden:?} at {x:?}: off by {error} N");
+        }
+    }
+}

@@ -260,7 +260,12 @@ fn an_identification_run_of_hgcd_record() {
     .unwrap();
     let params = RecordParams::inside(&model, 12.0);
     let mut recorder = Recorder::new(params, model, config.servo_period());
-    run(&mut tap, &mut recorder, &ServoOptions::from_config(&config), None);
+    run(
+        &mut tap,
+        &mut recorder,
+        &ServoOptions::from_config(&config),
+        None,
+    );
     assert!(recorder.into_rows().len() >= 12_000, "the run completes");
     assert_quiet("identification run", &seen, 10_000);
 }

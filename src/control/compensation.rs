@@ -7,11 +7,11 @@
 //! The offset follows the application: a stale offset (no update for `stale_after`) ramps to zero
 //! over `ramp_time`; removing it (client gone) is immediate.
 
-use nalgebra::Vector3;
+use nalgebra::{Rotation3, Vector3};
 
 use super::{ControlOutput, Controller, DeviceState};
 pub use crate::config::{CompensationMode, OutsideGrid};
-use crate::grid::{GridFile, MassGrid};
+use crate::grid::{EffectRecord, GridFile, MassGrid};
 
 /// The calibrated gravity force field F_G(X).
 #[derive(Clone, Debug, PartialEq)]
@@ -21,6 +21,68 @@ pub struct GravityModel {
     pub outside: OutsideGrid,
     /// Per-vertex holding forces (vector mode), grid order, N.
     forces: Vec<Vector3<f64>>,
+    /// A force of the position alone added to the grid's ([`StaticEffect`]).
+    effect: Option<StaticEffect>,
+}
+
+/// A force of the position alone that `hgcd analyze` found missing from a grid
+/// (docs/discrepancy.md §5), compensated with it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum StaticEffect {
+    /// A payload's weight m_p g v_G, N.
+    Weight(Vector3<f64>),
+    /// Gravity turned since the calibration: R F_G.
+    Tilt(Rotation3<f64>),
+    /// A spring k (X − X_0): the force that holds against it.
+    Spring {
+        stiffness: f64,
+        anchor: Vector3<f64>,
+    },
+}
+
+impl StaticEffect {
+    /// The effect of `record` on a grid with v_G `up` and `g`. Friction, damping and a delay are
+    /// not forces of the position: compensating them feeds energy into the handle (a negative
+    /// damping), so they are refused with the reason.
+    pub fn from_record(
+        record: &EffectRecord,
+        up: &Vector3<f64>,
+        g: f64,
+    ) -> Result<Option<Self>, &'static str> {
+        match record {
+            EffectRecord::None => Ok(None),
+            EffectRecord::Payload { mass_kg } => Ok(Some(Self::Weight(up * (mass_kg * g)))),
+            EffectRecord::GravityTilt {
+                angle_rad,
+                rotation_axis,
+            } => Ok(Some(Self::Tilt(Rotation3::new(
+                Vector3::from(*rotation_axis) * *angle_rad,
+            )))),
+            EffectRecord::Spring {
+                stiffness_n_per_m,
+                anchor_m,
+            } => Ok(Some(Self::Spring {
+                stiffness: *stiffness_n_per_m,
+                anchor: Vector3::from(*anchor_m),
+            })),
+            EffectRecord::CoulombFriction { .. } | EffectRecord::ViscousDamping { .. } => Err(
+                "friction opposes the motion; compensating it feeds energy in (negative damping) \
+                 and can make the handle run away",
+            ),
+            EffectRecord::TimeDelay { .. } => {
+                Err("a delay is not a force; shorten the device's force path instead")
+            }
+        }
+    }
+
+    /// The force with this effect, at `x`, of a grid whose force there is `grid`, N.
+    fn apply(&self, x: &Vector3<f64>, grid: Vector3<f64>) -> Vector3<f64> {
+        match self {
+            Self::Weight(w) => grid + w,
+            Self::Tilt(r) => r * grid,
+            Self::Spring { stiffness, anchor } => grid + (x - anchor) * *stiffness,
+        }
+    }
 }
 
 /// Why a grid cannot serve as a gravity model.
@@ -57,7 +119,14 @@ impl GravityModel {
             mode,
             outside,
             forces,
+            effect: None,
         })
+    }
+
+    /// This model with `effect` added to it.
+    pub fn with_effect(mut self, effect: Option<StaticEffect>) -> Self {
+        self.effect = effect;
+        self
     }
 
     /// The model `compensation.mode` asks for: `mode`, or, unset, the vector mode when the grid
@@ -83,12 +152,16 @@ impl GravityModel {
         if self.outside == OutsideGrid::Zero && !self.grid.contains(x) {
             return Vector3::zeros();
         }
-        match self.mode {
+        let grid = match self.mode {
             CompensationMode::Scalar => self.grid.gravity_force(x),
             CompensationMode::Vector => {
                 let (idx, w) = self.grid.cell_weights(x);
                 (0..8).map(|n| self.forces[idx[n]] * w[n]).sum()
             }
+        };
+        match &self.effect {
+            Some(effect) => effect.apply(x, grid),
+            None => grid,
         }
     }
 }

@@ -23,8 +23,10 @@ use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{self, grid_file};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
-use crate::control::compensation::{Compensation, ForceOffset, GravityModel, ModelError};
-use crate::grid::{grid_path, DeviceIdentity, GridError, GridFile};
+use crate::control::compensation::{
+    Compensation, ForceOffset, GravityModel, ModelError, StaticEffect,
+};
+use crate::grid::{grid_path, DeviceIdentity, GridError, GridFile, ModelFile, ModelFileError};
 use crate::mailbox::{
     mailbox, CommandSender, HubMailbox, OffsetSender, PublishedState, ServoCommand, ServoReturn,
 };
@@ -77,6 +79,8 @@ pub enum RunError {
         #[source]
         source: std::io::Error,
     },
+    #[error("compensation.effect_file")]
+    EffectFile(#[source] ModelFileError),
     #[error("starting a daemon thread")]
     Spawn(#[source] std::io::Error),
     #[error("the servo thread panicked")]
@@ -139,6 +143,7 @@ pub fn load_model(
     };
     match built {
         Ok(model) => {
+            let model = with_effect(model, config)?;
             info!(
                 "gravity compensation from {} ({:?} mode)",
                 path.display(),
@@ -154,6 +159,35 @@ pub fn load_model(
             Ok(None)
         }
         Err(e) => Err(RunError::Grid(e)),
+    }
+}
+
+/// `model` with the effect of `compensation.effect_file` added, where it is a force of the position
+/// alone; a warning says why another is left out.
+fn with_effect(model: GravityModel, config: &Config) -> Result<GravityModel, RunError> {
+    let Some(path) = &config.compensation.effect_file else {
+        return Ok(model);
+    };
+    let file = ModelFile::load(path).map_err(RunError::EffectFile)?;
+    let grid = &model.grid;
+    match StaticEffect::from_record(&file.effect, &grid.gravity_direction, grid.g) {
+        Ok(None) => Ok(model),
+        Ok(Some(effect)) => {
+            info!(
+                "compensating {:?} from {} as well as the grid",
+                file.effect,
+                path.display()
+            );
+            Ok(model.with_effect(Some(effect)))
+        }
+        Err(why) => {
+            warn!(
+                "{}: {:?} is not compensated: {why}",
+                path.display(),
+                file.effect
+            );
+            Ok(model)
+        }
     }
 }
 

@@ -15,7 +15,7 @@ use super::effects::Effect;
 use super::{Analysis, AnalyzeError, AnalyzeRequest};
 use crate::control::compensation::GravityModel;
 use crate::figure::{self, Figure};
-use crate::grid::GridFile;
+use crate::grid::{EffectRecord, GridFile, ModelFile, MODEL_FORMAT};
 
 /// Speed bands the residual is split into, m/s: holds, slow and fast motion.
 const SPEED_BANDS: [f64; 2] = [0.005, 0.03];
@@ -306,7 +306,16 @@ pub(super) fn write(
             path: grid_path.clone(),
             source: std::io::Error::other(e.to_string()),
         })?;
-    write("model.toml", model_toml(a, &up))?;
+    let model = ModelFile {
+        format: MODEL_FORMAT.into(),
+        grid: "grid.toml".into(),
+        effect: effect_record(&a.augmented, &up),
+    };
+    let model_path = out.join("model.toml");
+    model.save(&model_path).map_err(|e| AnalyzeError::Out {
+        path: model_path.clone(),
+        source: std::io::Error::other(e.to_string()),
+    })?;
 
     figures(out, signals, a)?;
     write("report.md", report_md(request, a))?;
@@ -326,19 +335,31 @@ fn strongest(series: &[(f64, f64)]) -> (f64, f64) {
         .unwrap_or((f64::NAN, f64::NAN))
 }
 
-/// `model.toml` (format `hgcd-model/1`, docs/discrepancy.md §5).
-fn model_toml(a: &Analysis, up: &Vector3<f64>) -> String {
-    let mut s = String::from(
-        "# The calibrated grid and the effect hgcd analyze added to it (docs/discrepancy.md §5).\n\
-         format = \"hgcd-model/1\"\ngrid = \"grid.toml\"\n\n[effect]\n",
-    );
-    let _ = writeln!(s, "name = \"{}\"", a.effect.name());
-    if let serde_json::Value::Object(map) = parameters(&a.augmented, up) {
-        for (key, value) in map {
-            let _ = writeln!(s, "{key} = {value}");
+/// The augmented model's effect as `model.toml` holds it (docs/discrepancy.md §5).
+fn effect_record(fit: &Fit, up: &Vector3<f64>) -> EffectRecord {
+    let t = &fit.theta;
+    match fit.effect {
+        Effect::None => EffectRecord::None,
+        Effect::Payload => EffectRecord::Payload { mass_kg: t[0] },
+        Effect::CoulombFriction => EffectRecord::CoulombFriction { force_n: t[0] },
+        Effect::ViscousDamping => EffectRecord::ViscousDamping {
+            damping_n_s_per_m: t[0],
+        },
+        Effect::TimeDelay => EffectRecord::TimeDelay { delay_s: fit.delay },
+        Effect::GravityTilt => {
+            let delta = fit.tilt(up);
+            let angle = delta.norm();
+            let axis = if angle > 0.0 { delta / angle } else { delta };
+            EffectRecord::GravityTilt {
+                angle_rad: angle,
+                rotation_axis: axis.into(),
+            }
         }
+        Effect::Spring => EffectRecord::Spring {
+            stiffness_n_per_m: t[0],
+            anchor_m: (-Vector3::new(t[1], t[2], t[3]) / t[0]).into(),
+        },
     }
-    s
 }
 
 /// The figures (SVG and PNG), names without extension.

@@ -5,9 +5,11 @@
 //!   records, parsed with serde and checked against physical ranges;
 //! - `store`: where grids live and how they are read and written: only regular files, bounded,
 //!   never blocking; atomic replace with a backup that needs no data space; a room check;
+//! - `effect`: the `hgcd-model/1` file, the effect `hgcd analyze` found beside a grid;
 //! - `identity`: which device a grid belongs to ([`DeviceIdentity`]): its model and serial
 //!   number when the device names itself, else the spec it was opened with.
 
+mod effect;
 mod file;
 #[cfg(test)]
 mod fuzz;
@@ -21,6 +23,7 @@ use thiserror::Error;
 
 use lattice::{DIM_RANGE, MAX_VERTICES};
 
+pub use effect::{EffectRecord, ModelFile, ModelFileError, MODEL_FORMAT};
 pub use file::{CalibrationRecord, DeviceRecord, GridFile, UnitRecord, VertexRecords, GRID_FORMAT};
 pub use identity::DeviceIdentity;
 pub use lattice::{CellWeights, MassGrid, G_RANGE, MAX_MASS_KG, SPACING_RANGE};
