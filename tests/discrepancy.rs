@@ -375,3 +375,36 @@ fn hgcd_run_compensates_a_named_payload_or_spring_and_leaves_friction_alone() {
         }
     }
 }
+
+#[test]
+fn a_recording_stopped_early_leaves_a_valid_shorter_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let mut config = Config::default();
+    config.servo.lock_memory = false;
+    let log = dir.path().join("log.csv");
+    let request = RecordRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        pacing: Pacing::Virtual,
+        grid: Some(grid),
+        out: log.clone(),
+        duration: 40.0,
+    };
+    // Ctrl-C (the stop flag) once a third is recorded.
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let recording = discrepancy::record(&config, &request, stop, &mut |share| {
+        if share > 0.3 {
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+    })
+    .unwrap();
+    assert!(recording.interrupted);
+    let written = hgcd::discrepancy::log::Log::load(&log).unwrap();
+    assert!(
+        written.duration() > 10.0 && written.duration() < 39.0,
+        "{} s",
+        written.duration()
+    );
+    assert_eq!(written.len(), recording.log.len());
+}
