@@ -89,8 +89,9 @@ impl TestDaemon {
             }
         }
         if let Some(grid) = &self.grid {
-            grid.save_atomic(&state.join("sim-point-mass.toml"))
-                .unwrap();
+            // Where the daemon looks for it: the id the grid names, as a device's grid is named.
+            let id = grid.device.as_ref().map_or("sim-point-mass", |d| &d.id);
+            grid.save_atomic(&state.join(format!("{id}.toml"))).unwrap();
         }
         self.config.paths.state_dir = Some(state);
         let socket = dir.path().join("hgcd.sock");
