@@ -159,8 +159,9 @@ typedef struct {
 extern "C" {
 #endif // __cplusplus
 
-// Connect to the daemon's socket at `socket_path` (NULL: `/run/hgcd/hgcd.sock`) and store the
-// new handle in `*out`. Say hello next, within the daemon's `app.hello_timeout_ms` (5 s).
+// Connect to the daemon's socket at `socket_path` (NULL: the only daemon running, as
+// `hgcd_connect_device(NULL, out)`) and store the new handle in `*out`. Say hello next, within
+// the daemon's `app.hello_timeout_ms` (5 s).
 //
 // Returns `HGCD_OK`, `HGCD_ERR_CONNECT` (nobody listens there), `HGCD_ERR_IO`,
 // `HGCD_ERR_ARGUMENT` (`out` NULL).
@@ -170,6 +171,20 @@ extern "C" {
 // `socket_path` is NULL or a NUL-terminated string; `out` is NULL or points to a
 // writable `hgcd_client *`.
 hgcd_result hgcd_connect(const char *socket_path, hgcd_client **out);
+
+// Connect to the daemon of `device` (a device id such as `Omega-SN0042` or a spec such as
+// `hid:1209:4847`; NULL: the only daemon running), found in the runtime directory
+// (`$RUNTIME_DIRECTORY`, else `/run/hgcd`), and store the new handle in `*out`; then as
+// `hgcd_connect`.
+//
+// Returns `HGCD_OK`, `HGCD_ERR_CONNECT` (no daemon for that device, or several and `device`
+// does not say which: `hgcd_last_error` names them), `HGCD_ERR_IO`, `HGCD_ERR_ARGUMENT`.
+//
+// # Safety
+//
+// `device` is NULL or a NUL-terminated string; `out` is NULL or points to a writable
+// `hgcd_client *`.
+hgcd_result hgcd_connect_device(const char *device, hgcd_client **out);
 
 // Say hello asking for `role` (`HGCD_ROLE_CONTROL` or `HGCD_ROLE_OBSERVE`) under `name`
 // (NULL: `client-<id>`; shown as the owner in status), once, before any other request, and fill
