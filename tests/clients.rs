@@ -727,6 +727,74 @@ fn the_python_client_takes_the_force_limit_from_the_welcome_or_the_protocol() {
     }
 }
 
+/// A fake daemon at `dir/<device_id>.sock` that welcomes every connection as the device
+/// `device` with id `device_id`.
+fn fake_instance(dir: &Path, device: &str, device_id: &str) {
+    let listener = UnixListener::bind(dir.join(format!("{device_id}.sock"))).unwrap();
+    let welcome = format!(
+        r#"{{"type":"welcome","version":1,"role":"observe","client_id":1,"device":"{device}","device_id":"{device_id}","rate_hz":1000.0,"max_force_n":8.0}}"#
+    );
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(stream) = stream else { return };
+            let mut lines = BufReader::new(stream.try_clone().unwrap()).lines();
+            let _hello = lines.next();
+            let _ = (&stream).write_all(format!("{welcome}\n").as_bytes());
+            for _ in lines {}
+        }
+    });
+}
+
+#[test]
+fn the_python_client_finds_a_daemon_by_device_and_says_when_it_cannot() {
+    let dir = tempfile::tempdir().unwrap();
+    fake_instance(dir.path(), "hid:1209:4847:SN1", "Omega-SN1");
+    fake_instance(dir.path(), "sim:point-mass", "sim-point-mass-L");
+    fake_instance(dir.path(), "sim:point-mass", "sim-point-mass-R");
+    // A socket left by a daemon that was killed: skipped.
+    drop(UnixListener::bind(dir.path().join("gone.sock")).unwrap());
+    let script = "import hgcd_client as h\n\
+                  print(' '.join(d.device_id for d in h.running()))\n\
+                  print(h.find('hid:1209:4847').device_id)\n\
+                  with h.connect(device='sim-point-mass-R') as c:\n    \
+                  print(c.hello().device_id)\n\
+                  for spec in (None, 'sim:point-mass', 'hid:1209:9999'):\n    \
+                  try:\n        h.connect(device=spec)\n    \
+                  except h.ConnectError as e:\n        print(e)";
+    let output = Command::new(tool("python3", "the Python client tests run it"))
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .env("PYTHONPATH", repo().join("clients/python"))
+        .env("RUNTIME_DIRECTORY", dir.path())
+        .args(["-c", script])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{output:?}");
+    let stdout = text(&output.stdout);
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(
+        lines[..3],
+        [
+            "Omega-SN1 sim-point-mass-L sim-point-mass-R",
+            "Omega-SN1",
+            "sim-point-mass-R"
+        ],
+        "{stdout}"
+    );
+    assert!(
+        lines[3].starts_with("3 hgcd daemons are running"),
+        "{stdout}"
+    );
+    assert!(
+        lines[4].starts_with("2 hgcd daemons are running"),
+        "{stdout}"
+    );
+    assert!(
+        lines[5].starts_with("no hgcd daemon for device 'hid:1209:9999'"),
+        "{stdout}"
+    );
+    assert_eq!(lines.len(), 6, "{stdout}");
+}
+
 /// Start `example` on the daemon's own socket, wait until it owns the force, stop the daemon:
 /// the example's output.
 fn stop_under(example: impl FnOnce(&Path) -> Command, owner: &str) -> Output {

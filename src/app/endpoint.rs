@@ -66,18 +66,18 @@ impl std::fmt::Display for Instance {
 #[derive(Debug, Error)]
 pub enum FindError {
     #[error(
-        "no hgcd daemon is running (no live socket in {}): start one (`hgcd run`, or `systemctl \
+        "no daemon is running (no live socket in {}): start one (`hgcd run`, or `systemctl \
          start hgcd@DEVICE`), or name its socket with --socket PATH",
         dir.display()
     )]
     NoDaemon { dir: PathBuf },
-    #[error("no hgcd daemon for device `{spec}`; running: {}", list(running))]
+    #[error("no daemon for device `{spec}` is running; running: {}", list(running))]
     NoneFor {
         spec: String,
         running: Vec<Instance>,
     },
     #[error(
-        "{} hgcd daemons are running{}: {}; say which with --device SPEC (a device id or spec)",
+        "{} daemons are running{}: {}; say which with --device SPEC (a device id or spec)",
         matching.len(),
         spec.as_ref().map(|s| format!(" for `{s}`")).unwrap_or_default(),
         list(matching)
