@@ -86,13 +86,24 @@ pub enum FindError {
         spec: Option<String>,
         matching: Vec<Instance>,
     },
-    #[error("cannot list the runtime directory {}", dir.display())]
-    List {
-        dir: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(
+        "cannot list the runtime directory {} ({error}): {}",
+        dir.display(),
+        if error.kind() == std::io::ErrorKind::PermissionDenied {
+            "join group hgcd (docs/install.md §3), or give a socket you may use with --socket PATH"
+        } else {
+            "give the daemon's socket with --socket PATH"
+        }
+    )]
+    List { dir: PathBuf, error: std::io::Error },
     /// A socket there that cannot be asked (permission, a daemon that does not answer).
+    #[error("asking {} which device it serves", socket.display())]
+    Ask {
+        socket: PathBuf,
+        #[source]
+        source: ClientError,
+    },
+    /// Connecting to the daemon found failed.
     #[error(transparent)]
     Client(#[from] ClientError),
 }
@@ -105,16 +116,16 @@ fn list(instances: &[Instance]) -> String {
 /// Every daemon listening in `dir`, by socket name. Sockets nobody listens on (left by a daemon
 /// that was killed) are skipped.
 ///
-/// Errors: [`FindError::List`] when `dir` cannot be read (a missing `dir` lists nothing), `Client`
+/// Errors: [`FindError::List`] when `dir` cannot be read (a missing `dir` lists nothing), `Ask`
 /// when a live socket cannot be asked (permission denied, no welcome within 10 s).
 pub fn running(dir: &Path) -> Result<Vec<Instance>, FindError> {
     let entries = match std::fs::read_dir(dir) {
         Ok(entries) => entries,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
-        Err(source) => {
+        Err(error) => {
             return Err(FindError::List {
                 dir: dir.to_path_buf(),
-                source,
+                error,
             })
         }
     };
@@ -125,25 +136,24 @@ pub fn running(dir: &Path) -> Result<Vec<Instance>, FindError> {
     sockets.sort();
     let mut found = Vec::new();
     for socket in sockets {
-        let mut client = match Client::open(&socket) {
-            Ok(c) => c,
+        let welcome = Client::open(&socket).and_then(|mut client| {
+            client.set_read_timeout(Some(HELLO_WAIT))?;
+            client.hello(Role::Observe, "hgcd lookup")?;
+            Ok(client)
+        });
+        match welcome {
+            Ok(client) => found.push(Instance {
+                socket,
+                device: client.device,
+                device_id: client.device_id,
+            }),
             Err(ClientError::Connect { source, .. })
                 if matches!(
                     source.kind(),
                     std::io::ErrorKind::ConnectionRefused | std::io::ErrorKind::NotFound
-                ) =>
-            {
-                continue
-            }
-            Err(e) => return Err(e.into()),
-        };
-        client.set_read_timeout(Some(HELLO_WAIT))?;
-        client.hello(Role::Observe, "hgcd lookup")?;
-        found.push(Instance {
-            socket,
-            device: client.device,
-            device_id: client.device_id,
-        });
+                ) => {}
+            Err(source) => return Err(FindError::Ask { socket, source }),
+        }
     }
     Ok(found)
 }
@@ -229,5 +239,20 @@ mod tests {
         // A socket file nobody listens on is a daemon that was killed: skipped.
         drop(std::os::unix::net::UnixListener::bind(dir.path().join("dead.sock")).unwrap());
         assert_eq!(running(dir.path()).unwrap(), vec![]);
+    }
+
+    #[test]
+    fn a_socket_that_is_not_a_daemon_is_named() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("other.sock");
+        let listener = std::os::unix::net::UnixListener::bind(&path).unwrap();
+        std::thread::spawn(move || {
+            let (mut stream, _) = listener.accept().unwrap();
+            let _ = stream.write_all(b"not json\n");
+        });
+        let e = find(dir.path(), None).unwrap_err();
+        assert!(matches!(&e, FindError::Ask { socket, .. } if *socket == path), "{e}");
+        assert!(e.to_string().contains("other.sock"), "{e}");
     }
 }

@@ -121,7 +121,7 @@ pub fn load_model(
             warn!(
                 "no calibration grid at {}: running WITHOUT gravity compensation; {}",
                 path.display(),
-                how_to_calibrate(&device.spec)
+                how_to_calibrate(device)
             );
             return Ok(None);
         }
@@ -160,15 +160,19 @@ pub fn load_model(
 
 /// What to run to calibrate `device` while a daemon drives it. A simulated device is calibrated
 /// by `hgcd calibrate` on its own copy, in virtual time (the same configuration makes the same
-/// plant); a real one only by the daemon that holds it.
-fn how_to_calibrate(device: &DeviceSpec) -> String {
-    match device {
+/// plant); a real one only by the daemon that holds it, named by its device id.
+fn how_to_calibrate(device: &DeviceIdentity) -> String {
+    match &device.spec {
         DeviceSpec::Sim { .. } => format!(
-            "calibrate with `hgcd calibrate --device {device}` (with this daemon's --config and \
-             --state-dir, if it was given any), then reload (SIGHUP) or restart"
+            "calibrate with `hgcd calibrate --device {}` (with this daemon's --config and \
+             --state-dir, if it was given any), then reload (SIGHUP) or restart",
+            device.spec
         ),
-        _ => "calibrate with `hgcd calibrate --via-daemon` (the daemon then uses the new grid)"
-            .into(),
+        _ => format!(
+            "calibrate with `hgcd calibrate --via-daemon --device {}` (the daemon then uses the \
+             new grid)",
+            device.grid_id()
+        ),
     }
 }
 

@@ -61,7 +61,8 @@ typedef enum {
   HGCD_OK = 0,
   // `hgcd_newest_state`: no new state sample arrived within the wait (not an error).
   HGCD_NO_SAMPLE = 1,
-  // Nobody listens on the socket (is `hgcd run` running? is the path right?).
+  // Nobody listens on the socket (is `hgcd run` running? is the path right?), or no single
+  // daemon runs for the device asked.
   HGCD_ERR_CONNECT = -1,
   // The daemon closed the connection (it stopped, or closed this client after a fatal error).
   HGCD_ERR_CLOSED = -2,

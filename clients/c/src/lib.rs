@@ -39,7 +39,8 @@ pub enum hgcd_result {
     HGCD_OK = 0,
     /// `hgcd_newest_state`: no new state sample arrived within the wait (not an error).
     HGCD_NO_SAMPLE = 1,
-    /// Nobody listens on the socket (is `hgcd run` running? is the path right?).
+    /// Nobody listens on the socket (is `hgcd run` running? is the path right?), or no single
+    /// daemon runs for the device asked.
     HGCD_ERR_CONNECT = -1,
     /// The daemon closed the connection (it stopped, or closed this client after a fatal error).
     HGCD_ERR_CLOSED = -2,
@@ -441,6 +442,11 @@ fn find(device: Option<&str>) -> Result<PathBuf, Failure> {
         .map(|found| found.socket)
         .map_err(|e| match e {
             FindError::Client(e) => e.into(),
+            FindError::Ask { socket, source } => {
+                let failure = Failure::from(source);
+                let asking = format!("asking {} which device it serves", socket.display());
+                fail(failure.code, format!("{asking}: {}", failure.message))
+            }
             other => fail(HGCD_ERR_CONNECT, other.to_string()),
         })
 }
