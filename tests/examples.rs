@@ -289,10 +289,13 @@ fn virtual_wall_says_in_one_line_why_it_cannot_run() {
     }
 }
 
-/// The example `two_handles` with `args`; its output, once it ended within [`RUN_LIMIT`].
+/// The example `two_handles` with `args`, on a host where no daemon runs by default (an empty
+/// runtime directory); its output, once it ended within [`RUN_LIMIT`].
 fn two_handles(args: &[&std::ffi::OsStr]) -> Output {
+    let empty = tempfile::tempdir().unwrap();
     let child = Command::new(example("two_handles"))
         .args(args)
+        .env("RUNTIME_DIRECTORY", empty.path())
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -354,14 +357,18 @@ fn two_handles_on_two_daemons_pulls_the_handles_together() {
 
 #[test]
 fn two_handles_says_in_one_line_what_it_needs() {
-    let out = two_handles(&["--device".as_ref(), "sim:point-mass".as_ref()]);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(1), "{stderr}");
-    assert!(
-        stderr.starts_with("two_handles: name two daemons"),
-        "{stderr}"
-    );
-    assert_eq!(stderr.lines().count(), 1, "one line: {stderr}");
+    let device = std::ffi::OsStr::new("--device");
+    let one = two_handles(&[device, "sim-point-mass-A".as_ref()]);
+    let none = two_handles(&[device, "A".as_ref(), device, "B".as_ref()]);
+    for (out, says) in [
+        (one, "two_handles: name two daemons"),
+        (none, "two_handles: no daemon is running"),
+    ] {
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{stderr}");
+        assert!(stderr.starts_with(says), "{stderr}");
+        assert_eq!(stderr.lines().count(), 1, "one line: {stderr}");
+    }
 }
 
 #[test]

@@ -252,7 +252,10 @@ mod tests {
             let _ = stream.write_all(b"not json\n");
         });
         let e = find(dir.path(), None).unwrap_err();
-        assert!(matches!(&e, FindError::Ask { socket, .. } if *socket == path), "{e}");
+        assert!(
+            matches!(&e, FindError::Ask { socket, .. } if *socket == path),
+            "{e}"
+        );
         assert!(e.to_string().contains("other.sock"), "{e}");
     }
 }
