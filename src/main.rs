@@ -34,7 +34,8 @@ struct Cli {
     #[arg(long, global = true, value_name = "DIR")]
     state_dir: Option<PathBuf>,
     /// Application socket of the daemon (default: config `app.socket`, else the device's own,
-    /// $RUNTIME_DIRECTORY or /run/hgcd, then /<device-id>.sock).
+    /// <device-id>.sock in $RUNTIME_DIRECTORY or /run/hgcd, which `status` and `calibrate
+    /// --via-daemon` find by --device).
     #[arg(long, global = true, value_name = "PATH")]
     socket: Option<PathBuf>,
     /// Log level: error, warn, info, debug or trace (RUST_LOG overrides).
@@ -315,19 +316,7 @@ fn real_main(cli: Cli) -> Result<()> {
             };
             validate_here(&config, &request, yes)
         }
-        Command::Status { device } => {
-            let config = config()?;
-            let sockets = match (&config.app.socket, device) {
-                (None, None) => {
-                    let dir = endpoint::runtime_dir();
-                    let all = endpoint::running(&dir)?;
-                    anyhow::ensure!(!all.is_empty(), FindError::NoDaemon { dir });
-                    all.into_iter().map(|i| i.socket).collect()
-                }
-                (_, device) => vec![daemon_socket(&config, device.as_deref())?],
-            };
-            ctl::status(&sockets)
-        }
+        Command::Status { device } => status(&config()?, device.as_deref()),
         Command::SimDevice {
             listen,
             lockstep,
@@ -344,6 +333,20 @@ fn daemon_socket(config: &Config, device: Option<&str>) -> Result<PathBuf> {
         Some(socket) => Ok(socket.clone()),
         None => Ok(endpoint::find(&endpoint::runtime_dir(), device)?.socket),
     }
+}
+
+/// `hgcd status`: the daemon of `--socket` or `device`, else every daemon running.
+fn status(config: &Config, device: Option<&str>) -> Result<()> {
+    let sockets = match (&config.app.socket, device) {
+        (None, None) => {
+            let dir = endpoint::runtime_dir();
+            let all = endpoint::running(&dir)?;
+            anyhow::ensure!(!all.is_empty(), FindError::NoDaemon { dir });
+            all.into_iter().map(|i| i.socket).collect()
+        }
+        _ => vec![daemon_socket(config, device)?],
+    };
+    ctl::status(&sockets)
 }
 
 /// `hgcd run`: the daemon, until a signal or `--duration`; prints the loop's statistics.
