@@ -180,8 +180,10 @@ fn couple(example: impl FnOnce(&[&Path; 2]) -> Command) -> (f64, f64) {
 
 #[test]
 fn the_c_and_python_couplings_pull_two_handles_together() {
+    // Built before any daemon starts: a gated device gives up after GATE_WAIT without a tick.
+    let program = c_examples().join("two_handles");
     let c = couple(|sockets| {
-        let mut c = Command::new(c_examples().join("two_handles"));
+        let mut c = Command::new(program);
         for socket in sockets {
             c.arg("--socket").arg(socket);
         }
@@ -442,6 +444,7 @@ fn vertical_field() -> MassGrid {
 
 #[test]
 fn the_c_wall_holds_a_probe_mass_at_its_weight_over_the_stiffness() {
+    c_examples(); // built before the daemon starts, whose gated device gives up after GATE_WAIT
     let (running, gate) = start(&vertical_field());
     let relay = Relay::start(running.dir.path(), &running.socket);
     // 0.5 N/mm at the handle's height: the 30 g probe sinks to m_p g / k = 0.589 mm.
@@ -816,6 +819,7 @@ fn stop_under(example: impl FnOnce(&Path) -> Command, owner: &str) -> Output {
 
 #[test]
 fn the_c_client_says_when_the_daemon_goes_away() {
+    c_examples(); // built before the daemon starts
     let output = stop_under(|socket| c_wall_on(socket, &[]), "virtual_wall.c");
     assert_one_line_error(
         &output,
