@@ -311,7 +311,7 @@ fn two_handles(args: &[&std::ffi::OsStr]) -> Output {
 #[test]
 fn two_handles_on_two_daemons_pulls_the_handles_together() {
     example("two_handles"); // built before the gated devices start waiting for it
-    // Two compensated simulated devices, two units of one model, their handles 30 mm apart.
+                            // Two compensated simulated devices, two units of one model, their handles 30 mm apart.
     let daemon = |serial: &str, x_mm: f64| {
         let mut config = Config::default();
         config.sim.serial = serial.into();
