@@ -3,7 +3,8 @@
 //! F_z = max(0, k (height − z) − b v_z); above it, no force. The force is kept within the limit
 //! the daemon publishes. Gravity compensation, if the daemon has a grid, comes from underneath.
 //!
-//! Run a daemon, then this example (as a normal user, give both the same socket):
+//! Run a daemon, then this example (as a normal user, give both the same socket; with several
+//! daemons running, name one with `--device SPEC`):
 //!
 //! ```text
 //! hgcd --socket /tmp/hgcd.sock run --device sim:point-mass &
@@ -32,9 +33,12 @@ use hgcd::client::{Client, Compensating, Role};
 
 #[derive(Parser)]
 struct Args {
-    /// The daemon's application socket.
-    #[arg(long, default_value = hgcd::config::DEFAULT_SOCKET)]
-    socket: PathBuf,
+    /// The daemon's application socket (default: that of the daemon of --device).
+    #[arg(long)]
+    socket: Option<PathBuf>,
+    /// The daemon's device, a device id or spec (default: the only daemon running).
+    #[arg(long, conflicts_with = "socket")]
+    device: Option<String>,
     /// Surface stiffness k, N/mm.
     #[arg(long, default_value_t = 1.0)]
     stiffness: f64,
@@ -91,7 +95,10 @@ fn run(args: &Args) -> Result<()> {
         "--duration must be a positive number of seconds"
     );
     let (k, b, height) = (args.stiffness * 1e3, args.damping, args.height * 1e-3);
-    let mut client = Client::connect(&args.socket, Role::Control, "virtual_wall")?;
+    let mut client = match &args.socket {
+        Some(socket) => Client::connect(socket, Role::Control, "virtual_wall")?,
+        None => Client::connect_to(args.device.as_deref(), Role::Control, "virtual_wall")?,
+    };
     if client.role != Role::Control {
         bail!("another application owns the force (the daemon lets this one only observe): close it and try again");
     }

@@ -21,8 +21,6 @@ use crate::protocol::{DeviceInfo, SERIAL_LEN};
 pub const DEFAULT_CONFIG_PATH: &str = "/etc/hgcd/hgcd.toml";
 /// Default directory for calibration grids.
 pub const DEFAULT_STATE_DIR: &str = "/var/lib/hgcd";
-/// Default application socket.
-pub const DEFAULT_SOCKET: &str = "/run/hgcd/hgcd.sock";
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
@@ -645,7 +643,8 @@ pub struct CompensationConfig {
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct AppConfig {
-    /// Application socket; default $RUNTIME_DIRECTORY/hgcd.sock, else /run/hgcd/hgcd.sock.
+    /// Application socket; default: one per device, `<runtime dir>/<device-id>.sock`
+    /// (`app::endpoint`).
     pub socket: Option<PathBuf>,
     /// Permissions of the socket file (octal, as a string).
     pub socket_mode: String,
@@ -1212,20 +1211,6 @@ impl Config {
                     "must be octal permission bits such as \"0660\"",
                 )
             })
-    }
-
-    /// Application socket: config, else `$RUNTIME_DIRECTORY/hgcd.sock` (systemd), else
-    /// /run/hgcd/hgcd.sock.
-    pub fn socket_path(&self) -> PathBuf {
-        if let Some(path) = &self.app.socket {
-            return path.clone();
-        }
-        if let Ok(dirs) = std::env::var("RUNTIME_DIRECTORY") {
-            if let Some(first) = dirs.split(':').find(|s| !s.is_empty()) {
-                return PathBuf::from(first).join("hgcd.sock");
-            }
-        }
-        PathBuf::from(DEFAULT_SOCKET)
     }
 
     /// Calibration state directory, the first of: the config's `paths.state_dir` (which

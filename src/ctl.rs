@@ -1,7 +1,7 @@
 //! Commands that talk to a running daemon over its socket: `hgcd status` and
 //! `hgcd calibrate --via-daemon`.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Result};
 
@@ -9,14 +9,25 @@ use hgcd::client::{CalibrationStage, Client, Reply, Role};
 
 use crate::{err, out};
 
-/// Print the daemon's status.
+/// Print the status of the daemon at each of `sockets`, a blank line between two.
 ///
-/// Errors: the client's, when no daemon listens on `socket` or it refuses.
-pub fn status(socket: &Path) -> Result<()> {
+/// Errors: the client's, when no daemon listens on a socket or it refuses.
+pub fn status(sockets: &[PathBuf]) -> Result<()> {
+    for (n, socket) in sockets.iter().enumerate() {
+        if n > 0 {
+            out("\n")?;
+        }
+        one_status(socket)?;
+    }
+    Ok(())
+}
+
+fn one_status(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd status")?;
     let s = client.status()?;
     out(&format!(
         "device        {} ({})\n\
+         socket        {}\n\
          compensation  {}{}: {}\n\
          calibrating   {}\n\
          clients       {} (force owned by {})\n\
@@ -26,6 +37,7 @@ pub fn status(socket: &Path) -> Result<()> {
          late\n",
         s.device,
         s.device_id,
+        socket.display(),
         s.mode,
         s.grid.map(|g| format!(" from {g}")).unwrap_or_default(),
         s.mode.meaning(),

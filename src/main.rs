@@ -8,6 +8,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
+use hgcd::app::endpoint::{self, FindError};
 use hgcd::calibrate::{calibrate, CalibrateError, CalibrateRequest};
 use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH, SIM_MODELS};
 use hgcd::daemon::{self, RunError, RunRequest, Signals};
@@ -33,7 +34,9 @@ struct Cli {
     /// /var/lib/hgcd if this user may write there, else ~/.local/state/hgcd).
     #[arg(long, global = true, value_name = "DIR")]
     state_dir: Option<PathBuf>,
-    /// Application socket of the daemon (default: config `app.socket`, $RUNTIME_DIRECTORY/hgcd.sock, /run/hgcd/hgcd.sock).
+    /// Application socket of the daemon (default: config `app.socket`, else the device's own,
+    /// <device-id>.sock in $RUNTIME_DIRECTORY or /run/hgcd, which `status` and `calibrate
+    /// --via-daemon` find by --device).
     #[arg(long, global = true, value_name = "PATH")]
     socket: Option<PathBuf>,
     /// Log level: error, warn, info, debug or trace (RUST_LOG overrides).
@@ -60,7 +63,8 @@ enum Command {
     },
     /// Run the off-line autocalibration (paper Algorithm 1) and save the mass grid.
     Calibrate {
-        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`);
+        /// with --via-daemon, which daemon (a device id or spec; default: the only one running).
         #[arg(long, value_name = "SPEC")]
         device: Option<String>,
         /// Write the grid to this file instead of <state-dir>/<device-id>.toml.
@@ -149,8 +153,12 @@ enum Command {
         #[arg(long, value_name = "DIR")]
         out: PathBuf,
     },
-    /// Show the running daemon's state: device, grid, mode, clients, loop timing.
-    Status,
+    /// Show the running daemons' state: device, grid, mode, clients, loop timing.
+    Status {
+        /// Only the daemon of this device (a device id or spec; default: every daemon running).
+        #[arg(long, value_name = "SPEC")]
+        device: Option<String>,
+    },
     /// Serve the simulated device (config [sim]) on a Unix socket, for `--device socket:PATH`:
     /// the device side of the socket transport, as an external simulator or bridge would be.
     /// Serves one host after another until Ctrl-C/SIGTERM; each connection is a power-on.
@@ -293,10 +301,11 @@ fn real_main(cli: Cli) -> Result<()> {
         } => run(&config()?, device.as_deref(), duration, virtual_time),
         Command::Calibrate {
             via_daemon: true,
+            device,
             yes,
             ..
         } => {
-            let socket = config()?.socket_path();
+            let socket = daemon_socket(&config()?, device.as_deref())?;
             if !yes {
                 confirm_start()?;
             }
@@ -372,7 +381,7 @@ fn real_main(cli: Cli) -> Result<()> {
             record_here(&config, &request)
         }
         Command::Analyze { grid, log, out } => analyze_here(&AnalyzeRequest { grid, log, out }),
-        Command::Status => ctl::status(&config()?.socket_path()),
+        Command::Status { device } => status(&config()?, device.as_deref()),
         Command::SimDevice {
             listen,
             lockstep,
@@ -380,6 +389,29 @@ fn real_main(cli: Cli) -> Result<()> {
         } => sim_device(&config()?, &listen, lockstep, &model),
         Command::Devices => devices(),
     }
+}
+
+/// The socket of the daemon a command talks to: `--socket` (or `app.socket`), else that of the
+/// daemon of `device`, else that of the only daemon running.
+fn daemon_socket(config: &Config, device: Option<&str>) -> Result<PathBuf> {
+    match &config.app.socket {
+        Some(socket) => Ok(socket.clone()),
+        None => Ok(endpoint::find(&endpoint::runtime_dir(), device)?.socket),
+    }
+}
+
+/// `hgcd status`: the daemon of `--socket` or `device`, else every daemon running.
+fn status(config: &Config, device: Option<&str>) -> Result<()> {
+    let sockets = match (&config.app.socket, device) {
+        (None, None) => {
+            let dir = endpoint::runtime_dir();
+            let all = endpoint::running(&dir)?;
+            anyhow::ensure!(!all.is_empty(), FindError::NoDaemon { dir });
+            all.into_iter().map(|i| i.socket).collect()
+        }
+        _ => vec![daemon_socket(config, device)?],
+    };
+    ctl::status(&sockets)
 }
 
 /// `hgcd run`: the daemon, until a signal or `--duration`; prints the loop's statistics.

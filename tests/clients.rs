@@ -61,15 +61,16 @@ fn target_dir() -> (PathBuf, String) {
     (up.next().unwrap().to_path_buf(), profile)
 }
 
-/// `clients/c/examples/virtual_wall.c`, built once per run: `cargo build -p hgcd-c` with this
-/// test's profile, then `cc` against the shared library, warnings as errors.
-fn c_wall() -> &'static Path {
-    static EXE: OnceLock<PathBuf> = OnceLock::new();
-    EXE.get_or_init(|| {
+/// The C examples (`clients/c/examples/*.c`), built once per run: `cargo build -p hgcd-c` with
+/// this test's profile, then `cc` against the shared library, warnings as errors. The directory
+/// of the programs.
+fn c_examples() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
         let cc = tool(
             "cc",
-            "the C client tests build clients/c/examples/virtual_wall.c with the system's C \
-             compiler (Debian: apt-get install gcc)",
+            "the C client tests build clients/c/examples/*.c with the system's C compiler \
+             (Debian: apt-get install gcc)",
         );
         let (target, profile) = target_dir();
         let mut build = Command::new(env!("CARGO"));
@@ -89,31 +90,32 @@ fn c_wall() -> &'static Path {
         let lib = target.join(profile);
         let out = target.join("clients-test");
         std::fs::create_dir_all(&out).unwrap();
-        let exe = out.join("virtual_wall");
-        let compiled = Command::new(cc)
-            .args(["-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-I"])
-            .arg(repo().join("clients/c/include"))
-            .arg(repo().join("clients/c/examples/virtual_wall.c"))
-            .arg("-L")
-            .arg(&lib)
-            .arg("-lhgcd_c")
-            .arg(format!("-Wl,-rpath,{}", lib.display()))
-            .arg("-o")
-            .arg(&exe)
-            .output()
-            .unwrap();
-        assert!(
-            compiled.status.success(),
-            "cc could not build the C example:\n{}",
-            String::from_utf8_lossy(&compiled.stderr)
-        );
-        exe
+        for name in ["virtual_wall", "two_handles"] {
+            let compiled = Command::new(&cc)
+                .args(["-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-I"])
+                .arg(repo().join("clients/c/include"))
+                .arg(repo().join(format!("clients/c/examples/{name}.c")))
+                .arg("-L")
+                .arg(&lib)
+                .args(["-lhgcd_c", "-lm"])
+                .arg(format!("-Wl,-rpath,{}", lib.display()))
+                .arg("-o")
+                .arg(out.join(name))
+                .output()
+                .unwrap();
+            assert!(
+                compiled.status.success(),
+                "cc could not build the C example {name}:\n{}",
+                String::from_utf8_lossy(&compiled.stderr)
+            );
+        }
+        out
     })
 }
 
 /// The C wall example on `socket`, with `args`.
 fn c_wall_on(socket: &Path, args: &[&str]) -> Command {
-    let mut c = Command::new(c_wall());
+    let mut c = Command::new(c_examples().join("virtual_wall"));
     c.arg("--socket").arg(socket).args(args);
     c
 }
@@ -132,6 +134,79 @@ fn python_trial_on(socket: &Path, args: &[&str]) -> Command {
         .arg(socket)
         .args(args);
     c
+}
+
+/// Two compensated simulated devices (`vertical_field`, exact grids), two units of one model
+/// whose handles start 30 mm apart along x, each behind a relay; the gated daemons, gates and
+/// relays.
+fn two_devices() -> [(Running, Arc<Gate>, Relay); 2] {
+    let field = vertical_field();
+    [("A", 0.0), ("B", 30.0)].map(|(serial, x_mm)| {
+        let mut config = Config::default();
+        config.sim.serial = serial.into();
+        config.sim.start_position_mm = [x_mm, 0.0, 0.0];
+        let grid = with_device_id(field.clone(), &format!("sim-point-mass-{serial}"));
+        let gate = Gate::new();
+        let running = TestDaemon::new(config)
+            .truth(&field)
+            .grid(Some(&grid))
+            .start_with(|sim| Tap::new(sim).gated(gate.clone()));
+        let relay = Relay::start(running.dir.path(), &running.socket);
+        (running, gate, relay)
+    })
+}
+
+/// Couple the two devices of [`two_devices`] with `example` (given both relays' sockets) for
+/// 1 s; the distances between the handles it reports at the start and at the end, mm.
+fn couple(example: impl FnOnce(&[&Path; 2]) -> Command) -> (f64, f64) {
+    let [(a, gate_a, relay_a), (b, gate_b, relay_b)] = two_devices();
+    let output = lock_step(
+        &[(&gate_a, &relay_a), (&gate_b, &relay_b)],
+        example(&[&relay_a.path, &relay_b.path]),
+    );
+    stop(a, &gate_a);
+    stop(b, &gate_b);
+    let stdout = text(&output.stdout);
+    assert!(output.status.success(), "{stdout}{}", text(&output.stderr));
+    let gap = |at: &str| -> f64 {
+        let before = stdout
+            .split(&format!(" mm at {at}"))
+            .next()
+            .unwrap_or_else(|| panic!("no distance at {at}: {stdout}"));
+        before.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    (gap("the start"), gap("the end"))
+}
+
+#[test]
+fn the_c_and_python_couplings_pull_two_handles_together() {
+    // Built before any daemon starts: a gated device gives up after GATE_WAIT without a tick.
+    let program = c_examples().join("two_handles");
+    let c = couple(|sockets| {
+        let mut c = Command::new(program);
+        for socket in sockets {
+            c.arg("--socket").arg(socket);
+        }
+        c.args(["--duration", "1"]);
+        c
+    });
+    let python = couple(|sockets| {
+        let mut c = Command::new(tool("python3", "the Python client tests run with it"));
+        c.env("PYTHONDONTWRITEBYTECODE", "1")
+            .arg(repo().join("clients/python/examples/two_handles.py"));
+        for socket in sockets {
+            c.arg("--socket").arg(socket);
+        }
+        c.args(["--duration", "1"]);
+        c
+    });
+    for (language, (start, end)) in [("C", c), ("Python", python)] {
+        assert!(
+            (start - 30.0).abs() < 0.1,
+            "{language}: {start} mm at the start"
+        );
+        assert!(end < 0.1, "{language}: {end} mm at the end");
+    }
 }
 
 /// A daemon on a gated simulated device carrying a 30 g probe, with `truth` as its mass field and
@@ -304,30 +379,38 @@ impl Relay {
     }
 }
 
-/// Run `example` (its `--socket` the relay's) against the gated daemon in lock-step until it
-/// ends: each tick's state goes out, and the next report only once the daemon has taken the
-/// example's answer. Its output.
-fn lock_step(gate: &Gate, relay: &Relay, mut example: Command) -> Output {
+/// Run `example` (its `--socket` the relays') against gated daemons in lock-step until it ends:
+/// each tick's state goes out on every device, and the next reports only once each daemon has
+/// taken the example's answer. Its output.
+fn lock_step(devices: &[(&Gate, &Relay)], mut example: Command) -> Output {
     let child = example
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let watcher = relay.clone();
+    let watchers: Vec<Relay> = devices.iter().map(|(_, r)| (*r).clone()).collect();
     let waiter: JoinHandle<Output> = std::thread::spawn(move || {
         let output = child.wait_with_output().unwrap();
-        watcher.update(|t| t.over = true);
+        for watcher in watchers {
+            watcher.update(|t| t.over = true);
+        }
         output
     });
-    relay.wait("the example to subscribe", |t| t.subscribed || t.over);
+    for (_, relay) in devices {
+        relay.wait("the example to subscribe", |t| t.subscribed || t.over);
+    }
     let mut ticks = 0;
-    while !relay.traffic().over {
+    while !devices.iter().any(|(_, relay)| relay.traffic().over) {
         assert!(ticks < 20_000, "the example still runs after {ticks} ticks");
-        gate.advance(1);
-        let tick = gate.passed() - 1;
-        relay.wait(&format!("the example's answer to tick {tick}"), |t| {
-            t.over || t.answered == Some(tick)
-        });
+        for (gate, _) in devices {
+            gate.advance(1);
+        }
+        for (gate, relay) in devices {
+            let tick = gate.passed() - 1;
+            relay.wait(&format!("the example's answer to tick {tick}"), |t| {
+                t.over || t.answered == Some(tick)
+            });
+        }
         ticks += 1;
     }
     waiter.join().unwrap()
@@ -361,16 +444,13 @@ fn vertical_field() -> MassGrid {
 
 #[test]
 fn the_c_wall_holds_a_probe_mass_at_its_weight_over_the_stiffness() {
-    // Built before the gated daemon starts: on a loaded machine the build can outlast the time
-    // a gated device waits for the test (GATE_WAIT), and the daemon would end.
-    c_wall();
+    c_examples(); // built before the daemon starts, whose gated device gives up after GATE_WAIT
     let (running, gate) = start(&vertical_field());
     let relay = Relay::start(running.dir.path(), &running.socket);
     // 0.5 N/mm at the handle's height: the 30 g probe sinks to m_p g / k = 0.589 mm.
     let k = 500.0;
     let output = lock_step(
-        &gate,
-        &relay,
+        &[(&gate, &relay)],
         c_wall_on(
             &relay.path,
             &["--stiffness", "0.5", "--height", "0", "--duration", "3"],
@@ -465,8 +545,7 @@ fn the_python_trial_holds_still_then_its_spring_balances_a_probe_mass() {
     let csv = out.path().join("trial.csv");
     let k = 200.0;
     let output = lock_step(
-        &gate,
-        &relay,
+        &[(&gate, &relay)],
         python_trial_on(
             &relay.path,
             &[
@@ -651,6 +730,74 @@ fn the_python_client_takes_the_force_limit_from_the_welcome_or_the_protocol() {
     }
 }
 
+/// A fake daemon at `dir/<device_id>.sock` that welcomes every connection as the device
+/// `device` with id `device_id`.
+fn fake_instance(dir: &Path, device: &str, device_id: &str) {
+    let listener = UnixListener::bind(dir.join(format!("{device_id}.sock"))).unwrap();
+    let welcome = format!(
+        r#"{{"type":"welcome","version":1,"role":"observe","client_id":1,"device":"{device}","device_id":"{device_id}","rate_hz":1000.0,"max_force_n":8.0}}"#
+    );
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(stream) = stream else { return };
+            let mut lines = BufReader::new(stream.try_clone().unwrap()).lines();
+            let _hello = lines.next();
+            let _ = (&stream).write_all(format!("{welcome}\n").as_bytes());
+            for _ in lines {}
+        }
+    });
+}
+
+#[test]
+fn the_python_client_finds_a_daemon_by_device_and_says_when_it_cannot() {
+    let dir = tempfile::tempdir().unwrap();
+    fake_instance(dir.path(), "hid:1209:4847:SN1", "Omega-SN1");
+    fake_instance(dir.path(), "sim:point-mass", "sim-point-mass-L");
+    fake_instance(dir.path(), "sim:point-mass", "sim-point-mass-R");
+    // A socket left by a daemon that was killed: skipped.
+    drop(UnixListener::bind(dir.path().join("gone.sock")).unwrap());
+    let script = "import hgcd_client as h\n\
+                  print(' '.join(d.device_id for d in h.running()))\n\
+                  print(h.find('hid:1209:4847').device_id)\n\
+                  with h.connect(device='sim-point-mass-R') as c:\n    \
+                  print(c.hello().device_id)\n\
+                  for spec in (None, 'sim:point-mass', 'hid:1209:9999'):\n    \
+                  try:\n        h.connect(device=spec)\n    \
+                  except h.ConnectError as e:\n        print(e)";
+    let output = Command::new(tool("python3", "the Python client tests run it"))
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .env("PYTHONPATH", repo().join("clients/python"))
+        .env("RUNTIME_DIRECTORY", dir.path())
+        .args(["-c", script])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{output:?}");
+    let stdout = text(&output.stdout);
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(
+        lines[..3],
+        [
+            "Omega-SN1 sim-point-mass-L sim-point-mass-R",
+            "Omega-SN1",
+            "sim-point-mass-R"
+        ],
+        "{stdout}"
+    );
+    assert!(
+        lines[3].starts_with("3 hgcd daemons are running"),
+        "{stdout}"
+    );
+    assert!(
+        lines[4].starts_with("2 hgcd daemons are running"),
+        "{stdout}"
+    );
+    assert!(
+        lines[5].starts_with("no hgcd daemon for device 'hid:1209:9999'"),
+        "{stdout}"
+    );
+    assert_eq!(lines.len(), 6, "{stdout}");
+}
+
 /// Start `example` on the daemon's own socket, wait until it owns the force, stop the daemon:
 /// the example's output.
 fn stop_under(example: impl FnOnce(&Path) -> Command, owner: &str) -> Output {
@@ -672,7 +819,7 @@ fn stop_under(example: impl FnOnce(&Path) -> Command, owner: &str) -> Output {
 
 #[test]
 fn the_c_client_says_when_the_daemon_goes_away() {
-    c_wall(); // before the gated daemon starts, as above
+    c_examples(); // built before the daemon starts
     let output = stop_under(|socket| c_wall_on(socket, &[]), "virtual_wall.c");
     assert_one_line_error(
         &output,

@@ -57,8 +57,13 @@ impl std::ops::Deref for Running {
 }
 
 impl Running {
-    /// `mass`: the device's grid, a uniform mass (kg), if any.
+    /// `mass`: the device's grid, a uniform mass (kg), if any, made for the device the config's
+    /// `sim.serial` names.
     fn start(config: Config, mass: Option<f64>) -> Self {
+        let id = match config.sim.serial.as_str() {
+            "" => "sim-point-mass".to_string(),
+            serial => format!("sim-point-mass-{serial}"),
+        };
         let grid = mass.map(|m| {
             let grid = MassGrid::uniform(
                 m,
@@ -68,7 +73,7 @@ impl Running {
                 0.08,
                 [3, 3, 3],
             );
-            with_device_id(grid, "sim-point-mass")
+            with_device_id(grid, &id)
         });
         let gate = Gate::new();
         let daemon = TestDaemon::new(config)
@@ -258,6 +263,89 @@ fn virtual_wall_says_in_one_line_why_it_cannot_run() {
         assert_eq!(out.status.code(), Some(1), "{stderr}");
         assert!(stderr.starts_with("virtual_wall: "), "{stderr}");
         assert!(stderr.contains(says), "{stderr}");
+        assert_eq!(stderr.lines().count(), 1, "one line: {stderr}");
+    }
+}
+
+/// The example `two_handles` with `args`, on a host where no daemon runs by default (an empty
+/// runtime directory); its output, once it ended within [`RUN_LIMIT`].
+fn two_handles(args: &[&std::ffi::OsStr]) -> Output {
+    let empty = tempfile::tempdir().unwrap();
+    let child = Command::new(example("two_handles"))
+        .args(args)
+        .env("RUNTIME_DIRECTORY", empty.path())
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || tx.send(child.wait_with_output()));
+    rx.recv_timeout(RUN_LIMIT)
+        .unwrap_or_else(|_| panic!("two_handles did not end within {RUN_LIMIT:?}"))
+        .unwrap()
+}
+
+#[test]
+fn two_handles_on_two_daemons_pulls_the_handles_together() {
+    example("two_handles"); // built before the gated devices start waiting for it
+                            // Two compensated simulated devices, two units of one model, their handles 30 mm apart.
+    let daemon = |serial: &str, x_mm: f64| {
+        let mut config = Config::default();
+        config.sim.serial = serial.into();
+        config.sim.start_position_mm = [x_mm, 0.0, 0.0];
+        let mass = config.sim.mass_kg;
+        Running::start(config, Some(mass))
+    };
+    let (a, b) = (daemon("A", 0.0), daemon("B", 30.0));
+    let (socket_a, relay_a) = a.lock_step_socket();
+    let (socket_b, relay_b) = b.lock_step_socket();
+    let socket = std::ffi::OsStr::new("--socket");
+    let out = two_handles(&[
+        socket,
+        socket_a.as_os_str(),
+        socket,
+        socket_b.as_os_str(),
+        "--duration".as_ref(),
+        "1".as_ref(),
+    ]);
+    relay_a.join().unwrap();
+    relay_b.join().unwrap();
+    a.stop();
+    b.stop();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let gap = |which: &str| -> f64 {
+        let before = stdout
+            .split(&format!(" mm at {which}"))
+            .next()
+            .unwrap_or_else(|| panic!("no distance at {which}: {stdout}"));
+        before.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    assert!(
+        stdout.contains("sim-point-mass-A and sim-point-mass-B"),
+        "{stdout}"
+    );
+    assert!((gap("the start") - 30.0).abs() < 0.1, "{stdout}");
+    assert!(gap("the end") < 0.1, "{stdout}");
+}
+
+#[test]
+fn two_handles_says_in_one_line_what_it_needs() {
+    let device = std::ffi::OsStr::new("--device");
+    let one = two_handles(&[device, "sim-point-mass-A".as_ref()]);
+    let none = two_handles(&[device, "A".as_ref(), device, "B".as_ref()]);
+    for (out, says) in [
+        (one, "two_handles: name two daemons"),
+        (none, "two_handles: no daemon is running"),
+    ] {
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{stderr}");
+        assert!(stderr.starts_with(says), "{stderr}");
         assert_eq!(stderr.lines().count(), 1, "one line: {stderr}");
     }
 }

@@ -6,7 +6,7 @@ application protocol v1 (docs/app-protocol.md) over the daemon's Unix socket. Un
 
     import hgcd_client
 
-    with hgcd_client.connect("/run/hgcd/hgcd.sock") as client:
+    with hgcd_client.connect() as client:  # the only daemon running; or device=, or path=
         welcome = client.take_ownership("my-experiment")
         client.subscribe(welcome.rate_hz)
         while True:
@@ -20,6 +20,10 @@ ClosedError (the daemon went away), ProtocolError (a reply this module does not 
 RefusedError (the daemon closed the connection after a fatal error), NotOwnerError,
 OrderError (a call out of order); bad arguments raise ValueError.
 
+One daemon runs per device, each on its own socket in the runtime directory ($RUNTIME_DIRECTORY,
+else /run/hgcd) named after its device id; connect(device=SPEC) picks one by device id or spec,
+running() lists them.
+
 A Client is not thread-safe: use one per thread.
 """
 
@@ -28,23 +32,24 @@ from __future__ import annotations
 import enum
 import json
 import math
+import os
 import select
 import socket
 import time
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 __all__ = [
-    "PROTOCOL_VERSION", "DEFAULT_SOCKET", "DEFAULT_MAX_FORCE_N", "Vector",
+    "PROTOCOL_VERSION", "DEFAULT_RUNTIME_DIR", "DEFAULT_MAX_FORCE_N", "Vector",
     "FLAG_MOTORS_ENABLED", "FLAG_FAULT", "FLAG_BUTTON", "FLAG_FORCE_SATURATED",
     "FLAG_DEVICE_WATCHDOG", "Role", "Mode", "Welcome", "State", "Status",
     "HgcdError", "ConnectError", "ClosedError", "ProtocolError", "RefusedError",
-    "NotOwnerError", "OrderError", "Client", "connect",
+    "NotOwnerError", "OrderError", "Client", "Daemon", "connect", "running", "find",
 ]
 
 PROTOCOL_VERSION = 1
-#: Where the daemon listens unless configured otherwise.
-DEFAULT_SOCKET = "/run/hgcd/hgcd.sock"
+#: Where daemons listen, one socket per device, when $RUNTIME_DIRECTORY is not set.
+DEFAULT_RUNTIME_DIR = "/run/hgcd"
 #: The per-axis force limit protocol v1 documents (safety.max_force_n by default), N. A daemon
 #: configured otherwise closes a client that sends a component above its own limit.
 DEFAULT_MAX_FORCE_N = 8.0
@@ -408,9 +413,76 @@ class Client:
                 continue
 
 
-def connect(path: str = DEFAULT_SOCKET) -> Client:
-    """Connect to the daemon's socket at `path`; say hello next (hello() or take_ownership()),
+@dataclass(frozen=True)
+class Daemon:
+    """A daemon found listening in the runtime directory, as its welcome describes it."""
+
+    socket: str
+    device: str  # the spec it opened its device with
+    device_id: str  # its device's grid id, which names the socket
+
+    def matches(self, spec: str) -> bool:
+        """Whether `spec` names this daemon's device: its device id, its spec, or its spec
+        without the parts the daemon filled in (hid:1209:4847 for hid:1209:4847:SN1)."""
+        return spec in (self.device_id, self.device) or self.device.startswith(spec + ":")
+
+
+def runtime_dir() -> str:
+    """The directory daemons' sockets are in: the first entry of $RUNTIME_DIRECTORY, else
+    DEFAULT_RUNTIME_DIR."""
+    dirs = [d for d in os.environ.get("RUNTIME_DIRECTORY", "").split(":") if d]
+    return dirs[0] if dirs else DEFAULT_RUNTIME_DIR
+
+
+def running(directory: Optional[str] = None) -> List[Daemon]:
+    """Every daemon listening in `directory` (default: runtime_dir()), by socket name; sockets
+    nobody listens on are skipped."""
+    directory = directory or runtime_dir()
+    try:
+        names = sorted(n for n in os.listdir(directory) if n.endswith(".sock"))
+    except FileNotFoundError:
+        return []
+    found = []
+    for name in names:
+        path = os.path.join(directory, name)
+        try:
+            client = _open(path)
+        except ConnectError as e:
+            if isinstance(e.__cause__, (ConnectionRefusedError, FileNotFoundError)):
+                continue
+            raise
+        with client:
+            welcome = client.hello(Role.OBSERVE, "hgcd lookup")
+        found.append(Daemon(path, welcome.device, welcome.device_id))
+    return found
+
+
+def find(device: Optional[str] = None, directory: Optional[str] = None) -> Daemon:
+    """The one daemon of `device` (a device id or spec), or with None the only one running.
+    ConnectError says so when there is none, or several and `device` does not say which."""
+    directory = directory or runtime_dir()
+    every = running(directory)
+    if not every:
+        raise ConnectError(f"no hgcd daemon is running (no live socket in {directory}): start "
+                           "one, or give its socket's path")
+    matching = [d for d in every if device is None or d.matches(device)]
+    if len(matching) == 1:
+        return matching[0]
+    names = ", ".join(f"{d.device_id} ({d.device})" for d in (matching or every))
+    if not matching:
+        raise ConnectError(f"no hgcd daemon for device {device!r}; running: {names}")
+    raise ConnectError(f"{len(matching)} hgcd daemons are running: {names}; say which with "
+                       "device=SPEC (a device id or spec)")
+
+
+def connect(path: Optional[str] = None, device: Optional[str] = None) -> Client:
+    """Connect to the daemon's socket at `path`, else to the daemon of `device` (a device id or
+    spec), else to the only daemon running; say hello next (hello() or take_ownership()),
     within the daemon's app.hello_timeout_ms (5 s)."""
+    return _open(path if path is not None else find(device).socket)
+
+
+def _open(path: str) -> Client:
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         sock.connect(path)

@@ -1,6 +1,6 @@
 //! Client library for applications (`hgcd::client`): connect to the daemon, render a force offset
 //! Z_E, read the device state, ask for status or a calibration. Blocking, one connection per
-//! `Client`; see `examples/virtual_wall.rs`.
+//! `Client`; see `examples/virtual_wall.rs`, and `examples/two_handles.rs` for two daemons.
 
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use nalgebra::Vector3;
 
+use super::endpoint::{self, FindError};
 pub use super::protocol::{CalibrationStage, Compensating, Reply, Role, StateSample, Status};
 use super::protocol::{Request, APP_PROTOCOL_VERSION, MAX_LINE_LEN};
 use crate::sys::wait_readable;
@@ -74,6 +75,16 @@ impl Client {
         let mut client = Self::open(path)?;
         client.hello(role, name)?;
         Ok(client)
+    }
+
+    /// Connect to the daemon of `device` (a device id or spec; None: the only daemon running) in
+    /// the runtime directory ([`endpoint::find`]) and say hello asking for `role`.
+    ///
+    /// Errors: [`FindError::NoDaemon`], `NoneFor` or `Several` when no single daemon fits, else
+    /// as [`Client::connect`] (in `FindError::Client`).
+    pub fn connect_to(device: Option<&str>, role: Role, name: &str) -> Result<Self, FindError> {
+        let found = endpoint::find(&endpoint::runtime_dir(), device)?;
+        Ok(Self::connect(&found.socket, role, name)?)
     }
 
     /// Connect to the socket at `path` without saying hello: the daemon refuses every request

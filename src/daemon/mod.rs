@@ -18,6 +18,7 @@ use crossbeam_channel::{Receiver, Sender};
 use thiserror::Error;
 use tracing::{error, info, warn};
 
+use crate::app::endpoint;
 use crate::app::protocol::{CalibrationStage, Compensating, Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::config::{Config, ConfigError, DeviceSpec};
@@ -124,7 +125,7 @@ pub fn load_model(
             warn!(
                 "no calibration grid at {}: running WITHOUT gravity compensation; {}",
                 path.display(),
-                how_to_calibrate(&device.spec)
+                how_to_calibrate(device)
             );
             return Ok(None);
         }
@@ -193,15 +194,19 @@ fn with_effect(model: GravityModel, config: &Config) -> Result<GravityModel, Run
 
 /// What to run to calibrate `device` while a daemon drives it. A simulated device is calibrated
 /// by `hgcd calibrate` on its own copy, in virtual time (the same configuration makes the same
-/// plant); a real one only by the daemon that holds it.
-fn how_to_calibrate(device: &DeviceSpec) -> String {
-    match device {
+/// plant); a real one only by the daemon that holds it, named by its device id.
+fn how_to_calibrate(device: &DeviceIdentity) -> String {
+    match &device.spec {
         DeviceSpec::Sim { .. } => format!(
-            "calibrate with `hgcd calibrate --device {device}` (with this daemon's --config and \
-             --state-dir, if it was given any), then reload (SIGHUP) or restart"
+            "calibrate with `hgcd calibrate --device {}` (with this daemon's --config and \
+             --state-dir, if it was given any), then reload (SIGHUP) or restart",
+            device.spec
         ),
-        _ => "calibrate with `hgcd calibrate --via-daemon` (the daemon then uses the new grid)"
-            .into(),
+        _ => format!(
+            "calibrate with `hgcd calibrate --via-daemon --device {}` (the daemon then uses the \
+             new grid)",
+            device.grid_id()
+        ),
     }
 }
 
@@ -501,7 +506,6 @@ pub struct Daemon {
     pub config: Config,
     pub device: DeviceSpec,
     pub duration: Option<f64>,
-    pub socket: PathBuf,
 }
 
 impl Daemon {
@@ -510,17 +514,16 @@ impl Daemon {
             // A virtual-time loop runs flat out: never let it take a core at real-time priority.
             config.servo.realtime_priority = 0;
         }
-        let socket = config.socket_path();
         Self {
             config,
             device: request.device.clone(),
             duration: request.duration,
-            socket,
         }
     }
 
     /// Run until a stop signal, the duration, or the end of the servo loop. `ready` is called
-    /// once the socket listens and the servo thread runs (systemd readiness). What the device
+    /// with the socket's path once it listens and the servo thread runs (systemd readiness); the
+    /// socket is `app.socket`, else the device's own ([`endpoint::socket_path`]). What the device
     /// says about itself (its device-info report) names its grid and stands in for the workspace
     /// and calibration-cube keys the config file does not give ([`Config::for_device`]).
     ///
@@ -558,7 +561,12 @@ impl Daemon {
         let (commands, offsets, servo_mailbox, mut hub_mailbox) = mailbox();
         let (events_tx, events) = crossbeam_channel::bounded(1024);
         let (hub_tx, requests) = crossbeam_channel::bounded(256);
-        let server = self.serve_applications(&device, commands.clone(), offsets, hub_tx)?;
+        let socket = match &config.app.socket {
+            Some(path) => path.clone(),
+            None => endpoint::socket_path(&endpoint::runtime_dir(), &device.grid_id()),
+        };
+        let server =
+            self.serve_applications(&socket, &device, commands.clone(), offsets, hub_tx)?;
 
         let mut options = ServoOptions::from_config(config);
         options.duration = self.duration;
@@ -577,9 +585,9 @@ impl Daemon {
             "hgcd running on {device} (grid id {}), compensation: {mode} ({}), socket {}",
             device.grid_id(),
             mode.meaning(),
-            self.socket.display()
+            socket.display()
         );
-        ready(&self.socket);
+        ready(&socket);
 
         let mut hub = Hub {
             status: Status {
@@ -621,18 +629,18 @@ impl Daemon {
     /// `commands` and `offsets` and the hub through `hub`.
     fn serve_applications(
         &self,
+        socket: &Path,
         device: &DeviceIdentity,
         commands: CommandSender,
         offsets: OffsetSender,
         hub: Sender<HubRequest>,
     ) -> Result<AppServer, RunError> {
         let config = &self.config;
-        let listener = server::bind(&self.socket, config.socket_mode()?).map_err(|source| {
-            RunError::Listen {
-                path: self.socket.clone(),
+        let listener =
+            server::bind(socket, config.socket_mode()?).map_err(|source| RunError::Listen {
+                path: socket.to_path_buf(),
                 source,
-            }
-        })?;
+            })?;
         let registry = SharedRegistry::default();
         let ctx = Arc::new(ServerContext {
             registry: registry.clone(),
@@ -647,7 +655,7 @@ impl Daemon {
             hello_timeout: config.app.hello_timeout(),
         });
         let stop = Arc::new(AtomicBool::new(false));
-        let listener = server::spawn_listener(listener, self.socket.clone(), ctx, stop.clone())
+        let listener = server::spawn_listener(listener, socket.to_path_buf(), ctx, stop.clone())
             .map_err(RunError::Spawn)?;
         Ok(AppServer {
             registry,

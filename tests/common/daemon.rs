@@ -7,11 +7,11 @@ use std::thread::JoinHandle;
 
 use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunError, RunRequest, Signals};
-use hgcd::grid::{GridFile, MassGrid};
+use hgcd::grid::{grid_path, GridFile, MassGrid};
 use hgcd::servo::ServoReport;
 use hgcd::sim::SimDevice;
 use hgcd::transport::sim::SimTransport;
-use hgcd::transport::{Pacing, Transport};
+use hgcd::transport::{identify, Pacing, Transport};
 
 use super::{truth_field_27, WAIT};
 
@@ -88,22 +88,25 @@ impl TestDaemon {
                 self.config.sim.damping_n_s_per_m = 1.0;
             }
         }
-        if let Some(grid) = &self.grid {
-            grid.save_atomic(&state.join("sim-point-mass.toml"))
-                .unwrap();
-        }
-        self.config.paths.state_dir = Some(state);
-        let socket = dir.path().join("hgcd.sock");
-        self.config.app.socket = Some(socket.clone());
-        let transport = Box::new(wrap(SimTransport::new(
+        let sim = SimTransport::new(
             SimDevice::from_config("point-mass", &self.config).unwrap(),
             self.pacing,
-        )));
+        );
         let request = RunRequest {
             device: "sim:point-mass".parse().unwrap(),
             duration: self.duration,
             pacing: self.pacing,
         };
+        if let Some(grid) = &self.grid {
+            // Where the daemon looks for it: named after the device (`sim.serial` included).
+            let device = identify(&sim, &request.device, &self.config).unwrap();
+            grid.save_atomic(&grid_path(&state, &device.grid_id()))
+                .unwrap();
+        }
+        self.config.paths.state_dir = Some(state);
+        let socket = dir.path().join("hgcd.sock");
+        self.config.app.socket = Some(socket.clone());
+        let transport = Box::new(wrap(sim));
         let signals = Signals::default();
         let daemon_signals = signals.clone();
         let config = self.config;

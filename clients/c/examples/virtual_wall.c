@@ -23,7 +23,8 @@
 #define STATE_WAIT_MS 2000
 
 static const char *usage =
-    "usage: virtual_wall [--socket PATH] [--stiffness N_PER_MM] [--height MM] [--duration S]\n";
+    "usage: virtual_wall [--socket PATH | --device SPEC] [--stiffness N_PER_MM] [--height MM]\n"
+    "                    [--duration S]\n";
 
 /* Parse the value of option `name` as a number; exit with one line saying what was wrong. */
 static double number(const char *name, const char *text) {
@@ -55,12 +56,14 @@ static double wall_force(double z, double height, double k) {
 }
 
 int main(int argc, char **argv) {
-    const char *socket_path = NULL; /* NULL: the daemon's default socket */
+    const char *socket_path = NULL, *device = NULL; /* neither: the only daemon running */
     double stiffness = 1.0, height_mm = 0.0, duration = 5.0;
     for (int i = 1; i < argc; i++) {
         const char *value = i + 1 < argc ? argv[i + 1] : NULL;
         if (strcmp(argv[i], "--socket") == 0 && value) {
             socket_path = value;
+        } else if (strcmp(argv[i], "--device") == 0 && value) {
+            device = value;
         } else if (strcmp(argv[i], "--stiffness") == 0) {
             stiffness = number("--stiffness", value);
         } else if (strcmp(argv[i], "--height") == 0) {
@@ -76,7 +79,9 @@ int main(int argc, char **argv) {
     const double k = stiffness * 1e3, height = height_mm * 1e-3;
 
     hgcd_client *client = NULL;
-    if (hgcd_connect(socket_path, &client) != HGCD_OK) {
+    int connected = socket_path || !device ? hgcd_connect(socket_path, &client)
+                                           : hgcd_connect_device(device, &client);
+    if (connected != HGCD_OK) {
         return fail(client, "connecting to hgcd");
     }
     hgcd_welcome welcome;

@@ -61,7 +61,8 @@ typedef enum {
   HGCD_OK = 0,
   // `hgcd_newest_state`: no new state sample arrived within the wait (not an error).
   HGCD_NO_SAMPLE = 1,
-  // Nobody listens on the socket (is `hgcd run` running? is the path right?).
+  // Nobody listens on the socket (is `hgcd run` running? is the path right?), or no single
+  // daemon runs for the device asked.
   HGCD_ERR_CONNECT = -1,
   // The daemon closed the connection (it stopped, or closed this client after a fatal error).
   HGCD_ERR_CLOSED = -2,
@@ -159,8 +160,9 @@ typedef struct {
 extern "C" {
 #endif // __cplusplus
 
-// Connect to the daemon's socket at `socket_path` (NULL: `/run/hgcd/hgcd.sock`) and store the
-// new handle in `*out`. Say hello next, within the daemon's `app.hello_timeout_ms` (5 s).
+// Connect to the daemon's socket at `socket_path` (NULL: the only daemon running, as
+// `hgcd_connect_device(NULL, out)`) and store the new handle in `*out`. Say hello next, within
+// the daemon's `app.hello_timeout_ms` (5 s).
 //
 // Returns `HGCD_OK`, `HGCD_ERR_CONNECT` (nobody listens there), `HGCD_ERR_IO`,
 // `HGCD_ERR_ARGUMENT` (`out` NULL).
@@ -170,6 +172,20 @@ extern "C" {
 // `socket_path` is NULL or a NUL-terminated string; `out` is NULL or points to a
 // writable `hgcd_client *`.
 hgcd_result hgcd_connect(const char *socket_path, hgcd_client **out);
+
+// Connect to the daemon of `device` (a device id such as `Omega-SN0042` or a spec such as
+// `hid:1209:4847`; NULL: the only daemon running), found in the runtime directory
+// (`$RUNTIME_DIRECTORY`, else `/run/hgcd`), and store the new handle in `*out`; then as
+// `hgcd_connect`.
+//
+// Returns `HGCD_OK`, `HGCD_ERR_CONNECT` (no daemon for that device, or several and `device`
+// does not say which: `hgcd_last_error` names them), `HGCD_ERR_IO`, `HGCD_ERR_ARGUMENT`.
+//
+// # Safety
+//
+// `device` is NULL or a NUL-terminated string; `out` is NULL or points to a writable
+// `hgcd_client *`.
+hgcd_result hgcd_connect_device(const char *device, hgcd_client **out);
 
 // Say hello asking for `role` (`HGCD_ROLE_CONTROL` or `HGCD_ROLE_OBSERVE`) under `name`
 // (NULL: `client-<id>`; shown as the owner in status), once, before any other request, and fill

@@ -19,13 +19,14 @@ use std::cell::RefCell;
 use std::ffi::{c_char, c_int, CStr, CString, OsStr};
 use std::os::unix::ffi::OsStrExt;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::ptr;
 use std::sync::{Mutex, MutexGuard, TryLockError};
 use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 
+use hgcd::app::endpoint::{self, FindError};
 use hgcd::client::{Client, ClientError, Compensating, Reply, Role, StateSample, Status};
 use hgcd_result::*;
 
@@ -38,7 +39,8 @@ pub enum hgcd_result {
     HGCD_OK = 0,
     /// `hgcd_newest_state`: no new state sample arrived within the wait (not an error).
     HGCD_NO_SAMPLE = 1,
-    /// Nobody listens on the socket (is `hgcd run` running? is the path right?).
+    /// Nobody listens on the socket (is `hgcd run` running? is the path right?), or no single
+    /// daemon runs for the device asked.
     HGCD_ERR_CONNECT = -1,
     /// The daemon closed the connection (it stopped, or closed this client after a fatal error).
     HGCD_ERR_CLOSED = -2,
@@ -373,8 +375,9 @@ impl From<StateSample> for hgcd_state {
     }
 }
 
-/// Connect to the daemon's socket at `socket_path` (NULL: `/run/hgcd/hgcd.sock`) and store the
-/// new handle in `*out`. Say hello next, within the daemon's `app.hello_timeout_ms` (5 s).
+/// Connect to the daemon's socket at `socket_path` (NULL: the only daemon running, as
+/// `hgcd_connect_device(NULL, out)`) and store the new handle in `*out`. Say hello next, within
+/// the daemon's `app.hello_timeout_ms` (5 s).
 ///
 /// Returns `HGCD_OK`, `HGCD_ERR_CONNECT` (nobody listens there), `HGCD_ERR_IO`,
 /// `HGCD_ERR_ARGUMENT` (`out` NULL).
@@ -393,28 +396,81 @@ pub unsafe extern "C" fn hgcd_connect(
             return Err(fail(HGCD_ERR_ARGUMENT, "out is NULL"));
         }
         let path = if socket_path.is_null() {
-            Path::new(hgcd::config::DEFAULT_SOCKET)
+            find(None)?
         } else {
             // SAFETY: a NUL-terminated string (the header's contract).
-            Path::new(OsStr::from_bytes(
+            PathBuf::from(OsStr::from_bytes(
                 unsafe { CStr::from_ptr(socket_path) }.to_bytes(),
             ))
         };
-        let client = Client::open(path)?;
-        let handle = Box::new(hgcd_client {
-            session: Mutex::new(Session {
-                client,
-                greeted: false,
-                device: CString::default(),
-                device_id: CString::default(),
-                status_strings: Vec::new(),
-                pending: None,
-            }),
-        });
-        // SAFETY: `out` is non-NULL and points to a pointer the caller owns.
-        unsafe { *out = Box::into_raw(handle) };
-        Ok(HGCD_OK)
+        // SAFETY: `out` is non-NULL and writable (the header's contract).
+        unsafe { open(&path, out) }
     })
+}
+
+/// Connect to the daemon of `device` (a device id such as `Omega-SN0042` or a spec such as
+/// `hid:1209:4847`; NULL: the only daemon running), found in the runtime directory
+/// (`$RUNTIME_DIRECTORY`, else `/run/hgcd`), and store the new handle in `*out`; then as
+/// `hgcd_connect`.
+///
+/// Returns `HGCD_OK`, `HGCD_ERR_CONNECT` (no daemon for that device, or several and `device`
+/// does not say which: `hgcd_last_error` names them), `HGCD_ERR_IO`, `HGCD_ERR_ARGUMENT`.
+///
+/// # Safety
+///
+/// `device` is NULL or a NUL-terminated string; `out` is NULL or points to a writable
+/// `hgcd_client *`.
+#[no_mangle]
+pub unsafe extern "C" fn hgcd_connect_device(
+    device: *const c_char,
+    out: *mut *mut hgcd_client,
+) -> hgcd_result {
+    entry("hgcd_connect_device", || {
+        if out.is_null() {
+            return Err(fail(HGCD_ERR_ARGUMENT, "out is NULL"));
+        }
+        // SAFETY: NULL or a NUL-terminated string (the header's contract).
+        let path = find(unsafe { utf8(device, "device") }?)?;
+        // SAFETY: `out` is non-NULL and writable (the header's contract).
+        unsafe { open(&path, out) }
+    })
+}
+
+/// The socket of the daemon of `device`, or of the only one running.
+fn find(device: Option<&str>) -> Result<PathBuf, Failure> {
+    endpoint::find(&endpoint::runtime_dir(), device)
+        .map(|found| found.socket)
+        .map_err(|e| match e {
+            FindError::Client(e) => e.into(),
+            FindError::Ask { socket, source } => {
+                let failure = Failure::from(source);
+                let asking = format!("asking {} which device it serves", socket.display());
+                fail(failure.code, format!("{asking}: {}", failure.message))
+            }
+            other => fail(HGCD_ERR_CONNECT, other.to_string()),
+        })
+}
+
+/// Connect to `path` and store the new handle in `*out`.
+///
+/// # Safety
+///
+/// `out` points to a writable `hgcd_client *`.
+unsafe fn open(path: &Path, out: *mut *mut hgcd_client) -> Result<hgcd_result, Failure> {
+    let client = Client::open(path)?;
+    let handle = Box::new(hgcd_client {
+        session: Mutex::new(Session {
+            client,
+            greeted: false,
+            device: CString::default(),
+            device_id: CString::default(),
+            status_strings: Vec::new(),
+            pending: None,
+        }),
+    });
+    // SAFETY: by this function's contract.
+    unsafe { *out = Box::into_raw(handle) };
+    Ok(HGCD_OK)
 }
 
 /// Say hello asking for `role` (`HGCD_ROLE_CONTROL` or `HGCD_ROLE_OBSERVE`) under `name`

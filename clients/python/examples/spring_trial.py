@@ -47,7 +47,7 @@ def spring(position: Sequence[float], velocity: Sequence[float], anchor: Sequenc
 def run(args: argparse.Namespace) -> None:
     k = args.stiffness * 1e3
     still_speed = args.still_speed * 1e-3
-    with hgcd_client.connect(args.socket) as client, open(args.csv, "w", newline="") as out:
+    with hgcd_client.connect(args.socket, args.device) as client, open(args.csv, "w", newline="") as out:
         welcome = client.take_ownership("spring_trial.py")
         client.subscribe(welcome.rate_hz)
         rows = csv.writer(out)
@@ -98,8 +98,10 @@ def run(args: argparse.Namespace) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--socket", default=hgcd_client.DEFAULT_SOCKET,
-                        help="the daemon's application socket")
+    parser.add_argument("--socket", help="the daemon's application socket (default: that of "
+                        "the daemon of --device)")
+    parser.add_argument("--device", help="the daemon's device, a device id or spec (default: "
+                        "the only daemon running)")
     parser.add_argument("--csv", default="trial.csv", help="where to write the samples")
     parser.add_argument("--stiffness", type=float, default=0.2,
                         help="stimulus spring, N/mm (default 0.2)")
