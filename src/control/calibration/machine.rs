@@ -333,6 +333,10 @@ pub struct Calibration {
     /// The round's constraints on the holding force, one per band ([`Band::constraint`]), and
     /// the directions its slips went ([`Band::slips`]).
     constraints: [Option<(Vector3<f64>, f64)>; 3],
+    /// The bands' constraints across one pair of faces each, whatever the mode.
+    strict: [Option<(Vector3<f64>, f64)>; 3],
+    /// Whether a band's slips have gone off its push (joint friction).
+    joint_friction: bool,
     slips: [[Option<Vector3<f64>>; 2]; 3],
 
     /// Per vertex of the path, once done (reached or not).
@@ -402,6 +406,8 @@ impl Calibration {
             rest: Vector3::zeros(),
             band_friction: Vector3::zeros(),
             constraints: [None; 3],
+            strict: [None; 3],
+            joint_friction: false,
             slips: [[None; 2]; 3],
             learn_normals: false,
 
@@ -1144,20 +1150,16 @@ impl Calibration {
                 let (n, d) = (self.normals[k], band.direction);
                 self.estimate += d * (n.dot(&(band.midpoint() - self.estimate)) / n.dot(&d));
                 self.faces[k] = band.half_width() * n.dot(&d);
-                let constraint = band.constraint();
-                let (loose, _) = band.loose_constraint();
-                if !self.learn_normals
-                    && loose.dot(&d) < ALONG_PUSH
-                    && !self.friction_kind.contains(&Friction::None)
-                {
-                    // Joint friction: learn its normals.
-                    self.learn_normals = true;
-                }
+                self.strict[k] = band.constraint();
+                let loose = band.loose_constraint();
+                // Joint friction: from the end of this round on, learn its normals.
+                self.joint_friction |=
+                    loose.0.dot(&d) < ALONG_PUSH && !self.friction_kind.contains(&Friction::None);
                 // Along the axes a ball's chord crossed off its centre still gives a constraint.
                 self.constraints[k] = if self.learn_normals {
-                    constraint
+                    self.strict[k]
                 } else {
-                    Some(band.loose_constraint())
+                    Some(loose)
                 };
                 self.slips[k] = band.slips();
                 self.band_at[k] = band.at;
@@ -1188,6 +1190,15 @@ impl Calibration {
         self.rounds += 1;
         self.iteration += 1;
         let consistent = self.solve_constraints();
+        if self.joint_friction && !self.learn_normals {
+            // The round that showed joint friction brought F̂ nearer the centre along the
+            // axes; the vertex is measured afresh along the normals its slips teach.
+            self.learn_normals = true;
+            self.rounds = 0;
+            self.earlier_rounds = (Vector3::zeros(), Vector3::zeros(), 0);
+            self.learn_normals();
+            return self.start_round(s);
+        }
         if self.learn_normals {
             self.learn_normals();
         }
@@ -1342,7 +1353,7 @@ impl Calibration {
     /// two joints still shows one of them), then the normals followed so far. The next round's bands, along their dual directions, then load one
     /// joint each, and their chords cross one pair of faces each.
     fn learn_normals(&mut self) {
-        let constraints = self.constraints.map(|c| c.map(|(n, _)| n));
+        let constraints = self.strict.map(|c| c.map(|(n, _)| n));
         let slips: [Option<Vector3<f64>>; 6] = [0, 1, 2, 3, 4, 5].map(|i| self.slips[i / 2][i % 2]);
         // A slip counts where another slip or a constraint of the round went its way too (one
         // joint giving again); two joints giving together rarely mix the same way twice.
