@@ -1261,8 +1261,6 @@ impl Calibration {
                 self.earlier_rounds.0 += self.estimate;
                 self.earlier_rounds.1 += self.round_at();
                 self.earlier_rounds.2 += 1;
-            } else {
-                self.earlier_rounds = (Vector3::zeros(), Vector3::zeros(), 0);
             }
             return self.start_round(s);
         }

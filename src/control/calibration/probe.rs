@@ -164,19 +164,14 @@ impl Band {
     /// n·c = n·(upper + lower)/2, however the chord cuts them (along a ball's chord, n is the
     /// chord's direction). A chord that leaves through the faces of two different joints (near
     /// a corner of a skewed parallelepiped) slips two ways that are not opposite: its middle
-    /// says nothing exact about c, and there is no constraint. Off a ball's centre the slips
-    /// are not opposite either, but their difference lies along the chord (within 10°): that
-    /// is one too.
+    /// says nothing exact about c, and there is no constraint (even where the difference of
+    /// the slips happens to lie along the chord, as a ball's off its centre does: see
+    /// [`Band::loose_constraint`], for bands before joint friction shows).
     pub fn constraint(&self) -> Option<(Vector3<f64>, f64)> {
         let up = self.upper_slip.try_normalize(1e-12)?;
         let down = self.lower_slip.try_normalize(1e-12)?;
         let n = (up - down).try_normalize(1e-12)?;
-        let mid = self.midpoint();
-        if n.dot(&self.direction) >= ALONG_CHORD || up.dot(&down) <= -OPPOSITE_SLIPS {
-            Some((n, n.dot(&mid)))
-        } else {
-            None
-        }
+        (up.dot(&down) <= -OPPOSITE_SLIPS).then(|| (n, n.dot(&self.midpoint())))
     }
 
     /// The directions the handle slipped along at the two edges, both turned to point along the
@@ -209,8 +204,6 @@ impl Band {
 /// them is within 20° of 180° (the encoder's steps make a short slip's direction a little
 /// uncertain; the columns of a linkage's Jacobian are further apart: the delta's come within 34°).
 const OPPOSITE_SLIPS: f64 = 0.94;
-/// The slips' difference lies along the chord when it is within 10° of it.
-const ALONG_CHORD: f64 = 0.985;
 
 /// What a probe did this tick.
 #[derive(Clone, Copy, Debug, PartialEq)]
