@@ -352,6 +352,33 @@ fn the_published_phantom_calibrates_first_time_within_10_mn_and_stays_put_when_c
     }
 }
 
+/// Issue 8 on sim:delta with its joint friction: every vertex's holding force within 2 % in
+/// magnitude and 1° in direction of the plant's. The stick region is a parallelepiped skewed so
+/// far at the bottom corners of the cube that chords along the axes leave it through faces of
+/// different joints. Units 1 and 2 (the nominal unit, seed 0, passes too, but its worst vertex
+/// sits at 1.998 %).
+#[test]
+fn a_delta_with_joint_friction_is_calibrated_within_2_percent_and_1_degree() {
+    for unit_seed in [1, 2] {
+        let mut device = Device::phantom(0.0, 1);
+        device.model = "delta";
+        device.config.sim.unit_seed = unit_seed;
+        let (result, _) = device.calibrate();
+        assert!(result.unreachable.is_empty(), "unit {unit_seed}");
+        for v in &result.vertices {
+            let truth = device.truth(&v.vertex.position);
+            let magnitude = (v.force.norm() - truth.norm()).abs() / truth.norm();
+            let angle = v.force.angle(&truth).to_degrees();
+            assert!(
+                magnitude <= 0.02 && angle <= 1.0,
+                "unit {unit_seed}, vertex {:?}: {:.2} % and {angle:.2}° off",
+                v.vertex.index,
+                100.0 * magnitude
+            );
+        }
+    }
+}
+
 /// docs/calibration.md §6's table: on each simulated device, the worst error of the one-sided
 /// reading (the paper's procedure: the force at the first rest near the vertex) and of the
 /// middle of the stick band (hgcd's), with the compensation's worst residual over the cube and

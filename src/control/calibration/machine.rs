@@ -6,11 +6,11 @@
 //! log, so progress leaves through a bounded channel with `try_send`.
 
 use crossbeam_channel::Sender;
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
 use super::outcome::{
-    fill_from_neighbours, principal_direction, CalibrationFailure, CalibrationResult,
-    InitialMeasurement, VertexResult,
+    carry_to_vertices, fill_from_neighbours, principal_direction, CalibrationFailure,
+    CalibrationResult, InitialMeasurement, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step};
@@ -127,6 +127,13 @@ const MIN_ROUNDS: u32 = 2;
 const MAX_ROUNDS: u32 = 3;
 /// The three constraint normals must span at least this volume (1 for orthogonal ones).
 const MIN_CONSTRAINT_VOLUME: f64 = 0.3;
+/// A band's slips show joint friction when the difference of their directions is more than 25°
+/// off its push (a ball of friction's follows it wherever the chord crosses): cos below this.
+const ALONG_PUSH: f64 = 0.906;
+/// Two normals within 20° of each other (|cos| above this) belong to the same pair of faces (a
+/// linkage's joints move the handle along directions further apart: the delta's come within
+/// 34° at the corners of its cube).
+const SAME_FACES: f64 = 0.94;
 /// Another round is measured where the handle is if it is within this many reach tolerances of
 /// the vertex; further off, it settles again first.
 const ROUND_REACH: f64 = 4.0;
@@ -283,6 +290,19 @@ pub struct Calibration {
     /// The friction along each axis, as the initialisation found it. Along axes it dominates,
     /// the hold at rest needs no velocity feedback and pulls on the smoothed position.
     friction_kind: [Friction; 3],
+    /// Whether the bands' slips teach the stick region's face normals, or the bands stay along
+    /// the axes: from the first band whose slips' difference went more than 25° off its push
+    /// (joint friction: the handle moves along the joint that gives), where every axis has
+    /// friction.
+    learn_normals: bool,
+
+    /// The normals of the stick region's three pairs of faces, as the last round found them
+    /// (the axes until then), carried from vertex to vertex: each round's bands go along their
+    /// dual directions. For joint friction they are the directions the joints move the handle
+    /// along (the Jacobian's columns), which turn slowly over the workspace.
+    normals: [Vector3<f64>; 3],
+    /// Half the distance between each pair of faces along its normal, N.
+    faces: Vector3<f64>,
     smoother: Smoother,
     smoothed: Vector3<f64>,
 
@@ -305,9 +325,19 @@ pub struct Calibration {
     /// The force the previous round found, when this round followed it directly.
     /// The forces the rounds before this one found, summed, and how many, when this round
     /// followed them directly.
-    earlier_rounds: (Vector3<f64>, u32),
-    /// The round's constraints on the holding force, one per axis ([`Band::constraint`]).
-    constraints: [(Vector3<f64>, f64); 3],
+    earlier_rounds: (Vector3<f64>, Vector3<f64>, u32),
+    /// Where each band of the round was measured ([`Band::at`]), and where the vertex's force
+    /// was measured (the mean over the bands, and over the rounds averaged), m.
+    band_at: [Vector3<f64>; 3],
+    measured_at: Vector3<f64>,
+    /// The round's constraints on the holding force, one per band ([`Band::constraint`]), and
+    /// the directions its slips went ([`Band::slips`]).
+    constraints: [Option<(Vector3<f64>, f64)>; 3],
+    /// The bands' constraints across one pair of faces each, whatever the mode.
+    strict: [Option<(Vector3<f64>, f64)>; 3],
+    /// Whether a band's slips have gone off its push (joint friction).
+    joint_friction: bool,
+    slips: [[Option<Vector3<f64>>; 2]; 3],
 
     /// Per vertex of the path, once done (reached or not).
     results: Vec<Option<VertexResult>>,
@@ -375,8 +405,17 @@ impl Calibration {
             one_sided: None,
             rest: Vector3::zeros(),
             band_friction: Vector3::zeros(),
-            constraints: [(Vector3::zeros(), 0.0); 3],
-            earlier_rounds: (Vector3::zeros(), 0),
+            constraints: [None; 3],
+            strict: [None; 3],
+            joint_friction: false,
+            slips: [[None; 2]; 3],
+            learn_normals: false,
+
+            normals: [0, 1, 2].map(axis),
+            faces: Vector3::zeros(),
+            earlier_rounds: (Vector3::zeros(), Vector3::zeros(), 0),
+            band_at: [Vector3::zeros(); 3],
+            measured_at: Vector3::zeros(),
             results: vec![None; count],
         })
     }
@@ -426,6 +465,17 @@ impl Calibration {
         let mut forces: Vec<Vector3<f64>> = vertices.iter().map(|v| v.force).collect();
         let mut one_sided: Vec<Vector3<f64>> = vertices.iter().map(|v| v.one_sided_force).collect();
         let mut friction: Vec<Vector3<f64>> = vertices.iter().map(|v| v.friction).collect();
+        let offsets: Vec<Vector3<f64>> = vertices
+            .iter()
+            .map(|v| v.vertex.position - v.measured_at)
+            .collect();
+        carry_to_vertices(
+            self.plan.dims,
+            self.params.spacing,
+            &mut forces,
+            &offsets,
+            &known,
+        );
         fill_from_neighbours(self.plan.dims, &mut forces, &known);
         fill_from_neighbours(self.plan.dims, &mut one_sided, &known);
         fill_from_neighbours(self.plan.dims, &mut friction, &known);
@@ -570,6 +620,7 @@ impl Calibration {
             self.still = 0.5 * self.initial.step + 2.0 * self.initial.noise;
             self.phase = Phase::InitBand(BandProbe::new(
                 0,
+                axis(0),
                 self.init_ramp(),
                 self.slip,
                 self.still,
@@ -585,7 +636,7 @@ impl Calibration {
     /// measure again, until the initialisation's time is up.
     fn init_band(&mut self, s: &DeviceState, mut probe: BandProbe) -> ControlOutput {
         let t = s.time;
-        let a = probe.axis();
+        let a = probe.index();
         let force = self.field_force(&self.rest_point, s) + axis(a) * probe.offset(t);
         match probe.observe(s, &self.smoothed, &force) {
             Step::Running => self.phase = Phase::InitBand(probe),
@@ -595,6 +646,7 @@ impl Calibration {
                 self.phase = if a < 2 {
                     Phase::InitBand(BandProbe::new(
                         a + 1,
+                        axis(a + 1),
                         self.init_ramp(),
                         self.slip,
                         self.still,
@@ -772,6 +824,7 @@ impl Calibration {
                 }
             }
         }
+        self.learn_normals = false;
         self.estimate = load;
         self.last_good = load;
         self.emit(CalibrationEvent::InitDone {
@@ -946,7 +999,7 @@ impl Calibration {
             self.estimate = applied;
             self.rest = rest;
             self.near_rests += 1;
-            self.earlier_rounds = (Vector3::zeros(), 0);
+            self.earlier_rounds = (Vector3::zeros(), Vector3::zeros(), 0);
             return self.start_round(s);
         }
         let distance = offset.norm();
@@ -954,7 +1007,9 @@ impl Calibration {
             .previous_offset
             .is_some_and(|previous| distance > PROGRESS * previous)
         {
-            let rate = (0..3).map(|a| self.band_ramp(a).rate).fold(0.0, f64::max);
+            let rate = (0..3)
+                .map(|a| self.band_ramp(&axis(a)).rate)
+                .fold(0.0, f64::max);
             let ramp = Ramp {
                 rate,
                 steady: 0.0,
@@ -991,14 +1046,16 @@ impl Calibration {
         ControlOutput::force(self.hold_force(&vertex, s, &self.estimate))
     }
 
-    /// The ramp of a band measurement along axis `a` at a vertex: steady at the rate that
-    /// crosses the friction band measured at X_C in `CROSSING_TIME` or moves a frictionless
-    /// handle by a slip in `DETECT_TIME`, whichever is faster, over twice the band (and the
-    /// slip's force), growing beyond.
-    fn band_ramp(&self, a: usize) -> Ramp {
-        let stiffness = self.gains.stiffness[a] * self.gain_scale;
+    /// The ramp of a band measurement along the unit `direction` at a vertex: steady at the
+    /// rate that crosses the friction band measured at X_C in `CROSSING_TIME` or moves a
+    /// frictionless handle by a slip in `DETECT_TIME`, whichever is faster, over twice the band
+    /// (and the slip's force), growing beyond. Off the axes, the axes' stiffness and band are
+    /// weighted by the direction's squared components.
+    fn band_ramp(&self, direction: &Vector3<f64>) -> Ramp {
+        let weights = direction.component_mul(direction);
+        let stiffness = weights.dot(&self.gains.stiffness) * self.gain_scale;
         let slip_force = stiffness * self.slip;
-        let width = 2.0 * self.initial.friction[a];
+        let width = 2.0 * weights.dot(&self.initial.friction);
         let rate = (slip_force / DETECT_TIME).max(width / CROSSING_TIME);
         Ramp {
             rate,
@@ -1006,6 +1063,26 @@ impl Calibration {
             growth: RAMP_GROWTH,
             limit: self.push_limit(),
         }
+    }
+
+    /// Band `k` of a round, starting at time `t`: along the axis k while the normals are the
+    /// axes, else along the direction that changes the force on the k-th pair of faces only
+    /// (the dual basis of the normals: for joint friction, the force that loads one joint),
+    /// so that its chord leaves the stick region through those two faces wherever it starts.
+    fn band_probe(&self, k: usize, t: f64) -> BandProbe {
+        let rows = Matrix3::from_rows(&self.normals.map(|n| n.transpose()));
+        let direction = rows
+            .try_inverse()
+            .and_then(|dual| dual.column(k).try_normalize(1e-12))
+            .unwrap_or_else(|| axis(k));
+        BandProbe::new(
+            k,
+            direction,
+            self.band_ramp(&direction),
+            self.slip,
+            self.still,
+            t,
+        )
     }
 
     /// The first axis after `a` (all of them: from `None`) with friction, if any.
@@ -1026,10 +1103,11 @@ impl Calibration {
             if self.near_rests < 2 {
                 return self.update(s, self.estimate, error);
             }
+            self.measured_at = self.rest;
             return self.vertex_done(s, vertex, error);
         };
         self.phase = Phase::Band {
-            probe: BandProbe::new(a, self.band_ramp(a), self.slip, self.still, t),
+            probe: self.band_probe(a, t),
             round_start: self.estimate,
             anchor: self.smoothed,
         };
@@ -1052,9 +1130,8 @@ impl Calibration {
         if let Some(failure) = self.vertex_timed_out(t) {
             return self.fail(failure);
         }
-        let a = probe.axis();
         let vertex = self.plan.path[self.vertex];
-        let feedforward = self.estimate + axis(a) * probe.offset(t);
+        let feedforward = self.estimate + probe.direction() * probe.offset(t);
         let force = self.still_force(&anchor, s, &feedforward);
         match probe.observe(s, &self.smoothed, &force) {
             Step::Running => {
@@ -1067,12 +1144,28 @@ impl Calibration {
             }
             Step::Blocked { .. } => self.unreachable(s, (vertex.position - self.rest).norm()),
             Step::Done(band) => {
-                self.estimate[a] = band.middle();
-                self.band_friction[a] = band.half_width();
-                self.constraints[a] = band.constraint();
-                if let Some(next) = self.next_band_axis(Some(a)) {
+                let k = probe.index();
+                // F̂ moves along the band's direction until its load on the band's pair of faces
+                // is the band's middle; the direction loads no other pair.
+                let (n, d) = (self.normals[k], band.direction);
+                self.estimate += d * (n.dot(&(band.midpoint() - self.estimate)) / n.dot(&d));
+                self.faces[k] = band.half_width() * n.dot(&d);
+                self.strict[k] = band.constraint();
+                let loose = band.loose_constraint();
+                // Joint friction: from the end of this round on, learn its normals.
+                self.joint_friction |=
+                    loose.0.dot(&d) < ALONG_PUSH && !self.friction_kind.contains(&Friction::None);
+                // Along the axes a ball's chord crossed off its centre still gives a constraint.
+                self.constraints[k] = if self.learn_normals {
+                    self.strict[k]
+                } else {
+                    Some(loose)
+                };
+                self.slips[k] = band.slips();
+                self.band_at[k] = band.at;
+                if let Some(next) = self.next_band_axis(Some(k)) {
                     self.phase = Phase::Band {
-                        probe: BandProbe::new(next, self.band_ramp(next), self.slip, self.still, t),
+                        probe: self.band_probe(next, t),
                         round_start,
                         anchor: self.smoothed,
                     };
@@ -1096,12 +1189,30 @@ impl Calibration {
     ) -> ControlOutput {
         self.rounds += 1;
         self.iteration += 1;
-        self.solve_constraints();
+        let consistent = self.solve_constraints();
+        if self.joint_friction && !self.learn_normals {
+            // The round that showed joint friction brought F̂ nearer the centre along the
+            // axes; the vertex is measured afresh along the normals its slips teach.
+            self.learn_normals = true;
+            self.rounds = 0;
+            self.earlier_rounds = (Vector3::zeros(), Vector3::zeros(), 0);
+            self.learn_normals();
+            return self.start_round(s);
+        }
+        if self.learn_normals {
+            self.learn_normals();
+        }
+        self.band_friction = self.axis_friction();
         let change = self.estimate - round_start;
-        let settled = (0..3).all(|a| {
-            self.friction_kind[a] == Friction::None
-                || change[a].abs() <= ROUND_SHARE * self.band_friction[a] + FORCE_TOLERANCE
-        });
+        // While the normals are still being learnt, a round whose chords did not all cross one
+        // pair of faces is no measurement of the same thing as the next one.
+        let measured = consistent || !self.learn_normals;
+        let settled = measured
+            && (0..3).all(|k| {
+                self.friction_kind[k] == Friction::None
+                    || self.normals[k].dot(&change).abs()
+                        <= ROUND_SHARE * self.faces[k] + FORCE_TOLERANCE
+            });
         let error = (vertex.position - self.rest).norm();
         self.emit(CalibrationEvent::Iteration {
             vertex: self.vertex,
@@ -1109,11 +1220,23 @@ impl Calibration {
             force: self.estimate,
             error,
         });
-        if (settled && self.rounds >= MIN_ROUNDS) || self.rounds >= MAX_ROUNDS {
+        // A vertex whose last round was no clean measurement gets one more while it has time.
+        let more = self.rounds < MAX_ROUNDS
+            || (!measured
+                && self.rounds < MAX_ROUNDS + 1
+                && s.time - self.vertex_start < 0.5 * self.params.vertex_timeout);
+        if (settled && self.rounds >= MIN_ROUNDS) || !more {
             // The rounds measured the same band independently: their mean shrinks what the
             // slips' timing and the position noise scatter.
-            let (sum, count) = self.earlier_rounds;
-            self.estimate = (sum + self.estimate) / f64::from(count + 1);
+            // A last round that was no such measurement is left out if there are others.
+            let (sum, at, count) = self.earlier_rounds;
+            let here = self.round_at();
+            (self.estimate, self.measured_at) = if measured || count == 0 {
+                let n = f64::from(count + 1);
+                ((sum + self.estimate) / n, (at + here) / n)
+            } else {
+                (sum / f64::from(count), at / f64::from(count))
+            };
             if !self.friction_kind.contains(&Friction::Slight) {
                 return self.vertex_done(s, vertex, error);
             }
@@ -1134,12 +1257,28 @@ impl Calibration {
         // more: measure again where it is unless it has gone far.
         let offset = vertex.position - self.smoothed;
         if (0..3).all(|a| offset[a].abs() <= ROUND_REACH * self.reach_tolerance(a)) {
-            self.earlier_rounds.0 += self.estimate;
-            self.earlier_rounds.1 += 1;
+            if measured {
+                self.earlier_rounds.0 += self.estimate;
+                self.earlier_rounds.1 += self.round_at();
+                self.earlier_rounds.2 += 1;
+            }
             return self.start_round(s);
         }
         self.settle_from(s.time);
         ControlOutput::force(force)
+    }
+
+    /// Where this round's bands were measured, on average, m.
+    fn round_at(&self) -> Vector3<f64> {
+        let bands = (0..3).filter(|&a| self.friction_kind[a] != Friction::None);
+        let (sum, count) = bands.fold((Vector3::zeros(), 0.0), |(sum, n), a| {
+            (sum + self.band_at[a], n + 1.0)
+        });
+        if count > 0.0 {
+            sum / count
+        } else {
+            self.rest
+        }
     }
 
     /// The check (see [`Phase::Check`]): along each axis the handle moved on by more than a
@@ -1171,28 +1310,109 @@ impl Calibration {
     }
 
     /// F̂ from the round's bands: the force c with n·c = b for each band's constraint
-    /// ([`Band::constraint`]) and, along axes without friction, c = F̂ there. Each axis's middle
-    /// is only right where the chord crosses the band's centre; the slips' directions tell how
-    /// the band's faces lie, so one round finds the centre even of a skewed box (joint friction
-    /// seen at the handle). Constraints too close to parallel leave the middles.
-    fn solve_constraints(&mut self) {
-        let mut n = nalgebra::Matrix3::zeros();
-        let mut b = Vector3::zeros();
-        for a in 0..3 {
-            let (row, value) = if self.friction_kind[a] == Friction::None {
-                (axis(a), self.estimate[a])
-            } else {
-                self.constraints[a]
-            };
-            n.set_row(a, &row.transpose());
-            b[a] = value;
+    /// ([`Band::constraint`]) and, along axes without friction, c = F̂ there. A band without a
+    /// constraint (its chord left through the faces of two joints), or whose constraint repeats
+    /// an earlier band's pair of faces, keeps its pair's normal n and the middle its update put
+    /// into F̂ (n·c = n·F̂). Where every axis has friction, the constraints' normals become the
+    /// normals the next round's directions follow. Normals too close to coplanar change
+    /// nothing. True when every band gave a constraint of its own.
+    fn solve_constraints(&mut self) -> bool {
+        let mut rows = [(Vector3::zeros(), 0.0); 3];
+        let mut consistent = true;
+        for k in 0..3 {
+            if self.friction_kind[k] == Friction::None {
+                rows[k] = (axis(k), self.estimate[k]);
+                continue;
+            }
+            let own = self.constraints[k].filter(|(n, _)| {
+                rows[..k]
+                    .iter()
+                    .all(|(other, _)| n.dot(other).abs() < SAME_FACES)
+            });
+            consistent &= own.is_some();
+            let n = self.normals[k];
+            rows[k] = own.unwrap_or((n, n.dot(&self.estimate)));
         }
+        let n = Matrix3::from_rows(&rows.map(|(n, _)| n.transpose()));
         if n.determinant().abs() < MIN_CONSTRAINT_VOLUME {
-            return;
+            return false;
         }
-        if let Some(c) = n.lu().solve(&b) {
-            self.estimate = c;
+        let Some(c) = n.lu().solve(&Vector3::from(rows.map(|(_, b)| b))) else {
+            return false;
+        };
+        self.estimate = c;
+        consistent
+    }
+
+    /// The normals the next round's bands follow, from this round's: the first three that span
+    /// space (20° apart, then a volume of at least `MIN_CONSTRAINT_VOLUME`) of the constraints'
+    /// normals, then the directions of single slips seen twice (a joint that gave alone slips
+    /// along the normal of the face it left through; a chord that leaves through the faces of
+    /// two joints still shows one of them), then the normals followed so far. The next round's bands, along their dual directions, then load one
+    /// joint each, and their chords cross one pair of faces each.
+    fn learn_normals(&mut self) {
+        let constraints = self.strict.map(|c| c.map(|(n, _)| n));
+        let slips: [Option<Vector3<f64>>; 6] = [0, 1, 2, 3, 4, 5].map(|i| self.slips[i / 2][i % 2]);
+        // A slip counts where another slip or a constraint of the round went its way too (one
+        // joint giving again); two joints giving together rarely mix the same way twice.
+        let repeated = |i: usize, u: &Vector3<f64>| {
+            let others = slips
+                .iter()
+                .enumerate()
+                .filter(|&(j, _)| j != i)
+                .map(|(_, v)| v);
+            others
+                .chain(constraints.iter())
+                .flatten()
+                .any(|v| u.dot(v).abs() >= SAME_FACES)
+        };
+        let candidates = constraints
+            .into_iter()
+            .chain(
+                slips
+                    .iter()
+                    .enumerate()
+                    .map(|(i, u)| u.filter(|u| repeated(i, u))),
+            )
+            .chain(self.normals.map(Some))
+            .flatten();
+        let mut learned = [Vector3::zeros(); 3];
+        let mut count = 0;
+        for n in candidates {
+            let fresh = match count {
+                0 => true,
+                1 => n.dot(&learned[0]).abs() < SAME_FACES,
+                2 => {
+                    let rows = Matrix3::from_rows(&[
+                        learned[0].transpose(),
+                        learned[1].transpose(),
+                        n.transpose(),
+                    ]);
+                    rows.determinant().abs() >= MIN_CONSTRAINT_VOLUME
+                }
+                _ => false,
+            };
+            if fresh {
+                learned[count] = n;
+                count += 1;
+            }
         }
+        let volume = Matrix3::from_rows(&learned.map(|n| n.transpose())).determinant();
+        if count == 3 && volume.abs() >= MIN_CONSTRAINT_VOLUME {
+            self.normals = learned;
+        }
+    }
+
+    /// The stick region's half-width along each axis through its centre, N: where the axis
+    /// first meets a pair of faces (for faces normal to the axes, their half-distance).
+    fn axis_friction(&self) -> Vector3<f64> {
+        Vector3::from_fn(|a, _| {
+            (0..3)
+                .filter(|&k| self.normals[k][a].abs() > 1e-9)
+                .map(|k| self.faces[k] / self.normals[k][a].abs())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .map(|w| if w.is_finite() { w } else { 0.0 })
     }
 
     /// The push toward the vertex: if the handle moves, it was friction (F̂ keeps the push,
@@ -1231,6 +1451,7 @@ impl Calibration {
             friction: self.band_friction,
             iterations: self.iteration,
             final_error: error,
+            measured_at: self.measured_at,
             duration: s.time - self.vertex_start,
             reached: true,
         };
@@ -1264,6 +1485,7 @@ impl Calibration {
             friction: Vector3::zeros(),
             iterations: self.iteration,
             final_error: distance,
+            measured_at: vertex.position,
             duration: s.time - self.vertex_start,
             reached: false,
         });

@@ -23,6 +23,10 @@ pub struct VertexResult {
     pub iterations: u32,
     /// Distance from the vertex of the rest the band was measured at, m.
     pub final_error: f64,
+    /// Where `force` was measured, m: the second rest near the vertex without friction, the mean
+    /// of the rests the bands were crossed from with it. The result carries `force` from there
+    /// to the vertex ([`carry_to_vertices`]).
+    pub measured_at: Vector3<f64>,
     /// Device time spent on this vertex, move included, s.
     pub duration: f64,
     /// False for a vertex the handle could not reach: its values are filled from neighbours.
@@ -126,6 +130,53 @@ pub(super) fn principal_direction(
     }
     let v: Vector3<f64> = eigen.eigenvectors.column(k).into();
     Some(if v.dot(&sum) < 0.0 { -v } else { v })
+}
+
+/// Carry the forces of the `known` vertices of a `dims` grid (x fastest, cube side `spacing`)
+/// from where they were measured to the vertices: F(X_i) ≈ F(X̄_i) + ∇F (X_i − X̄_i), with
+/// `offsets` the X_i − X̄_i. The holding force of a linkage changes by up to some 20 N/m over its
+/// workspace, and the slips of the band measurements leave the handle up to a millimetre or two
+/// from the vertex. The gradient comes from the measured forces along each axis of the grid:
+/// central differences inside, second-order one-sided ones at its faces, first-order ones with
+/// only two known vertices on the line, none with fewer.
+pub(super) fn carry_to_vertices(
+    dims: [usize; 3],
+    spacing: f64,
+    forces: &mut [Vector3<f64>],
+    offsets: &[Vector3<f64>],
+    known: &[bool],
+) {
+    let measured = forces.to_vec();
+    let stride = [1, dims[0], dims[0] * dims[1]];
+    for n in (0..forces.len()).filter(|&n| known[n]) {
+        let mut carried = Vector3::zeros();
+        for a in 0..3 {
+            let p = (n / stride[a]) % dims[a];
+            // The known force `step` vertices along axis a from this one.
+            let at = |step: isize| {
+                let q = p as isize + step;
+                (q >= 0 && (q as usize) < dims[a])
+                    .then(|| (n as isize + step * stride[a] as isize) as usize)
+                    .filter(|&m| known[m])
+                    .map(|m| measured[m])
+            };
+            let f = measured[n];
+            let gradient = match (at(-2), at(-1), at(1), at(2)) {
+                (_, Some(before), Some(after), _) => (after - before) / (2.0 * spacing),
+                (_, None, Some(after), Some(next)) => {
+                    (4.0 * after - 3.0 * f - next) / (2.0 * spacing)
+                }
+                (Some(next), Some(before), None, _) => {
+                    (3.0 * f - 4.0 * before + next) / (2.0 * spacing)
+                }
+                (_, None, Some(after), None) => (after - f) / spacing,
+                (None, Some(before), None, _) => (f - before) / spacing,
+                _ => Vector3::zeros(),
+            };
+            carried += gradient * offsets[n][a];
+        }
+        forces[n] += carried;
+    }
 }
 
 /// Fill the vertices of a `dims` grid (x fastest) whose `known` flag is false from their face

@@ -1,6 +1,7 @@
 //! The two measurements calibration makes by pushing the handle rather than waiting for it:
 //!
-//! - [`BandProbe`], the stick band along one axis. A force added along the axis grows until the
+//! - [`BandProbe`], the stick band along one direction (an axis, or a direction that loads a
+//!   single joint of a linkage: see [`Band::constraint`]). A force added along it grows until the
 //!   handle slips, first one way to reach the band's lower edge, then across the whole band to its
 //!   upper edge, then back across it to the lower edge again; after each slip the force is held
 //!   until the handle is at rest. The force at each slip is an edge of the band: its middle is
@@ -124,46 +125,85 @@ impl Crossing {
     }
 }
 
-/// The stick band along one axis: the commanded forces at its two edges, and how the handle
-/// moved when it slipped at each (from rest to rest, m).
+/// The stick band along one direction (unit): the commanded forces at its two edges, and how
+/// the handle moved when it slipped at each (from rest to rest, m).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct Band {
-    pub axis: usize,
+    pub direction: Vector3<f64>,
     pub upper: Vector3<f64>,
     pub lower: Vector3<f64>,
     pub upper_slip: Vector3<f64>,
     pub lower_slip: Vector3<f64>,
+    /// Where the band was measured, m: the mean of the rests the two crossings started from
+    /// (each edge is the force that moved the handle from there, so their middle is the
+    /// holding force about halfway between).
+    pub at: Vector3<f64>,
 }
 
 impl Band {
-    /// The middle of the band along its axis: the holding force's component there, N.
+    /// The middle of the band along its direction (for an axis: the holding force's component
+    /// there), N.
     pub fn middle(&self) -> f64 {
-        0.5 * (self.upper[self.axis] + self.lower[self.axis])
+        self.direction.dot(&self.midpoint())
     }
 
-    /// What the band says about the holding force c: n·c = b. A handle slips along the normal of
-    /// the stick band's boundary where its force meets it (joint friction: along the joint that
-    /// gives; a ball of friction: away from its centre), and the band is symmetric about c, so
-    /// with n the difference of the two slips' directions, n·c = n·(upper + lower)/2. Along a
-    /// ball's chord n is the probe's axis; across a box's two faces it is their normal, however
-    /// the chord cuts them. Without a clear slip (n too small), the axis itself.
-    pub fn constraint(&self) -> (Vector3<f64>, f64) {
-        let mid = 0.5 * (self.upper + self.lower);
+    /// The middle of the chord the band was measured along: the mean of its two edges, N.
+    pub fn midpoint(&self) -> Vector3<f64> {
+        0.5 * (self.upper + self.lower)
+    }
+
+    /// What the band says about the holding force c, if the chord left the stick region through
+    /// two opposite faces: n·c = n·(upper + lower)/2.
+    ///
+    /// A handle slips along the normal of the stick region's boundary where its force meets it:
+    /// with joint Coulomb friction |J_iᵀ(F − c)| ≤ τ_i the region is a parallelepiped and the
+    /// handle moves along the column J_i of the joint i that gives, which is the normal of that
+    /// joint's two faces; a ball of friction lets it go away from its centre. The region is
+    /// symmetric about c, so where the chord leaves through the two faces of one joint (the two
+    /// slips are opposite), n = the difference of the slips' directions is their normal and
+    /// n·c = n·(upper + lower)/2, however the chord cuts them (along a ball's chord, n is the
+    /// chord's direction). A chord that leaves through the faces of two different joints (near
+    /// a corner of a skewed parallelepiped) slips two ways that are not opposite: its middle
+    /// says nothing exact about c, and there is no constraint (even where the difference of
+    /// the slips happens to lie along the chord, as a ball's off its centre does: see
+    /// [`Band::loose_constraint`], for bands before joint friction shows).
+    pub fn constraint(&self) -> Option<(Vector3<f64>, f64)> {
+        let up = self.upper_slip.try_normalize(1e-12)?;
+        let down = self.lower_slip.try_normalize(1e-12)?;
+        let n = (up - down).try_normalize(1e-12)?;
+        (up.dot(&down) <= -OPPOSITE_SLIPS).then(|| (n, n.dot(&self.midpoint())))
+    }
+
+    /// The directions the handle slipped along at the two edges, both turned to point along the
+    /// band's direction (None where it did not move clearly): each is the normal of the face it
+    /// left through, if one joint gave.
+    pub fn slips(&self) -> [Option<Vector3<f64>>; 2] {
+        [self.upper_slip, -self.lower_slip].map(|v| v.try_normalize(1e-12))
+    }
+
+    /// The constraint before joint friction shows: n the difference of the slips' directions
+    /// whatever they are (a ball's chord off its centre), unless more than 60° off the band's
+    /// direction or without a clear slip: the direction itself.
+    pub fn loose_constraint(&self) -> (Vector3<f64>, f64) {
         let unit = |v: Vector3<f64>| v.try_normalize(1e-12).unwrap_or_else(Vector3::zeros);
         let mut n = unit(unit(self.upper_slip) - unit(self.lower_slip));
-        if n[self.axis] < 0.5 {
-            n = Vector3::zeros();
-            n[self.axis] = 1.0;
+        if n.dot(&self.direction) < 0.5 {
+            n = self.direction;
         }
-        (n, n.dot(&mid))
+        (n, n.dot(&self.midpoint()))
     }
 
-    /// Half the band's width along its axis: the friction there, N (0 without friction; the
-    /// slip detection's lag makes it read a little wide).
+    /// Half the band's width along its direction: the friction there, N (0 without friction;
+    /// the slip detection's lag makes it read a little wide).
     pub fn half_width(&self) -> f64 {
-        (0.5 * (self.upper[self.axis] - self.lower[self.axis])).max(0.0)
+        (0.5 * self.direction.dot(&(self.upper - self.lower))).max(0.0)
     }
 }
+
+/// Two slips count as opposite (through the two faces of one joint) when the angle between
+/// them is within 20° of 180° (the encoder's steps make a short slip's direction a little
+/// uncertain; the columns of a linkage's Jacobian are further apart: the delta's come within 34°).
+const OPPOSITE_SLIPS: f64 = 0.94;
 
 /// What a probe did this tick.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -177,12 +217,16 @@ pub(super) enum Step<T> {
     },
 }
 
-/// Measures the stick band along one axis (module docs). The controller adds
-/// [`BandProbe::offset`] along the axis to its hold force and reports every tick's position and
-/// commanded force to [`BandProbe::observe`].
+/// Measures the stick band along one direction (module docs). The controller adds
+/// [`BandProbe::offset`] along the direction to its hold force and reports every tick's position
+/// and commanded force to [`BandProbe::observe`]. Slips are watched along the same direction: a
+/// handle that gives way to a push moves along it (friction only dissipates), whichever joint
+/// gives.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct BandProbe {
-    axis: usize,
+    /// Which band of the round (the controller's numbering), and its unit direction.
+    index: usize,
+    direction: Vector3<f64>,
     ramp: Ramp,
     /// Displacement of the smoothed position that counts as a slip, m.
     slip: f64,
@@ -206,6 +250,9 @@ pub(super) struct BandProbe {
     /// The smoothed position where the crossing started from rest, and the moves of the Up and
     /// Down crossings' slips, m.
     start_position: Vector3<f64>,
+    /// The rests the Up and Down crossings started from, m.
+    up_from: Vector3<f64>,
+    down_from: Vector3<f64>,
     upper_slip: Vector3<f64>,
     lower_slip: Vector3<f64>,
     /// After a slip: the added force is held until the handle is at rest again, so that every
@@ -227,9 +274,17 @@ struct Pause {
 }
 
 impl BandProbe {
-    pub fn new(axis: usize, ramp: Ramp, slip: f64, still: f64, now: f64) -> Self {
+    pub fn new(
+        index: usize,
+        direction: Vector3<f64>,
+        ramp: Ramp,
+        slip: f64,
+        still: f64,
+        now: f64,
+    ) -> Self {
         Self {
-            axis,
+            index,
+            direction,
             ramp,
             slip,
             still,
@@ -243,17 +298,23 @@ impl BandProbe {
             upper: Vector3::zeros(),
             lower: Vector3::zeros(),
             start_position: Vector3::zeros(),
+            up_from: Vector3::zeros(),
+            down_from: Vector3::zeros(),
             upper_slip: Vector3::zeros(),
             lower_slip: Vector3::zeros(),
             pause: None,
         }
     }
 
-    pub fn axis(&self) -> usize {
-        self.axis
+    pub fn index(&self) -> usize {
+        self.index
     }
 
-    /// The force to add along the axis at time `t`, N.
+    pub fn direction(&self) -> Vector3<f64> {
+        self.direction
+    }
+
+    /// The force to add along the direction at time `t`, N.
     pub fn offset(&mut self, t: f64) -> f64 {
         if self.pause.is_none() {
             let sign = self.crossing.sign();
@@ -270,7 +331,8 @@ impl BandProbe {
         smoothed: &Vector3<f64>,
         commanded: &Vector3<f64>,
     ) -> Step<Band> {
-        self.window.push(s.position[self.axis]);
+        let along = s.position.dot(&self.direction);
+        self.window.push(along);
         if self.low == f64::INFINITY {
             self.start_position = *smoothed;
         }
@@ -298,13 +360,19 @@ impl BandProbe {
                     }
                     let Some(next) = pause.next else {
                         return Step::Done(Band {
-                            axis: self.axis,
+                            direction: self.direction,
                             upper: self.upper,
                             lower: self.lower,
                             upper_slip: self.upper_slip,
                             lower_slip: self.lower_slip,
+                            at: 0.5 * (self.up_from + self.down_from),
                         });
                     };
+                    match next {
+                        Crossing::Up => self.up_from = rest,
+                        Crossing::Down => self.down_from = rest,
+                        Crossing::Reach => {}
+                    }
                     self.pause = None;
                     self.crossing = next;
                     self.start_offset = self.offset;
@@ -321,7 +389,7 @@ impl BandProbe {
         let sign = self.crossing.sign();
         let progress = sign * self.window.position();
         self.low = self.low.min(progress);
-        if sign * s.position[self.axis] <= self.low + self.still {
+        if sign * along <= self.low + self.still {
             self.departure = *commanded;
         }
         if progress - self.low <= self.slip {
@@ -482,7 +550,7 @@ mod tests {
             growth: 0.2,
             limit: 3.0,
         };
-        let mut probe = BandProbe::new(0, ramp, 5e-6, 2e-6, 0.0);
+        let mut probe = BandProbe::new(0, Vector3::x(), ramp, 5e-6, 2e-6, 0.0);
         let (mut x, mut v) = (0.0f64, 0.0f64);
         let dt = 1e-3;
         for n in 0..20_000 {
