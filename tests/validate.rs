@@ -10,6 +10,7 @@ use nalgebra::Vector3;
 
 use hgcd::config::Config;
 use hgcd::grid::{GridFile, MassGrid};
+use hgcd::sim::SimDevice;
 use hgcd::transport::Pacing;
 use hgcd::validate::{self, Mode, ModeReport, Reading, Report, ValidateRequest, Validation};
 
@@ -169,6 +170,85 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
     // The fresh calibration went to the output directory, not to the state directory.
     assert!(out.join("grid.toml").exists());
     assert!(!dir.path().join("state").exists());
+}
+
+/// The issue's Must show on the linkages, two units each: with (vector, the default)
+/// compensation the probe alone presses on the surface; without it the penalty follows the
+/// plant's own gravity force from point to point; friction makes the paper's one-sided reading
+/// miss what the two-sided one finds; and the whole run takes well under a minute.
+#[test]
+fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surface() {
+    for (model, seed) in [("phantom", 1), ("phantom", 2), ("delta", 1), ("delta", 2)] {
+        let case = format!("sim:{model} unit {seed}");
+        let dir = tempfile::tempdir().unwrap();
+        let mut config = Config::default();
+        config.sim.unit_seed = seed;
+        if model == "delta" {
+            // The delta's gravity force bends too sharply near the top of its workspace for
+            // trilinear interpolation over 40 mm cells (up to 0.08 N off between vertices):
+            // calibrate it on 20 mm cells, as config/validate-delta-unit-*.toml do.
+            config.calibration.half_size = 2;
+            config.calibration.spacing_mm = 20.0;
+        }
+        let run = validate_sim(dir.path(), model, config.clone());
+        let report = &run.report;
+        assert!(run.wall_time < 60.0, "{case}: {} s", run.wall_time);
+        let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
+
+        let vector = mode(Mode::Vector);
+        let worst = assert_ideal(&case, report, vector, Reading::TwoSided);
+        // The paper's reading from above stops short by the friction over k, several percent.
+        assert!(
+            vector.above.mean < 0.95 * report.ideal,
+            "{case}: from above {:.4} mm",
+            vector.above.mean * 1e3
+        );
+
+        // Uncompensated: the surface carries the probe and the handle's own gravity force
+        // F_g (the plant's analytic holding force at P) along up, d = (F_g·up + m_p g) / k, and
+        // the horizontal hold its part across, l = |F_g across| / k_h: ΔX = √(d² + l²).
+        let none = mode(Mode::None);
+        let hold = config.validation.hold_stiffness();
+        for (n, s) in none.two_sided.points.iter().enumerate() {
+            let mut at = config.clone();
+            at.sim.start_position_mm = (report.points[n] * 1e3).into();
+            let force = SimDevice::from_config(model, &at)
+                .unwrap()
+                .plant()
+                .holding_force();
+            let along = force.dot(&report.up);
+            let depth = (along + PROBE * 9.81) / STIFFNESS;
+            let lateral = (force - report.up * along).norm() / hold;
+            let expected = depth.hypot(lateral);
+            assert!(
+                (s.mean / expected - 1.0).abs() < 0.10,
+                "{case}, none, point {}: {:.4} mm, plant {:.4} mm",
+                n + 1,
+                s.mean * 1e3,
+                expected * 1e3
+            );
+        }
+        println!(
+            "{case}: vector two-sided mean {:+.1} %, worst point {:.1} %; from above {:+.1} %; \
+             scalar {:+.1} %; none {:.3}–{:.3} mm",
+            (vector.two_sided.mean / report.ideal - 1.0) * 1e2,
+            worst * 1e2,
+            (vector.above.mean / report.ideal - 1.0) * 1e2,
+            (mode(Mode::Scalar).two_sided.mean / report.ideal - 1.0) * 1e2,
+            none.two_sided
+                .points
+                .iter()
+                .map(|s| s.mean)
+                .fold(f64::MAX, f64::min)
+                * 1e3,
+            none.two_sided
+                .points
+                .iter()
+                .map(|s| s.mean)
+                .fold(0.0, f64::max)
+                * 1e3,
+        );
+    }
 }
 
 /// `hgcd validate` with `args`; its exit status and stderr (warnings and errors: the line that
