@@ -76,39 +76,47 @@ impl Transport for Stamping {
     }
 }
 
-/// A client that sends offsets when told to.
+/// A client that sends a block of offsets on its own schedule.
 trait OffsetSender {
-    /// Connect and own the force (the previous owner's connection may still be closing).
-    fn connect(&mut self);
-    /// Send the offset (`fx`, 0, 0) N; when it was sent, ns.
-    fn send(&mut self, fx: f64) -> u64;
-    fn close(&mut self);
+    /// Connect and own the force (the previous owner's connection may still be closing), send
+    /// the offsets (n · 0.5 mN, 0, 0) for n in `first..first + delays.len()`, the k-th after
+    /// sleeping `delays[k]` µs, and close; the time each was sent, ns. Nothing else happens on
+    /// the client's side while it sends, as in an application's own loop.
+    fn block(&mut self, first: u32, delays: &[u64]) -> Vec<u64>;
 }
 
-struct RustClient<'a> {
-    socket: &'a Path,
-    client: Option<Client>,
+fn offset(n: u32) -> f64 {
+    f64::from(n) * 5e-4
 }
 
-impl OffsetSender for RustClient<'_> {
-    fn connect(&mut self) {
+struct RustClient {
+    socket: std::path::PathBuf,
+}
+
+impl RustClient {
+    fn connect(socket: &Path) -> Client {
         loop {
-            let client = Client::connect(self.socket, Role::Control, "bench-rust").unwrap();
+            let client = Client::connect(socket, Role::Control, "bench-rust").unwrap();
             if client.role == Role::Control {
-                self.client = Some(client);
-                return;
+                return client;
             }
             std::thread::sleep(Duration::from_millis(5));
         }
     }
-    fn send(&mut self, fx: f64) -> u64 {
-        let client = self.client.as_mut().expect("connected");
-        let sent = monotonic_ns();
-        client.set_force(Vector3::new(fx, 0.0, 0.0)).unwrap();
+}
+
+impl OffsetSender for RustClient {
+    fn block(&mut self, first: u32, delays: &[u64]) -> Vec<u64> {
+        let mut client = Self::connect(&self.socket);
+        let mut sent = Vec::with_capacity(delays.len());
+        for (k, delay) in delays.iter().enumerate() {
+            std::thread::sleep(Duration::from_micros(*delay));
+            sent.push(monotonic_ns());
+            client
+                .set_force(Vector3::new(offset(first + k as u32), 0.0, 0.0))
+                .unwrap();
+        }
         sent
-    }
-    fn close(&mut self) {
-        self.client = None;
     }
 }
 
@@ -119,31 +127,30 @@ struct PythonClient {
     answers: BufReader<ChildStdout>,
 }
 
-/// Connects with `hgcd_client` on `connect`, time-stamps and sends an offset on `f FX`.
+/// On `block FIRST D1,D2,…`: connects with `hgcd_client`, sends the block as
+/// [`OffsetSender::block`] says, closes, and answers with the send times.
 const PYTHON_DRIVER: &str = r#"
 import sys, time
 sys.path.insert(0, sys.argv[2])
 import hgcd_client
-client = None
 for line in sys.stdin:
-    command = line.split()
-    if command[0] == "connect":
+    _, first, delays = line.split()
+    first = int(first)
+    while True:
         client = hgcd_client.connect(sys.argv[1])
         try:
             client.take_ownership("bench-python")
-            answer = "control"
+            break
         except hgcd_client.NotOwnerError:
             client.close()
-            answer = "observe"
-    elif command[0] == "f":
-        fx = float(command[1])
-        sent = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
-        client.set_force((fx, 0.0, 0.0))
-        answer = str(sent)
-    else:
-        client.close()
-        answer = "closed"
-    print(answer, flush=True)
+            time.sleep(0.005)
+    sent = []
+    for k, delay in enumerate(delays.split(",")):
+        time.sleep(int(delay) * 1e-6)
+        sent.append(time.clock_gettime_ns(time.CLOCK_MONOTONIC))
+        client.set_force(((first + k) * 5e-4, 0.0, 0.0))
+    client.close()
+    print(" ".join(map(str, sent)), flush=True)
 "#;
 
 impl PythonClient {
@@ -166,55 +173,58 @@ impl PythonClient {
             answers,
         }
     }
-
-    fn ask(&mut self, command: &str) -> String {
-        writeln!(self.commands, "{command}").unwrap();
-        let mut answer = String::new();
-        self.answers.read_line(&mut answer).unwrap();
-        assert!(!answer.is_empty(), "the Python client ended");
-        answer.trim().to_string()
-    }
 }
 
 impl OffsetSender for PythonClient {
-    fn connect(&mut self) {
-        while self.ask("connect") != "control" {
-            std::thread::sleep(Duration::from_millis(5));
-        }
-    }
-    fn send(&mut self, fx: f64) -> u64 {
-        self.ask(&format!("f {fx:?}")).parse().unwrap()
-    }
-    fn close(&mut self) {
-        self.ask("close");
+    fn block(&mut self, first: u32, delays: &[u64]) -> Vec<u64> {
+        let delays: Vec<String> = delays.iter().map(u64::to_string).collect();
+        writeln!(self.commands, "block {first} {}", delays.join(",")).unwrap();
+        let mut answer = String::new();
+        self.answers.read_line(&mut answer).unwrap();
+        assert!(!answer.is_empty(), "the Python client ended");
+        answer
+            .split_whitespace()
+            .map(|t| t.parse().unwrap())
+            .collect()
     }
 }
 
-/// Send `BLOCK` offsets from `client` at random phases, numbered from `first`; each one's
-/// latency to the first output report carrying it, µs, into `latencies`.
-fn block(
-    client: &mut dyn OffsetSender,
+/// Run one block of `client` on its own thread while this one takes the device's stamps; each
+/// offset's latency to the first output report carrying it, µs, into `latencies`. Returns how
+/// many offsets no report carried (a newer one replaced it first: the slot keeps the newest).
+fn block<C: OffsetSender + Send + 'static>(
+    client: C,
     first: u32,
     rng: &mut impl Rng,
     stamps: &Receiver<(u64, f64)>,
     latencies: &mut Vec<f64>,
-) {
-    client.connect();
-    for n in first..first + BLOCK {
-        std::thread::sleep(Duration::from_micros(rng.gen_range(500..1500)));
-        let fx = f64::from(n) * 5e-4;
-        let sent = client.send(fx);
-        loop {
-            let (at, got) = stamps
-                .recv_timeout(Duration::from_secs(1))
-                .expect("offset arrives");
-            if (got - fx).abs() < 1e-6 {
-                latencies.push(at.saturating_sub(sent) as f64 * 1e-3);
-                break;
+) -> (C, usize) {
+    // 1.5 to 2.5 ms apart: each offset meets a tick before the next replaces it, at a random
+    // phase of the servo period.
+    let delays: Vec<u64> = (0..BLOCK).map(|_| rng.gen_range(1500..2500)).collect();
+    let sender = std::thread::spawn(move || {
+        let mut client = client;
+        let sent = client.block(first, &delays);
+        (client, sent)
+    });
+    let mut carried = std::collections::HashMap::new();
+    while carried.len() < BLOCK as usize {
+        match stamps.recv_timeout(Duration::from_secs(2)) {
+            Ok((at, fx)) => {
+                let n = (fx / 5e-4).round() as i64 - i64::from(first);
+                if (0..i64::from(BLOCK)).contains(&n) {
+                    carried.entry(n as usize).or_insert(at);
+                }
             }
+            Err(_) if sender.is_finished() => break,
+            Err(_) => {}
         }
     }
-    client.close();
+    let (client, sent) = sender.join().expect("the client's thread");
+    for (n, at) in &carried {
+        latencies.push(at.saturating_sub(sent[*n]) as f64 * 1e-3);
+    }
+    (client, BLOCK as usize - carried.len())
 }
 
 fn report(name: &str, latencies: &mut [f64]) -> f64 {
@@ -264,22 +274,20 @@ fn main() {
     ready_rx.recv().unwrap();
     let socket = dir.path().join("hgcd.sock");
     let mut rust = RustClient {
-        socket: &socket,
-        client: None,
+        socket: socket.clone(),
     };
     let mut python = PythonClient::start(&socket);
     let mut rng = rand::rngs::StdRng::seed_from_u64(7);
     let (mut rust_us, mut python_us) = (Vec::new(), Vec::new());
+    let (mut rust_lost, mut python_lost) = (0, 0);
     for round in 0..OFFSETS / BLOCK {
         let first = 1 + 2 * round * BLOCK;
-        block(&mut rust, first, &mut rng, &stamps, &mut rust_us);
-        block(
-            &mut python,
-            first + BLOCK,
-            &mut rng,
-            &stamps,
-            &mut python_us,
-        );
+        let lost;
+        (rust, lost) = block(rust, first, &mut rng, &stamps, &mut rust_us);
+        rust_lost += lost;
+        let lost;
+        (python, lost) = block(python, first + BLOCK, &mut rng, &stamps, &mut python_us);
+        python_lost += lost;
     }
     drop(python.commands);
     python.child.wait().unwrap();
@@ -290,5 +298,8 @@ fn main() {
     );
     let rust_p99 = report("Rust client", &mut rust_us);
     let python_p99 = report("Python client", &mut python_us);
+    println!(
+        "  offsets replaced before a tick carried them: Rust {rust_lost}, Python {python_lost}"
+    );
     println!("  p99 Python − Rust: {:.0} µs", python_p99 - rust_p99);
 }
