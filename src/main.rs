@@ -339,11 +339,7 @@ fn real_main(cli: Cli) -> Result<()> {
             let simulated = matches!(device, DeviceSpec::Sim { .. });
             let request = ValidateRequest {
                 device,
-                pacing: if simulated && !real_time {
-                    Pacing::Virtual
-                } else {
-                    Pacing::RealTime
-                },
+                pacing: pacing(simulated, real_time),
                 grid,
                 out,
                 probe_mass: probe_mass_g * 1e-3,
@@ -369,11 +365,7 @@ fn real_main(cli: Cli) -> Result<()> {
             }
             let request = RecordRequest {
                 device,
-                pacing: if simulated && !real_time {
-                    Pacing::Virtual
-                } else {
-                    Pacing::RealTime
-                },
+                pacing: pacing(simulated, real_time),
                 grid,
                 out,
                 duration,
@@ -456,11 +448,7 @@ fn calibrate_here(
     }
     let request = CalibrateRequest {
         device,
-        pacing: if simulated && !real_time {
-            Pacing::Virtual
-        } else {
-            Pacing::RealTime
-        },
+        pacing: pacing(simulated, real_time),
         output,
         state_dir: config.state_dir(),
     };
@@ -470,6 +458,15 @@ fn calibrate_here(
     display.finish();
     let run = run?;
     out(&progress::summary(&run))
+}
+
+/// Virtual time for a simulated device unless `--real-time`; hardware always runs in real time.
+fn pacing(simulated: bool, real_time: bool) -> Pacing {
+    if simulated && !real_time {
+        Pacing::Virtual
+    } else {
+        Pacing::RealTime
+    }
 }
 
 /// `hgcd record`: the identification run; says where the log went.
