@@ -27,7 +27,10 @@ pub enum LogError {
     },
     #[error("log {}: no header row (the first line that is not a comment)", path.display())]
     NoHeader { path: PathBuf },
-    #[error("log {}: the header has no column `{column}` (needed: t,x,y,z,fx,fy,fz)", path.display())]
+    #[error(
+        "log {}: the header has no column `{column}` (needed: t,x,y,z,fx,fy,fz)",
+        path.display()
+    )]
     MissingColumn { path: PathBuf, column: &'static str },
     #[error("log {} line {line}: {problem}", path.display())]
     Row {

@@ -1,5 +1,5 @@
 //! Where the model and the measurement disagree (docs/discrepancy.md): `hgcd record` logs an
-//! identification run with compensation on ([`record`]); `hgcd analyze` compares the log with
+//! identification run with compensation on ([`record()`]); `hgcd analyze` compares the log with
 //! the calibrated model, locates the disagreement, names the physical effect the model is
 //! missing (or none), adds it and shows on held-out data that the gap shrinks ([`analyze`]).
 

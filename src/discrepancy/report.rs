@@ -279,17 +279,23 @@ pub(super) fn write(
         },
         "candidates": candidates,
         "where": {
-            "axis_rms_n": [d.axis_rms.x, d.axis_rms.y, d.axis_rms.z],
+            "axis_rms_n": xyz(&d.axis_rms),
             "speed_bands_m_per_s": SPEED_BANDS,
             "speed_rms_n": d.speed_rms.map(finite),
             "octant_rms_n": d.octant_rms.map(finite),
-            "velocity_correlation": [d.velocity_correlation.x, d.velocity_correlation.y, d.velocity_correlation.z],
-            "position_correlation": [d.position_correlation.x, d.position_correlation.y, d.position_correlation.z],
-            "acceleration_correlation": [d.acceleration_correlation.x, d.acceleration_correlation.y, d.acceleration_correlation.z],
+            "velocity_correlation": xyz(&d.velocity_correlation),
+            "position_correlation": xyz(&d.position_correlation),
+            "acceleration_correlation": xyz(&d.acceleration_correlation),
             "strongest_command_lag_s": strongest(&d.command_lags).0,
             "spectrum_peak_hz": strongest(&d.spectrum).0,
-            "whiteness_outside_share": { "nominal": d.whiteness.0, "augmented": d.whiteness.1 },
-            "input_correlation_outside_share": { "nominal": d.input_correlation.0, "augmented": d.input_correlation.1 },
+            "whiteness_outside_share": {
+                "nominal": d.whiteness.0,
+                "augmented": d.whiteness.1,
+            },
+            "input_correlation_outside_share": {
+                "nominal": d.input_correlation.0,
+                "augmented": d.input_correlation.1,
+            },
         },
         "samples": signals.len(),
         "heldout_from_s": signals.time[signals.split().1.start],
@@ -320,6 +326,10 @@ pub(super) fn write(
     figures(out, signals, a)?;
     write("report.md", report_md(request, a))?;
     Ok(())
+}
+
+fn xyz(v: &Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
 }
 
 fn finite(v: f64) -> Option<f64> {
@@ -407,7 +417,8 @@ fn report_md(request: &AnalyzeRequest, a: &Analysis) -> String {
             pa * 1e3
         );
     }
-    s.push_str("| candidate | parameters | held-out error, N | against nominal |\n| --- | --- | --- | --- |\n");
+    s.push_str("| candidate | parameters | held-out error, N | against nominal |\n");
+    s.push_str("| --- | --- | --- | --- |\n");
     for c in &a.candidates {
         let mut p = parameters(c, &a.up);
         if let Some(map) = p.as_object_mut() {
@@ -427,7 +438,8 @@ fn report_md(request: &AnalyzeRequest, a: &Analysis) -> String {
         "\nWhere the nominal residual lives: RMS per axis {:.4} / {:.4} / {:.4} N; at speeds \
          below 5 mm/s {:.4} N, 5–30 mm/s {:.4} N, above {:.4} N; strongest correlation with the \
          command at a lag of {:.1} ms; spectrum peak at {:.2} Hz. Autocorrelation outside the \
-         white-noise band on {:.0} % of lags (nominal) and {:.0} % (augmented; white noise: about 5 %).\n",
+         white-noise band on {:.0} % of lags (nominal) and {:.0} % (augmented; white noise: \
+         about 5 %).\n",
         d.axis_rms.x,
         d.axis_rms.y,
         d.axis_rms.z,

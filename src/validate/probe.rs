@@ -6,12 +6,16 @@
 //! (so friction is sampled afresh at every repetition). Friction stops a handle short of its
 //! equilibrium on the side it comes from, so the two readings bracket it.
 //!
-//! The force it asks for, with n the unit "up" (v_G), N = n nᵀ and T = I − N:
+//! The force it asks for, with n the unit "up" (opposite to gravity, docs/validation.md §2),
+//! N = n nᵀ and T = I − N:
 //!
-//! F = k_h T (R − X) − c_h T V + w [k_h N (R − X) − c_h N V] + s n max(0, k d − c V·n) [d > 0]
+//! F = k_h T (R − X) − c_h T V + w [k_h N (R − X) − c_h N V] + s n max(0, k d − c V·n)
+//!
+//! (the last term for d > 0 only)
 //!
 //! R is a reference point, w ∈ [0, 1] weighs the vertical part of the hold, s ∈ [0, 1] the
-//! surface, d = (P − X)·n the depth below the contact point P. The across-surface part of the hold
+//! surface, d = (P − X)·n − δ the depth below the surface, which lies at the contact point P
+//! dropped by δ (0 but while the reading from below is prepared). The across-surface part of the hold
 //! (the horizontal hold) is always on; the vertical part is faded out before the steady state, so
 //! the surface alone then carries the weight, and faded in again to lift the handle off.
 

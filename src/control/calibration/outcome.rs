@@ -25,7 +25,7 @@ pub struct VertexResult {
     pub final_error: f64,
     /// Where `force` was measured, m: the second rest near the vertex without friction, the mean
     /// of the rests the bands were crossed from with it. The result carries `force` from there
-    /// to the vertex ([`carry_to_vertices`]).
+    /// to the vertex (`carry_to_vertices`).
     pub measured_at: Vector3<f64>,
     /// Device time spent on this vertex, move included, s.
     pub duration: f64,
