@@ -200,22 +200,26 @@ fn a_calibration_on_a_simulated_device() {
     assert_quiet("calibration", &seen, 10_000);
 }
 
+/// The scalar model of the truth field the tests' devices carry.
+fn truth_model() -> hgcd::control::compensation::GravityModel {
+    use hgcd::control::compensation::{CompensationMode, GravityModel, OutsideGrid};
+    GravityModel::new(
+        GridFile::from(truth_field_27()),
+        CompensationMode::Scalar,
+        OutsideGrid::HoldNearest,
+    )
+    .unwrap()
+}
+
 #[test]
 fn the_validation_experiment_with_a_model_swap_between_runs() {
-    use hgcd::control::compensation::{
-        Compensation, CompensationMode, ForceOffset, GravityModel, OutsideGrid,
-    };
+    use hgcd::control::compensation::{Compensation, ForceOffset};
     let dir = tempfile::tempdir().unwrap();
     let mut config = config_with_truth(dir.path());
     config.sim.probe_mass_kg = 0.03;
     let (mut tap, seen) = counting_sim("point-mass", &config);
     // Uncompensated, then the scalar model: the second run swaps it in on the servo thread.
-    let model = GravityModel::new(
-        GridFile::from(truth_field_27()),
-        CompensationMode::Scalar,
-        OutsideGrid::HoldNearest,
-    )
-    .unwrap();
+    let model = truth_model();
     let grid = truth_field_27();
     let plan = ContactPlan::paper(Vector3::zeros(), 0.03, grid.gravity_direction, 2, 2);
     let params = ProbeParams {
@@ -248,16 +252,10 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
 
 #[test]
 fn an_identification_run_of_hgcd_record() {
-    use hgcd::control::compensation::{CompensationMode, GravityModel, OutsideGrid};
     let mut config = config();
     config.sim.force_delay_ms = 3.0;
     let (mut tap, seen) = counting_sim("point-mass", &config);
-    let model = GravityModel::new(
-        GridFile::from(truth_field_27()),
-        CompensationMode::Scalar,
-        OutsideGrid::HoldNearest,
-    )
-    .unwrap();
+    let model = truth_model();
     let params = RecordParams::inside(&model, 12.0);
     let mut recorder = Recorder::new(params, model, config.servo_period());
     run(

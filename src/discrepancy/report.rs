@@ -532,14 +532,7 @@ impl Figure for Plot {
                 PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2))
             });
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.9))
-            .border_style(BLACK.mix(0.5))
-            .label_font(("sans-serif", 14))
-            .draw()?;
-        Ok(())
+        figure::legend(&mut chart)
     }
 }
 

@@ -128,12 +128,5 @@ fn plot<DB: DrawingBackend>(
                 .map(|&(x, y)| Circle::new((x, y), 3, colour.filled())),
         )?;
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.9))
-        .border_style(BLACK.mix(0.5))
-        .label_font(("sans-serif", 14))
-        .draw()?;
-    Ok(())
+    crate::figure::legend(&mut chart)
 }
