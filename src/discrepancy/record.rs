@@ -90,6 +90,8 @@ pub struct Recorder {
     /// Device time and position of the first tick.
     start: Option<(f64, Vector3<f64>)>,
     reference: Vector3<f64>,
+    /// When `reference` was computed, s into the run (−∞ before the first tick).
+    reference_time: f64,
     rows: Vec<Row>,
     /// Device time recorded so far, ms: for a progress display on another thread.
     elapsed_ms: Arc<AtomicU64>,
@@ -104,6 +106,7 @@ impl Recorder {
             model,
             start: None,
             reference: Vector3::zeros(),
+            reference_time: f64::NEG_INFINITY,
             rows: Vec::with_capacity(capacity),
             elapsed_ms: Arc::new(AtomicU64::new(0)),
         }
@@ -168,9 +171,16 @@ impl Controller for Recorder {
         if u >= self.params.duration {
             return ControlOutput::done(Vector3::zeros());
         }
-        const DU: f64 = 1e-4;
+        // The reference's velocity from the previous tick's (one evaluation per tick; it lags
+        // half a period, which the damping term does not feel).
+        let previous = (self.reference, self.reference_time);
         self.reference = self.reference_at(u, &from);
-        let velocity = (self.reference - self.reference_at(u - DU, &from)) / DU;
+        self.reference_time = u;
+        let velocity = if u > previous.1 {
+            (self.reference - previous.0) / (u - previous.1)
+        } else {
+            Vector3::zeros()
+        };
         let e = &self.params.excitation;
         let force = self.model.force(&s.position)
             + (self.reference - s.position) * e.stiffness
