@@ -15,6 +15,7 @@ use crate::control::calibration::{
     PlanError,
 };
 use crate::grid::{grid_path, GridError, GridFile};
+use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
 use crate::transport::{self, Pacing, Transport, TransportError};
 
@@ -35,10 +36,8 @@ pub enum CalibrateError {
     /// The output directory is unusable or has no room for the grid (checked before starting).
     #[error(transparent)]
     NoRoom(GridError),
-    #[error("starting the servo thread")]
-    Spawn(#[source] std::io::Error),
-    #[error("the servo thread panicked")]
-    ServoPanicked,
+    #[error(transparent)]
+    Thread(#[from] ThreadError),
     #[error("calibration stopped; nothing was written")]
     Servo(#[source] ServoError),
     #[error("calibration failed: {0}; nothing was written")]
@@ -146,28 +145,18 @@ pub fn calibrate_on(
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
     options.silence_limit = SILENCE_LIMIT_WATCHDOGS * options.watchdog;
-    let mut servo_config = config.servo.clone();
-    let virtual_sim =
-        request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. });
-    if virtual_sim || device.info.as_ref().is_some_and(|i| i.lockstep) {
-        // A loop the device paces runs flat out: never let it take a core at real-time priority.
-        servo_config.realtime_priority = 0;
-    }
     let started = Instant::now();
-    let handle = servo::thread::spawn(transport, calibration, options, servo_config, stop, None)
-        .map_err(CalibrateError::Spawn)?;
-    // The controller (holding the sender) comes back through the join handle, so watch the thread
+    // The controller (holding the sender) comes back when the run ends, so watch the thread
     // rather than wait for the channel to close.
-    while !handle.is_finished() {
-        for event in rx.try_iter() {
-            progress(&event);
-        }
-        std::thread::sleep(servo::thread::POLL);
-    }
-    let (result, calibration) = handle.join().map_err(|_| CalibrateError::ServoPanicked)?;
-    for event in rx.try_iter() {
-        progress(&event);
-    }
+    let (result, calibration) = servo::thread::run_watched(
+        transport,
+        calibration,
+        options,
+        config.servo.clone(),
+        request.pacing.set_by_device(&device),
+        stop,
+        &mut || rx.try_iter().for_each(|event| progress(&event)),
+    )?;
     let report = result.map_err(CalibrateError::Servo)?;
     let result = match (report.exit, calibration.outcome()) {
         (_, Some(Ok(result))) => result,

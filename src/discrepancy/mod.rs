@@ -20,6 +20,7 @@ use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::compensation::{GravityModel, ModelError};
 use crate::figure::FigureError;
 use crate::grid::{grid_path, GridError, GridFile};
+use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, ServoError, ServoOptions};
 use crate::transport::{self, Pacing, TransportError};
 use analysis::{Fit, Signals};
@@ -64,10 +65,8 @@ pub enum RecordError {
         #[source]
         source: ModelError,
     },
-    #[error("starting the servo thread")]
-    Spawn(#[source] std::io::Error),
-    #[error("the servo thread panicked")]
-    ServoPanicked,
+    #[error(transparent)]
+    Thread(#[from] ThreadError),
     #[error("the recording stopped")]
     Servo(#[source] ServoError),
     #[error("the recording stopped by a fault: {0:?}; no log was written")]
@@ -127,24 +126,21 @@ pub fn record(
     let elapsed_ms = recorder.elapsed_ms();
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
-    let mut servo_config = config.servo.clone();
-    if request.pacing == Pacing::Virtual {
-        // A virtual-time loop runs flat out: never let it take a core at real-time priority.
-        servo_config.realtime_priority = 0;
-    }
     info!(
         "recording {} s on {} ({})",
         request.duration,
         device.spec,
         request.out.display()
     );
-    let handle = servo::thread::spawn(transport, recorder, options, servo_config, stop, None)
-        .map_err(RecordError::Spawn)?;
-    while !handle.is_finished() {
-        std::thread::sleep(servo::thread::POLL);
-        progress(elapsed_ms.load(Ordering::Relaxed) as f64 * 1e-3 / request.duration);
-    }
-    let (result, recorder) = handle.join().map_err(|_| RecordError::ServoPanicked)?;
+    let (result, recorder) = servo::thread::run_watched(
+        transport,
+        recorder,
+        options,
+        config.servo.clone(),
+        request.pacing.set_by_device(&device),
+        stop,
+        &mut || progress(elapsed_ms.load(Ordering::Relaxed) as f64 * 1e-3 / request.duration),
+    )?;
     let report = result.map_err(RecordError::Servo)?;
     let interrupted = match report.exit {
         ExitReason::ControllerDone => false,

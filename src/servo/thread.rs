@@ -178,6 +178,45 @@ pub fn spawn_event_logger(events: Receiver<ServoEvent>) -> JoinHandle<()> {
         .expect("spawning the event logger thread")
 }
 
+/// Why a watched run ([`run_watched`]) gave nothing back.
+#[derive(Debug, thiserror::Error)]
+pub enum ThreadError {
+    #[error("starting the servo thread")]
+    Spawn(#[source] std::io::Error),
+    #[error("the servo thread panicked")]
+    Panicked,
+}
+
+/// [`spawn`] the run (its events to the logger thread) and wait for it on this thread, calling
+/// `watch` every [`POLL`] and once more after the run ends, to take what the servo thread sent.
+/// A loop the device paces (`device_paces`: [`crate::transport::Pacing::set_by_device`]) runs
+/// flat out and never at real-time priority. The loop's result and the controller come back.
+///
+/// # Errors
+/// [`ThreadError`]: the thread could not be spawned, or it panicked.
+pub fn run_watched<C: Controller + 'static>(
+    transport: Box<dyn Transport>,
+    controller: C,
+    options: ServoOptions,
+    mut servo_config: ServoConfig,
+    device_paces: bool,
+    stop: Arc<AtomicBool>,
+    watch: &mut dyn FnMut(),
+) -> Result<(Result<ServoReport, ServoError>, C), ThreadError> {
+    if device_paces {
+        servo_config.realtime_priority = 0;
+    }
+    let handle = spawn(transport, controller, options, servo_config, stop, None)
+        .map_err(ThreadError::Spawn)?;
+    while !handle.is_finished() {
+        watch();
+        thread::sleep(POLL);
+    }
+    let ended = handle.join().map_err(|_| ThreadError::Panicked)?;
+    watch();
+    Ok(ended)
+}
+
 /// Run `controller` on `transport` on a new thread set up for real time (`servo_config`). Loop
 /// events go to `events`, or to a logger thread when None. Joining gives the loop's result and
 /// the controller back.

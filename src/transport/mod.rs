@@ -293,6 +293,15 @@ pub enum Pacing {
     RealTime,
 }
 
+impl Pacing {
+    /// Whether the device sets the loop's pace rather than the wall clock: a simulated device in
+    /// virtual time, or one that declares lock-step (its device-info report). Such a loop runs
+    /// flat out, so it must never take a core at real-time priority.
+    pub fn set_by_device(self, device: &DeviceIdentity) -> bool {
+        self == Pacing::Virtual || device.info.as_ref().is_some_and(|i| i.lockstep)
+    }
+}
+
 /// Open the device `spec` names. `pacing` applies to simulated devices only.
 ///
 /// # Errors

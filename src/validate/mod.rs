@@ -33,6 +33,7 @@ use crate::config::{CompensationMode, Config, ConfigError, DeviceSpec};
 use crate::control::calibration::CalibrationEvent;
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel, ModelError};
 use crate::grid::{grid_path, GridError, GridFile};
+use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
 use crate::sim::SimDevice;
 use crate::transport::{self, Pacing, Transport, TransportError};
@@ -152,10 +153,8 @@ pub enum ValidateError {
     PointOutside { point: Vector3<f64>, grid: PathBuf },
     #[error("the calibration before the experiment failed")]
     Calibration(#[source] CalibrateError),
-    #[error("starting the servo thread")]
-    Spawn(#[source] std::io::Error),
-    #[error("the servo thread panicked")]
-    ServoPanicked,
+    #[error(transparent)]
+    Thread(#[from] ThreadError),
     #[error("the experiment stopped")]
     Servo(#[source] ServoError),
     #[error("the experiment was aborted; no results were written")]
@@ -206,6 +205,8 @@ pub struct Prepared {
     grid: GridSource,
     /// The surface's normal where known before the grid ([`surface_normal`]).
     up: Option<Vector3<f64>>,
+    /// The device, not the wall clock, sets the loop's pace ([`Pacing::set_by_device`]).
+    device_paces: bool,
 }
 
 /// The files a validation wrote.
@@ -272,12 +273,14 @@ pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, V
         // Refuse now rather than after the device has moved.
         experiment_setup(config, &request, up, file, path)?;
     }
+    let device_paces = request.pacing.set_by_device(&device);
     Ok(Prepared {
         config: config.clone(),
         request,
         transport,
         grid,
         up,
+        device_paces,
     })
 }
 
@@ -432,6 +435,7 @@ impl Prepared {
             transport,
             grid,
             up,
+            device_paces,
         } = self;
         let (file, path, calibration) = match grid {
             GridSource::File(file, path) => (*file, path, None),
@@ -467,13 +471,6 @@ impl Prepared {
             ExperimentController::new(compensation, models, Probe::new(plan, params), Some(tx));
         let mut options = ServoOptions::from_config(&config);
         options.stop_on_fault = true;
-        let mut servo_config = config.servo.clone();
-        if request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. }) {
-            // A virtual-time loop runs flat out: never let it take a core at real-time priority.
-            servo_config.realtime_priority = 0;
-        }
-        let handle = servo::thread::spawn(transport, controller, options, servo_config, stop, None)
-            .map_err(ValidateError::Spawn)?;
         let mut done = 0;
         let mut above = None;
         // A repetition ends with its reading from below; show its two-sided penalty.
@@ -492,16 +489,15 @@ impl Prepared {
             }
             _ => above = Some(rest.position),
         };
-        while !handle.is_finished() {
-            for rest in rx.try_iter() {
-                show(rest, &mut done);
-            }
-            std::thread::sleep(servo::thread::POLL);
-        }
-        let (result, controller) = handle.join().map_err(|_| ValidateError::ServoPanicked)?;
-        for rest in rx.try_iter() {
-            show(rest, &mut done);
-        }
+        let (result, controller) = servo::thread::run_watched(
+            transport,
+            controller,
+            options,
+            config.servo.clone(),
+            device_paces,
+            stop,
+            &mut || rx.try_iter().for_each(|rest| show(rest, &mut done)),
+        )?;
         let servo_report = result.map_err(ValidateError::Servo)?;
         match servo_report.exit {
             ExitReason::ControllerDone => {}
