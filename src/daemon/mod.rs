@@ -505,18 +505,17 @@ impl Hub {
 pub struct Daemon {
     pub config: Config,
     pub device: DeviceSpec,
+    /// How a simulated device keeps time.
+    pub pacing: Pacing,
     pub duration: Option<f64>,
 }
 
 impl Daemon {
-    pub fn new(mut config: Config, request: &RunRequest) -> Self {
-        if request.pacing == Pacing::Virtual && matches!(request.device, DeviceSpec::Sim { .. }) {
-            // A virtual-time loop runs flat out: never let it take a core at real-time priority.
-            config.servo.realtime_priority = 0;
-        }
+    pub fn new(config: Config, request: &RunRequest) -> Self {
         Self {
             config,
             device: request.device.clone(),
+            pacing: request.pacing,
             duration: request.duration,
         }
     }
@@ -540,7 +539,7 @@ impl Daemon {
         let device = transport::identify(transport.as_ref(), &self.device, &self.config)
             .map_err(RunError::Open)?;
         self.config = self.config.for_device(device.info.as_ref());
-        if device.info.as_ref().is_some_and(|i| i.lockstep) {
+        if self.pacing.set_by_device(&device) {
             // A loop the device paces runs flat out: never let it take a core at real-time
             // priority.
             self.config.servo.realtime_priority = 0;
