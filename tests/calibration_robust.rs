@@ -222,18 +222,17 @@ fn the_default_config_calibrates_light_heavy_over_balanced_and_weightless_handle
             .iter()
             .any(|e| matches!(e, CalibrationEvent::VertexUnreachable { .. })));
         let e = errors(&device, &result);
-        // Within 2 % of the vertical force, or of the friction where that is more (a 5 g
-        // handle against 0.1 N: the encoder's 5 µm step alone shifts the slips' timing by about
-        // 1 mN), and never less than 1 mN (a weightless handle's; 2 % of −8 g is 1.6 mN).
-        let vertical_bound = (0.02 * e.weight).max(0.02 * friction).max(1e-3);
+        // Within 2 % of the vertical force, and never less than 1 mN (2 % of a 5 g handle's
+        // weight; a weightless handle's 2 % would be nothing).
+        let vertical_bound = (0.02 * e.weight).max(1e-3);
         assert!(
             e.vertical <= vertical_bound,
             "{case}: vertical error {} N",
             e.vertical
         );
-        // The whole vector within 3 % of either, and never less than 2 mN.
+        // The whole vector likewise.
         assert!(
-            e.vector <= (0.03 * e.weight).max(0.03 * friction).max(2e-3),
+            e.vector <= (0.02 * e.weight).max(1e-3),
             "{case}: error {} N",
             e.vector
         );
@@ -352,37 +351,92 @@ fn the_published_phantom_calibrates_first_time_within_10_mn_and_stays_put_when_c
     }
 }
 
-/// Issue 8 on sim:delta with its joint friction: every vertex's holding force within 2 % in
-/// magnitude and 1° in direction of the plant's. The stick region is a parallelepiped skewed so
-/// far at the bottom corners of the cube that chords along the axes leave it through faces of
-/// different joints. Units 1 and 2 (the nominal unit, seed 0, passes too, but its worst vertex
-/// sits at 1.998 %).
+/// Issue 8 on the linkages with their joint friction: every vertex's holding force within 2 % in
+/// magnitude and 1° in direction of the plant's own, on three units of each (the nominal one
+/// and unit seeds 1 and 2) and with gravity tilted 10°. On the PHANToM 2 % is 1.5 mN of its
+/// 0.075 N at the lightest vertex, against some 0.065 N of friction; on the delta the stick
+/// region is a parallelepiped skewed so far at the bottom corners of the cube that chords along
+/// the axes leave it through faces of different joints.
 #[test]
-fn a_delta_with_joint_friction_is_calibrated_within_2_percent_and_1_degree() {
-    for unit_seed in [1, 2] {
-        let mut device = Device::phantom(0.0, 1);
-        device.model = "delta";
-        device.config.sim.unit_seed = unit_seed;
-        let (result, _) = device.calibrate();
-        assert!(result.unreachable.is_empty(), "unit {unit_seed}");
-        for v in &result.vertices {
-            let truth = device.truth(&v.vertex.position);
-            let magnitude = (v.force.norm() - truth.norm()).abs() / truth.norm();
-            let angle = v.force.angle(&truth).to_degrees();
-            assert!(
-                magnitude <= 0.02 && angle <= 1.0,
-                "unit {unit_seed}, vertex {:?}: {:.2} % and {angle:.2}° off",
-                v.vertex.index,
-                100.0 * magnitude
+fn linkages_with_joint_friction_are_calibrated_within_2_percent_and_1_degree() {
+    for model in ["phantom", "delta"] {
+        for (unit_seed, tilt) in [(0, 0.0), (1, 0.0), (2, 0.0), (0, 10.0)] {
+            let mut device = Device::phantom(tilt, 1);
+            device.model = model;
+            device.config.sim.unit_seed = unit_seed;
+            let (result, _) = device.calibrate();
+            let case = format!("{model} unit {unit_seed}, {tilt}°");
+            assert!(result.unreachable.is_empty(), "{case}");
+            let (mut worst_magnitude, mut worst_angle) = (0.0f64, 0.0f64);
+            for v in &result.vertices {
+                let truth = device.truth(&v.vertex.position);
+                let magnitude = (v.force.norm() - truth.norm()).abs() / truth.norm();
+                let angle = v.force.angle(&truth).to_degrees();
+                assert!(
+                    magnitude <= 0.02 && angle <= 1.0,
+                    "{case}, vertex {:?}: {:.2} % and {angle:.2}° off",
+                    v.vertex.index,
+                    100.0 * magnitude
+                );
+                worst_magnitude = worst_magnitude.max(magnitude);
+                worst_angle = worst_angle.max(angle);
+            }
+            println!(
+                "{case}: worst {:.2} % and {worst_angle:.2}°",
+                100.0 * worst_magnitude
             );
+        }
+    }
+}
+
+/// Issue 14 item 3 on the linkages: their friction is in the joints, so it is scaled
+/// (`sim.friction_scale`) until the largest stick band the initialisation finds at the handle
+/// spans the issue's range, about 0, 0.02, 0.04, 0.06 and 0.1 N (the PHANToM's published
+/// friction gives 0.065 N at its home pose, the delta's nominal 0.154 N). Two units each; every
+/// run must reach every vertex at the first try and come within 2 % of the plant's vertical
+/// holding force at every vertex. The PHANToM stops at 0.08 N (1.23 times its published
+/// friction): at 0.1 N (1.54 times) unit 2 leaves one vertex 5.3 % off vertically and unit 3
+/// times out at its first vertex (docs/calibration.md §6.1).
+#[test]
+fn linkages_calibrate_within_2_percent_vertically_with_friction_from_0_to_0_1_n() {
+    let levels: [(&str, f64, &[f64]); 2] = [
+        ("phantom", 0.065, &[0.0, 0.02, 0.04, 0.06, 0.08]),
+        ("delta", 0.154, &[0.0, 0.02, 0.04, 0.06, 0.1]),
+    ];
+    for (model, nominal, bands) in levels {
+        for &band in bands {
+            for unit_seed in [1, 2] {
+                let mut device = Device::phantom(0.0, unit_seed);
+                device.model = model;
+                device.config.sim.unit_seed = unit_seed;
+                device.config.sim.friction_scale = band / nominal;
+                let (result, _) = device.calibrate();
+                let found = result.initial.friction.max();
+                let case = format!("{model} unit {unit_seed}, {band} N (found {found:.3} N)");
+                assert!(result.unreachable.is_empty(), "{case}");
+                let up = Vector3::from(device.config.sim.gravity_direction).normalize();
+                let mut worst: f64 = 0.0;
+                for v in &result.vertices {
+                    let truth = device.truth(&v.vertex.position).dot(&up);
+                    let error = (v.force.dot(&up) - truth) / truth;
+                    assert!(
+                        error.abs() <= 0.02,
+                        "{case}, vertex {:?}: {:.2} % off vertically",
+                        v.vertex.index,
+                        100.0 * error
+                    );
+                    worst = worst.max(error.abs());
+                }
+                println!("{case}: worst {:.2} % vertically", 100.0 * worst);
+            }
         }
     }
 }
 
 /// docs/calibration.md §6's table: on each simulated device, the worst error of the one-sided
 /// reading (the paper's procedure: the force at the first rest near the vertex) and of the
-/// middle of the stick band (hgcd's), with the compensation's worst residual over the cube and
-/// the furthest a released handle moves in 0.5 s. Run with
+/// force hgcd measures (the strokes through the vertex), with the compensation's worst residual
+/// over the cube and the furthest a released handle moves in 0.5 s. Run with
 /// `cargo test --release --test calibration_robust side_by_side -- --ignored --nocapture`.
 #[test]
 #[ignore]
@@ -414,7 +468,7 @@ fn side_by_side() {
         ("delta, nominal, 10°", delta_tilted),
     ];
     println!(
-        "| device | friction found at X_C, N | paper (one-sided), worst error N | hgcd (band middle), \
+        "| device | friction found at X_C, N | paper (one-sided), worst error N | hgcd, \
          worst error N | worst vertical error | residual, N | released, mm | device time, s |"
     );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- |");

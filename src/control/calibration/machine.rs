@@ -13,7 +13,7 @@ use super::outcome::{
     CalibrationResult, InitialMeasurement, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
-use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step};
+use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Strokes};
 use super::steady::{NoiseMeter, SteadyState};
 use super::CalibrationParams;
 use crate::control::pd::{AxisGains, PointHold};
@@ -149,6 +149,14 @@ const SETTLE_RADIANS: f64 = 7.0;
 /// help: push toward the vertex.
 const PROGRESS: f64 = 0.8;
 
+/// Sliding friction along an axis beyond this at the survey's strokes is friction the bands may
+/// have missed, N: a frictionless handle's passes differ by a fraction of a millinewton, and
+/// viscous damping up to 1 N·s/m (which holds nothing at rest and needs no band) adds at most
+/// 4 mN at their 4 mm/s.
+const STROKE_FRICTION: f64 = 0.005;
+/// Strokes that moved F̂ by more than this are measured once more, from there, N.
+const STROKE_REPEAT: f64 = 0.03;
+
 /// How long a hold may go without a steady state (after the settle time) before the gains are
 /// halved, s.
 const GAIN_BACKOFF_AFTER: f64 = 1.0;
@@ -235,6 +243,19 @@ enum Phase {
     Check {
         anchor: Vector3<f64>,
         since: f64,
+    },
+    /// Strokes through X_C, once the hold's gains are built: the friction they find along each
+    /// axis tells a frictional axis from one whose stick band at X_C was only the slip
+    /// detection's lag, which the bands alone cannot do near a coarse encoder's step.
+    InitStrokes(Strokes),
+    /// Strokes through the vertex along each axis, one way and back, whose mean force is the
+    /// vertex's holding force (friction cancels between the passes); `error` is the distance
+    /// from the vertex of the rest the bands were measured at.
+    Strokes {
+        strokes: Strokes,
+        error: f64,
+        late: Option<CalibrationFailure>,
+        again: bool,
     },
     Finished,
     Failed(CalibrationFailure),
@@ -738,8 +759,7 @@ impl Calibration {
         self.initial.noise = self.initial.noise.min(self.noise.sigma());
         if a == 3 {
             self.initialised();
-            self.vertex = 0;
-            self.start_move(steady, t);
+            self.phase = Phase::InitStrokes(Strokes::along_axes(Stroke::SURVEY, steady, t));
             return ControlOutput::force(force);
         }
         self.phase = Phase::Pulse(Pulse::new(
@@ -815,15 +835,7 @@ impl Calibration {
                 Friction::None
             }
         });
-        // One mechanism, one kind of friction: where it dominates along one axis, a hold at rest
-        // without velocity feedback along the others too (they share its joints).
-        if self.friction_kind.contains(&Friction::Dominant) {
-            for kind in &mut self.friction_kind {
-                if *kind == Friction::Slight {
-                    *kind = Friction::Dominant;
-                }
-            }
-        }
+        self.share_friction_kind();
         self.learn_normals = false;
         self.estimate = load;
         self.last_good = load;
@@ -837,6 +849,18 @@ impl Calibration {
             friction,
             inertia,
         });
+    }
+
+    /// One mechanism, one kind of friction: where it dominates along one axis, a hold at rest
+    /// without velocity feedback along the others too (they share its joints).
+    fn share_friction_kind(&mut self) {
+        if self.friction_kind.contains(&Friction::Dominant) {
+            for kind in &mut self.friction_kind {
+                if *kind == Friction::Slight {
+                    *kind = Friction::Dominant;
+                }
+            }
+        }
     }
 
     /// Set off from `from` toward the current vertex, with a fresh vertex record.
@@ -922,6 +946,27 @@ impl Calibration {
         self.phase = Phase::Settle { since: t };
     }
 
+    /// `vertex_timeout` has passed at the current vertex. With friction, a hold may keep coming
+    /// to rest off the vertex, creep, or its bands may not agree in time: strokes through the
+    /// vertex measure its force wherever the hold left the handle, and the vertex fails only if
+    /// something stops them. Without friction it fails at once.
+    fn out_of_time(&mut self, s: &DeviceState, failure: CalibrationFailure) -> ControlOutput {
+        if self
+            .friction_kind
+            .iter()
+            .all(|&kind| kind == Friction::None)
+        {
+            return self.fail(failure);
+        }
+        let vertex = self.plan.path[self.vertex];
+        let error = (vertex.position - self.smoothed).norm();
+        // Updates that did not converge may have taken F̂ far off, and a hold that far off the
+        // load leaves the handle outside the strokes' windows: start from the last vertex's.
+        self.estimate = self.last_good;
+        self.gain_scale = 1.0;
+        self.stroke(s, vertex, error, Some(failure), true)
+    }
+
     fn vertex_timed_out(&self, t: f64) -> Option<CalibrationFailure> {
         (t - self.vertex_start > self.params.vertex_timeout).then_some(
             CalibrationFailure::VertexTimeout {
@@ -937,10 +982,10 @@ impl Calibration {
     /// gains.
     fn settle(&mut self, s: &DeviceState, since: f64) -> ControlOutput {
         let t = s.time;
-        if let Some(failure) = self.vertex_timed_out(t) {
-            return self.fail(failure);
-        }
         let vertex = self.plan.path[self.vertex];
+        if let Some(failure) = self.vertex_timed_out(t) {
+            return self.out_of_time(s, failure);
+        }
         let force = self.hold_force(&vertex.position, s, &self.estimate);
         if t - since < self.settle_time / self.gain_scale.sqrt() {
             return ControlOutput::force(force);
@@ -1127,10 +1172,10 @@ impl Calibration {
         anchor: Vector3<f64>,
     ) -> ControlOutput {
         let t = s.time;
-        if let Some(failure) = self.vertex_timed_out(t) {
-            return self.fail(failure);
-        }
         let vertex = self.plan.path[self.vertex];
+        if let Some(failure) = self.vertex_timed_out(t) {
+            return self.out_of_time(s, failure);
+        }
         let feedforward = self.estimate + probe.direction() * probe.offset(t);
         let force = self.still_force(&anchor, s, &feedforward);
         match probe.observe(s, &self.smoothed, &force) {
@@ -1238,7 +1283,7 @@ impl Calibration {
                 (sum / f64::from(count), at / f64::from(count))
             };
             if !self.friction_kind.contains(&Friction::Slight) {
-                return self.vertex_done(s, vertex, error);
+                return self.stroke(s, vertex, error, None, true);
             }
             self.detector.reset();
             self.phase = Phase::Check {
@@ -1286,7 +1331,7 @@ impl Calibration {
     fn check(&mut self, s: &DeviceState, anchor: Vector3<f64>, since: f64) -> ControlOutput {
         let t = s.time;
         if let Some(failure) = self.vertex_timed_out(t) {
-            return self.fail(failure);
+            return self.out_of_time(s, failure);
         }
         let force = self.hold_force(&anchor, s, &self.estimate);
         if t - since < self.settle_time {
@@ -1306,7 +1351,114 @@ impl Calibration {
             }
         }
         let vertex = self.plan.path[self.vertex];
-        self.vertex_done(s, vertex, (vertex.position - rest).norm())
+        self.stroke(s, vertex, (vertex.position - rest).norm(), None, true)
+    }
+
+    /// With friction at the vertex, the bands have brought F̂ within a few millinewtons; strokes
+    /// through the vertex measure it to one ([`Strokes`]). The hold follows the stroke's set
+    /// point and its velocity.
+    /// A vertex that ran out of time goes on to strokes too, and fails with `late` only if they
+    /// are blocked as well; `again`: strokes that move F̂ far may be repeated once.
+    fn stroke(
+        &mut self,
+        s: &DeviceState,
+        vertex: Vertex,
+        error: f64,
+        late: Option<CalibrationFailure>,
+        again: bool,
+    ) -> ControlOutput {
+        let strokes = Strokes::through_every_joint(Stroke::MEASURE, vertex.position, s.time);
+        self.phase = Phase::Strokes {
+            strokes,
+            error,
+            late,
+            again,
+        };
+        ControlOutput::force(self.hold_force(&vertex.position, s, &self.estimate))
+    }
+
+    /// The hold on a stroke's set point, damping the velocity relative to the set point's.
+    fn stroke_force(&self, strokes: &Strokes, s: &DeviceState) -> Vector3<f64> {
+        let (target, velocity) = strokes.set_point(s.time);
+        let mut relative = *s;
+        relative.velocity -= velocity;
+        self.gains.pd_force(&target, &relative, &self.estimate)
+    }
+
+    /// The strokes at X_C ([`Phase::InitStrokes`]): an axis the bands took for frictionless
+    /// whose passes differ by more than `STROKE_FRICTION` has friction after all (or viscous
+    /// damping, which strokes measure through as well), and is measured as such at every
+    /// vertex. Then the first vertex.
+    fn init_strokes(&mut self, s: &DeviceState, mut strokes: Strokes) -> ControlOutput {
+        let force = self.stroke_force(&strokes, s);
+        match strokes.observe(s, &force) {
+            Step::Running => {
+                self.phase = Phase::InitStrokes(strokes);
+                return ControlOutput::force(force);
+            }
+            Step::Done(stroked) => {
+                for a in 0..3 {
+                    if self.friction_kind[a] == Friction::None
+                        && stroked.friction[a].abs() > STROKE_FRICTION
+                    {
+                        self.friction_kind[a] = Friction::Slight;
+                    }
+                }
+                self.share_friction_kind();
+            }
+            // A stop within a stroke of X_C: the bands' classes stand.
+            Step::Blocked { .. } => {}
+        }
+        self.vertex = 0;
+        self.start_move(strokes.centre(), s.time);
+        ControlOutput::force(force)
+    }
+
+    fn strokes(
+        &mut self,
+        s: &DeviceState,
+        mut strokes: Strokes,
+        error: f64,
+        late: Option<CalibrationFailure>,
+        again: bool,
+    ) -> ControlOutput {
+        let force = self.stroke_force(&strokes, s);
+        let vertex = self.plan.path[self.vertex];
+        match strokes.observe(s, &force) {
+            Step::Running => {
+                self.phase = Phase::Strokes {
+                    strokes,
+                    error,
+                    late,
+                    again,
+                };
+                ControlOutput::force(force)
+            }
+            Step::Done(stroked) => {
+                let change = (stroked.force - self.estimate).norm();
+                self.estimate = stroked.force;
+                self.measured_at = strokes.centre();
+                self.iteration += 1;
+                if change > STROKE_REPEAT && again {
+                    // A hold that far off the load kept the handle off the middle of the
+                    // windows: measure again from what the strokes found.
+                    return self.stroke(s, vertex, error, late, false);
+                }
+                self.emit(CalibrationEvent::Iteration {
+                    vertex: self.vertex,
+                    iteration: self.iteration,
+                    force: self.estimate,
+                    error,
+                });
+                self.vertex_done(s, vertex, error)
+            }
+            // Something within a stroke's reach of the vertex stops the handle: the bands'
+            // measurement stands, if they finished.
+            Step::Blocked { .. } => match late {
+                Some(failure) => self.fail(failure),
+                None => self.vertex_done(s, vertex, error),
+            },
+        }
     }
 
     /// F̂ from the round's bands: the force c with n·c = b for each band's constraint
@@ -1421,7 +1573,7 @@ impl Calibration {
     fn push(&mut self, s: &DeviceState, mut push: Push) -> ControlOutput {
         let t = s.time;
         if let Some(failure) = self.vertex_timed_out(t) {
-            return self.fail(failure);
+            return self.out_of_time(s, failure);
         }
         let vertex = self.plan.path[self.vertex].position;
         let extra = push.direction * push.force(t);
@@ -1562,6 +1714,13 @@ impl Controller for Calibration {
             } => self.band(s, probe, round_start, anchor),
             Phase::Push(push) => self.push(s, push),
             Phase::Check { anchor, since } => self.check(s, anchor, since),
+            Phase::InitStrokes(strokes) => self.init_strokes(s, strokes),
+            Phase::Strokes {
+                strokes,
+                error,
+                late,
+                again,
+            } => self.strokes(s, strokes, error, late, again),
             Phase::Finished | Phase::Failed(_) => ControlOutput::done(Vector3::zeros()),
         }
     }

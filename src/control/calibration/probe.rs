@@ -12,10 +12,14 @@
 //! - [`Pulse`], the moving mass along one axis: a constant force a known amount beyond the stick
 //!   band accelerates the handle from rest; the times it takes to cover a quarter and all of a
 //!   short distance give the acceleration, whatever the delay before it starts.
+//! - [`Strokes`], the holding force at a point to a millinewton despite friction: the handle is
+//!   driven through the point at a constant speed along each axis, one way and back. Sliding
+//!   friction opposes the motion, so it flips between the two passes and cancels in their mean;
+//!   so does any lag of the slip detection or the encoder's steps, which decide a band's edges.
 //!
-//! Both are allocation-free sub-machines the calibration controller ticks.
+//! All are allocation-free sub-machines the calibration controller ticks.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
 use crate::control::DeviceState;
 
@@ -526,6 +530,270 @@ impl Pulse {
     }
 }
 
+/// The shape of a stroke: how far it goes each way from its centre, m; the window of it that
+/// counts (centred on the centre), m; the time of one pass from end to end, s, and of its
+/// speed's ramps at both ends, s.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Stroke {
+    reach: f64,
+    window: f64,
+    pass: f64,
+    ramp: f64,
+}
+
+impl Stroke {
+    /// Strokes that measure a holding force. A pass reaches 2 × 4 mm / 0.85 s = 9.4 mm/s, and
+    /// the window starts 1.8 mm into the constant speed (0.19 s, several of the hold's time
+    /// constants), so the handle crosses it at the set point's speed and its mean acceleration
+    /// there vanishes. Shorter strokes leave a joint that the stroke barely turns stuck for
+    /// longer: on the simulated PHANToM, ±2.5 mm strokes along the axes left up to 4 mN where
+    /// ±4 mm leave 1.8 mN. 9 s for three.
+    pub const MEASURE: Self = Self {
+        reach: 4e-3,
+        window: 3e-3,
+        pass: 1.0,
+        ramp: 0.15,
+    };
+    /// Strokes that only tell sliding friction from none, slowly enough that viscous damping
+    /// up to 1 N·s/m stays under `STROKE_FRICTION` (`machine.rs`): a frictionless handle's passes
+    /// differ by under 0.3 mN, a frictional one's by twice its friction. 0.5 mm of window at
+    /// 4 mm/s, entered 0.55 mm into the constant speed. 5.4 s for three.
+    pub const SURVEY: Self = Self {
+        reach: 1e-3,
+        window: 5e-4,
+        pass: 0.6,
+        ramp: 0.1,
+    };
+
+    /// The set point's offset from −reach toward +reach at time `u` into a pass, and its rate
+    /// (speed ramps at both ends, constant speed between).
+    fn at(&self, u: f64) -> (f64, f64) {
+        let speed = 2.0 * self.reach / (self.pass - self.ramp);
+        if u < self.ramp {
+            let tau = u / self.ramp;
+            (
+                -self.reach + speed * self.ramp * ramp_distance(tau),
+                speed * minimum_jerk(tau).0,
+            )
+        } else if u < self.pass - self.ramp {
+            (
+                -self.reach + speed * (0.5 * self.ramp + u - self.ramp),
+                speed,
+            )
+        } else {
+            let tau = (self.pass - u) / self.ramp;
+            (
+                self.reach - speed * self.ramp * ramp_distance(tau),
+                speed * minimum_jerk(tau).0,
+            )
+        }
+    }
+}
+
+/// A window counts only with at least this many samples in it (a blocked handle gets none).
+const STROKE_MIN_SAMPLES: u32 = 50;
+
+/// Share of a minimum-jerk move covered at progress τ ∈ [0, 1], and its rate d/dτ.
+fn minimum_jerk(tau: f64) -> (f64, f64) {
+    let t = tau.clamp(0.0, 1.0);
+    (
+        t * t * t * (10.0 - 15.0 * t + 6.0 * t * t),
+        30.0 * t * t * (1.0 - t) * (1.0 - t),
+    )
+}
+
+/// Distance covered from rest at progress τ of a speed ramp whose speed follows a minimum-jerk
+/// profile from 0 to 1 (∫ s(τ) dτ; 1/2 at τ = 1).
+fn ramp_distance(tau: f64) -> f64 {
+    let t = tau.clamp(0.0, 1.0);
+    t * t * t * t * (2.5 - 3.0 * t + t * t)
+}
+
+/// Which part of a stroke the set point is on.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Leg {
+    /// From the centre out to −reach (not measured).
+    Out,
+    /// From −reach to +reach at constant speed, and back.
+    Forward,
+    Backward,
+    /// From −reach back to the centre.
+    Home,
+}
+
+/// The holding force at `centre` from strokes along three directions (module docs). The
+/// controller holds the handle on [`Strokes::set_point`] with its PD plus its force estimate, and
+/// reports every tick's commanded force to [`Strokes::observe`]. Along each direction d the set
+/// point goes out to −reach, passes to +reach and back at constant speed, and returns; the
+/// commanded force is averaged over the ticks at which the handle itself (not the set point,
+/// which it trails by the friction over the stiffness) is within half a window of the centre, so
+/// that both passes average over the same stretch. With F̄₊ and F̄₋ the two passes' means, d·F_G =
+/// d·(F̄₊ + F̄₋)/2: sliding friction flips between them, the handle's and a sliding joint's alike.
+/// A joint that a stroke turns only slightly sticks for part of it, and a stuck joint's torque
+/// does not flip: strokes that turn every joint of a linkage well (see
+/// [`Strokes::through_every_joint`]) keep that error small. The three d·F_G give F_G.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Strokes {
+    stroke: Stroke,
+    centre: Vector3<f64>,
+    directions: [Vector3<f64>; 3],
+    start: f64,
+    /// Sums of the commanded force along each direction over its forward and backward windows,
+    /// and counts.
+    sums: [[(f64, u32); 2]; 3],
+    /// Whether the handle was seen before and beyond the window on each pass: only a pass that
+    /// carried it through the whole window measured anything.
+    through: [[(bool, bool); 2]; 3],
+}
+
+/// What strokes measured at their centre: the holding force, and the sliding friction along
+/// each stroke's direction (half the difference of the passes), N.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Stroked {
+    pub force: Vector3<f64>,
+    pub friction: Vector3<f64>,
+}
+
+impl Strokes {
+    /// Strokes along the three unit `directions` (linearly independent).
+    pub fn new(
+        stroke: Stroke,
+        centre: Vector3<f64>,
+        directions: [Vector3<f64>; 3],
+        now: f64,
+    ) -> Self {
+        Self {
+            stroke,
+            centre,
+            directions,
+            start: now,
+            sums: [[(0.0, 0); 2]; 3],
+            through: [[(false, false); 2]; 3],
+        }
+    }
+
+    /// Along x, y and z: each stroke's friction is the friction along an axis.
+    pub fn along_axes(stroke: Stroke, centre: Vector3<f64>, now: f64) -> Self {
+        Self::new(
+            stroke,
+            centre,
+            [Vector3::x(), Vector3::y(), Vector3::z()],
+            now,
+        )
+    }
+
+    /// Along the three diagonals (1, 1, 1), (1, −1, −1) and (−1, 1, −1) of the axes. On a
+    /// linkage whose joints move the handle roughly along the axes, as the PHANToM's do about
+    /// its home pose, each turns every joint at a good share of its rate, where a stroke along
+    /// one axis may turn a joint 30 times slower than the others and leave it stuck: on the
+    /// simulated PHANToM the worst vertex went from 1.8 mN to 0.5 mN. (The face normals the
+    /// bands learn on a linkage would point along its joints exactly, but a few bands' slips
+    /// make noisy normals, and strokes along nearly parallel ones measured worse.)
+    pub fn through_every_joint(stroke: Stroke, centre: Vector3<f64>, now: f64) -> Self {
+        let directions = [
+            Vector3::new(1.0, 1.0, 1.0),
+            Vector3::new(1.0, -1.0, -1.0),
+            Vector3::new(-1.0, 1.0, -1.0),
+        ]
+        .map(|d| d.normalize());
+        Self::new(stroke, centre, directions, now)
+    }
+
+    pub fn centre(&self) -> Vector3<f64> {
+        self.centre
+    }
+
+    /// The stroke and leg at time `t`, with the set point's offset along the stroke and its rate;
+    /// `None` once the strokes are over.
+    fn leg(&self, t: f64) -> Option<(usize, Leg, f64, f64)> {
+        let Stroke { reach, pass, .. } = self.stroke;
+        let per_stroke = 3.0 * pass;
+        let u = (t - self.start).max(0.0);
+        let k = (u / per_stroke) as usize;
+        if k >= 3 {
+            return None;
+        }
+        let u = u - k as f64 * per_stroke;
+        let half = 0.5 * pass;
+        Some(if u < half {
+            let (s, rate) = minimum_jerk(u / half);
+            (k, Leg::Out, -reach * s, -reach * rate / half)
+        } else if u < half + pass {
+            let (x, v) = self.stroke.at(u - half);
+            (k, Leg::Forward, x, v)
+        } else if u < half + 2.0 * pass {
+            let (x, v) = self.stroke.at(u - half - pass);
+            (k, Leg::Backward, -x, -v)
+        } else {
+            let (s, rate) = minimum_jerk((u - half - 2.0 * pass) / half);
+            (k, Leg::Home, -reach * (1.0 - s), reach * rate / half)
+        })
+    }
+
+    /// The set point at time `t` and its velocity, m and m/s (the centre once over).
+    pub fn set_point(&self, t: f64) -> (Vector3<f64>, Vector3<f64>) {
+        match self.leg(t) {
+            Some((k, _, x, v)) => {
+                let d = self.directions[k];
+                (self.centre + x * d, v * d)
+            }
+            None => (self.centre, Vector3::zeros()),
+        }
+    }
+
+    /// Feed a tick and the force commanded at it: the measurement once the strokes are over,
+    /// `Blocked` if a pass did not carry the handle through its window (a stop or an obstacle
+    /// within reach of the centre), or if the directions are degenerate.
+    pub fn observe(&mut self, s: &DeviceState, commanded: &Vector3<f64>) -> Step<Stroked> {
+        let Some((k, leg, _, _)) = self.leg(s.time) else {
+            return self.result();
+        };
+        let pass = match leg {
+            Leg::Forward => 0,
+            Leg::Backward => 1,
+            Leg::Out | Leg::Home => return Step::Running,
+        };
+        let along = self.directions[k].dot(&(s.position - self.centre));
+        let (before, beyond) = &mut self.through[k][pass];
+        let half = 0.5 * self.stroke.window;
+        *before |= along < -half;
+        *beyond |= along > half;
+        if along.abs() <= half {
+            let (sum, count) = &mut self.sums[k][pass];
+            *sum += self.directions[k].dot(commanded);
+            *count += 1;
+        }
+        Step::Running
+    }
+
+    fn result(&self) -> Step<Stroked> {
+        let blocked = Step::Blocked { sign: 1.0 };
+        let mut rows = Matrix3::zeros();
+        let mut along = Vector3::zeros();
+        let mut friction = Vector3::zeros();
+        for (k, [(forward, n_f), (backward, n_b)]) in self.sums.iter().enumerate() {
+            let through = self.through[k]
+                .iter()
+                .all(|&(before, beyond)| before && beyond);
+            if !through || (*n_f).min(*n_b) < STROKE_MIN_SAMPLES {
+                return blocked;
+            }
+            let forward = forward / f64::from(*n_f);
+            let backward = backward / f64::from(*n_b);
+            rows.set_row(k, &self.directions[k].transpose());
+            along[k] = 0.5 * (forward + backward);
+            friction[k] = 0.5 * (forward - backward);
+        }
+        match rows.try_inverse() {
+            Some(inverse) => Step::Done(Stroked {
+                force: inverse * along,
+                friction,
+            }),
+            None => blocked,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -586,6 +854,55 @@ mod tests {
                 band.half_width() >= f && band.half_width() < f + 0.03,
                 "{m} {f}: {band:?}"
             );
+        }
+    }
+
+    /// A point of mass `m` with isotropic Coulomb friction `f` (static as kinetic) and holding
+    /// force `hold`, read through an encoder of 10 µm steps, held on the strokes' set point by a
+    /// PD with a feedforward `off` from the holding force; what the strokes measure.
+    fn strokes_on(m: f64, f: f64, hold: Vector3<f64>, off: Vector3<f64>) -> Stroked {
+        let (k, c) = (300.0, 2.0 * (300.0 * m).sqrt());
+        let mut strokes = Strokes::along_axes(Stroke::MEASURE, Vector3::new(0.01, -0.02, 0.0), 0.0);
+        let (mut x, mut v) = (strokes.centre(), Vector3::<f64>::zeros());
+        let dt = 1e-3;
+        for n in 0..20_000 {
+            let t = n as f64 * dt;
+            let reading = (x / 1e-5).map(f64::round) * 1e-5;
+            let (target, target_v) = strokes.set_point(t);
+            let force = (target - reading) * k - (v - target_v) * c + hold + off;
+            let mut s = state(t, 0.0);
+            s.position = reading;
+            match strokes.observe(&s, &force) {
+                Step::Done(stroked) => return stroked,
+                Step::Blocked { .. } => panic!("blocked"),
+                Step::Running => {}
+            }
+            for _ in 0..10 {
+                let h = dt / 10.0;
+                let net = force - hold;
+                let trial = v + net * (h / m);
+                v = if trial.norm() <= f * h / m {
+                    Vector3::zeros()
+                } else {
+                    trial - trial.normalize() * (f * h / m)
+                };
+                x += v * h;
+            }
+        }
+        panic!("never done");
+    }
+
+    #[test]
+    fn strokes_read_the_holding_force_through_friction_and_encoder_steps() {
+        let hold = Vector3::new(0.05, -0.03, 1.2);
+        for (m, f) in [(0.12, 0.1), (0.5, 0.05), (0.05, 0.0)] {
+            // The estimate the hold starts from may be off by several millinewtons.
+            let stroked = strokes_on(m, f, hold, Vector3::new(0.008, -0.005, 0.01));
+            let error = (stroked.force - hold).norm();
+            assert!(error < 5e-4, "{m} kg, {f} N: off by {error} N");
+            for friction in stroked.friction.iter() {
+                assert!((friction - f).abs() < 0.01, "{m} kg, {f} N: {stroked:?}");
+            }
         }
     }
 
