@@ -1,6 +1,6 @@
 //! `hgcd calibrate`: run Algorithm 1 on a device inside the servo loop and persist the grid.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
@@ -14,7 +14,8 @@ use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
     PlanError,
 };
-use crate::grid::{grid_path, GridError, GridFile};
+use crate::control::compensation::ModelError;
+use crate::grid::{grid_path, DeviceIdentity, GridError, GridFile};
 use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
 use crate::transport::{self, Pacing, Transport, TransportError};
@@ -50,6 +51,60 @@ pub enum CalibrateError {
     EndedEarly(ExitReason),
     #[error(transparent)]
     Save(GridError),
+}
+
+/// Why a command that compensates with a calibrated grid (`hgcd record`, `hgcd validate`,
+/// `hgcd analyze`) has no gravity model from it.
+#[derive(Debug, Error)]
+pub enum GridModelError {
+    #[error(
+        "no calibration grid for {device} at {}: calibrate it first (`hgcd calibrate --device \
+         {device}`) or pass --grid FILE",
+        path.display()
+    )]
+    NoGrid { device: String, path: PathBuf },
+    #[error(transparent)]
+    Grid(GridError),
+    #[error("grid {}: {source}", path.display())]
+    Model {
+        path: PathBuf,
+        #[source]
+        source: ModelError,
+    },
+}
+
+impl GridModelError {
+    /// [`GridModelError::Model`] for the grid at `path`.
+    pub fn model(path: &Path) -> impl FnOnce(ModelError) -> Self + '_ {
+        |source| Self::Model {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+}
+
+/// The grid file `given`, or without one the grid calibration stored for `device` under
+/// `state_dir`, with its path.
+///
+/// Errors: [`GridModelError::NoGrid`] when no grid is stored for `device` (a missing `given` file
+/// is [`GridModelError::Grid`], as is every other error [`GridFile::load_for`] returns).
+pub fn device_grid(
+    given: Option<&Path>,
+    state_dir: &Path,
+    device: &DeviceIdentity,
+) -> Result<(GridFile, PathBuf), GridModelError> {
+    let path = match given {
+        Some(path) => path.to_path_buf(),
+        None => grid_path(state_dir, &device.grid_id()),
+    };
+    match GridFile::load_for(&path, device) {
+        Ok(file) => Ok((file, path)),
+        Err(GridError::Missing { .. }) if given.is_none() => Err(GridModelError::NoGrid {
+            device: device.spec.to_string(),
+            path,
+        }),
+        Err(e) => Err(GridModelError::Grid(e)),
+    }
 }
 
 /// What `hgcd calibrate` was asked to do.

@@ -1,6 +1,6 @@
 //! Figures in SVG and PNG without system libraries: plotters' SVG and bitmap backends, with
 //! text in the embedded DejaVu Sans subset (assets/fonts/). `hgcd validate` and `hgcd analyze`
-//! draw through [`draw`].
+//! draw through [`draw`], into a directory [`check_out_dir`] checked first.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -18,6 +18,34 @@ static FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans-subset.ttf");
 pub struct FigureError {
     pub path: PathBuf,
     pub message: String,
+}
+
+/// A command's results (figures and tables) cannot be written in its output directory (`--out`).
+#[derive(Debug, Error)]
+#[error("cannot write the results in {} (--out)", path.display())]
+pub struct OutError {
+    /// The directory, or the file that could not be written.
+    pub path: PathBuf,
+    #[source]
+    pub source: std::io::Error,
+}
+
+/// Make `out`, the directory a command writes its figures and tables to (`hgcd validate --out`,
+/// `hgcd analyze --out`), if needed, and check a file can be written there by writing and removing
+/// `out/.hgcd-<command>-write-check`: an unwritable directory shows before the work starts.
+///
+/// Errors: [`OutError`] naming `out`.
+pub fn check_out_dir(out: &Path, command: &str) -> Result<(), OutError> {
+    let probe = out.join(format!(".hgcd-{command}-write-check"));
+    (|| {
+        std::fs::create_dir_all(out)?;
+        std::fs::write(&probe, b"")?;
+        std::fs::remove_file(&probe)
+    })()
+    .map_err(|source| OutError {
+        path: out.to_path_buf(),
+        source,
+    })
 }
 
 /// Register the embedded font as plotters' "sans-serif", once per process.

@@ -1,7 +1,7 @@
 //! The `hgcd` binary as a user runs it.
 
 mod common;
-use common::{failed, hgcd, serial, spawn_until, succeeded};
+use common::{failed, hgcd, serial, spawn_until, succeeded, BRIEF_RUN};
 
 /// `hgcd` with a config file, an application socket and a state directory of the test's own.
 fn hgcd_in(
@@ -487,17 +487,7 @@ fn every_command_ends_quietly_when_its_reader_goes_away() {
     check(&["--help"], 0);
     check(&["devices"], 0);
     check(&["calibrate", "--device", "sim:point-mass"], 0);
-    check(
-        &[
-            "run",
-            "--device",
-            "sim:point-mass",
-            "--virtual-time",
-            "--duration",
-            "0.5",
-        ],
-        0,
-    );
+    check(&BRIEF_RUN, 0);
     // Nobody listens: the error has nowhere to go either, the status says it.
     check(&["status"], 1);
 

@@ -28,7 +28,7 @@ use hgcd::grid::MassGrid;
 mod common;
 use common::daemon::{Running, TestDaemon};
 use common::tap::{Gate, Tap};
-use common::{tilted_v_g, truth_field_27, wait_for, with_device_id, WAIT};
+use common::{distance_mm, tilted_v_g, truth_field_27, wait_for, with_device_id, WAIT};
 
 /// The probe mass hung on the handle, kg, and g, m/s².
 const PROBE_KG: f64 = 0.03;
@@ -168,14 +168,10 @@ fn couple(example: impl FnOnce(&[&Path; 2]) -> Command) -> (f64, f64) {
     stop(b, &gate_b);
     let stdout = text(&output.stdout);
     assert!(output.status.success(), "{stdout}{}", text(&output.stderr));
-    let gap = |at: &str| -> f64 {
-        let before = stdout
-            .split(&format!(" mm at {at}"))
-            .next()
-            .unwrap_or_else(|| panic!("no distance at {at}: {stdout}"));
-        before.rsplit(' ').next().unwrap().parse().unwrap()
-    };
-    (gap("the start"), gap("the end"))
+    (
+        distance_mm(&stdout, "the start"),
+        distance_mm(&stdout, "the end"),
+    )
 }
 
 #[test]

@@ -21,7 +21,7 @@ use hgcd::grid::MassGrid;
 mod common;
 use common::daemon::TestDaemon;
 use common::tap::{Gate, Tap};
-use common::{output_within, with_device_id, WAIT};
+use common::{distance_mm, output_within, with_device_id, WAIT};
 
 /// The example `name`, built by cargo with the profile this test was built with (a no-op when
 /// `cargo test` has built the examples already).
@@ -319,13 +319,7 @@ fn two_handles_on_two_daemons_pulls_the_handles_together() {
         "{stdout}{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let gap = |which: &str| -> f64 {
-        let before = stdout
-            .split(&format!(" mm at {which}"))
-            .next()
-            .unwrap_or_else(|| panic!("no distance at {which}: {stdout}"));
-        before.rsplit(' ').next().unwrap().parse().unwrap()
-    };
+    let gap = |at: &str| distance_mm(&stdout, at);
     assert!(
         stdout.contains("sim-point-mass-A and sim-point-mass-B"),
         "{stdout}"

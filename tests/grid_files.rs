@@ -10,10 +10,11 @@ use std::time::Duration;
 mod common;
 use common::{
     failed, file_names, hgcd, output_within, serial, spawn_until, truth_field_27, with_device_id,
+    BRIEF_RUN,
 };
 
-/// `hgcd run` with the config file `config` on the simulated device for half a second of virtual
-/// time, with grids in `state`.
+/// [`BRIEF_RUN`] (`hgcd run`, half a second of virtual time on the simulated device) with the
+/// config file `config` and grids in `state`.
 fn run_in(config: &Path, dir: &Path, state: &Path) -> Command {
     let mut c = hgcd();
     c.arg("--config")
@@ -22,14 +23,7 @@ fn run_in(config: &Path, dir: &Path, state: &Path) -> Command {
         .arg(dir.join("s.sock"))
         .arg("--state-dir")
         .arg(state)
-        .args([
-            "run",
-            "--device",
-            "sim:point-mass",
-            "--virtual-time",
-            "--duration",
-            "0.5",
-        ]);
+        .args(BRIEF_RUN);
     c
 }
 
@@ -52,32 +46,38 @@ fn refused_with(out: &Output, needle: &str) {
     assert!(stderr.contains(needle), "{stderr}");
 }
 
+/// With `place` putting something at the path of the device's grid, [`run_without_config`] is
+/// refused with a line that contains `needle`. Returns the directory, for more runs.
+fn refused_when_the_grid_is(place: impl FnOnce(&Path), needle: &str) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    place(&dir.path().join("sim-point-mass.toml"));
+    let out = run_without_config(dir.path());
+    refused_with(&out, needle);
+    dir
+}
+
 #[test]
 fn a_fifo_where_the_grid_should_be_is_refused_at_once() {
-    let dir = tempfile::tempdir().unwrap();
-    let grid = dir.path().join("sim-point-mass.toml");
-    let c = std::ffi::CString::new(grid.as_os_str().as_encoded_bytes()).unwrap();
-    // SAFETY: `c` is a valid NUL-terminated path for the duration of the call.
-    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
-    let out = run_without_config(dir.path());
-    refused_with(&out, "is a FIFO (named pipe), not a regular file");
+    let mkfifo = |grid: &Path| {
+        let c = std::ffi::CString::new(grid.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: `c` is a valid NUL-terminated path for the duration of the call.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+    };
+    refused_when_the_grid_is(mkfifo, "is a FIFO (named pipe), not a regular file");
 }
 
 #[test]
 fn a_link_to_dev_zero_where_the_grid_should_be_is_refused_without_reading_it() {
-    let dir = tempfile::tempdir().unwrap();
-    symlink("/dev/zero", dir.path().join("sim-point-mass.toml")).unwrap();
-    let out = run_without_config(dir.path());
-    refused_with(&out, "is a character device, not a regular file");
+    refused_when_the_grid_is(
+        |grid| symlink("/dev/zero", grid).unwrap(),
+        "is a character device, not a regular file",
+    );
 }
 
 #[test]
 fn a_dangling_link_is_not_taken_for_a_missing_grid() {
-    let dir = tempfile::tempdir().unwrap();
-    symlink("moved-away.toml", dir.path().join("sim-point-mass.toml")).unwrap();
-    let out = run_without_config(dir.path());
-    refused_with(
-        &out,
+    let dir = refused_when_the_grid_is(
+        |grid| symlink("moved-away.toml", grid).unwrap(),
         "is a symbolic link to moved-away.toml, which does not exist",
     );
     // Unless uncompensated running is allowed: then it runs.

@@ -222,17 +222,8 @@ fn the_validation_experiment_with_a_model_swap_between_runs() {
     let model = truth_model();
     let grid = truth_field_27();
     let plan = ContactPlan::paper(Vector3::zeros(), 0.03, grid.gravity_direction, 2, 2);
-    let params = ProbeParams {
-        stiffness: 1000.0,
-        surface_damping: 10.0,
-        hold_stiffness: 1000.0,
-        lift: 0.005,
-        drop: 0.001,
-        steady_samples: 50,
-        steady_radius: 5e-5,
-        settle_timeout: 5.0,
-        max_force: 8.0,
-    };
+    // The defaults (validation.*, safety.max_force_n) on a surface of 1 N/mm.
+    let params = ProbeParams::configured(&config, 1000.0);
     let (tx, _rx) = crossbeam_channel::bounded(4096);
     let mut experiment = ExperimentController::new(
         Compensation::new(None, ForceOffset::new(0.05, 0.05)),

@@ -9,17 +9,18 @@ pub mod log;
 pub mod record;
 mod report;
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use thiserror::Error;
 use tracing::info;
 
+use crate::calibrate::{device_grid, GridModelError};
 use crate::config::{Config, ConfigError, DeviceSpec};
-use crate::control::compensation::{GravityModel, ModelError};
-use crate::figure::FigureError;
-use crate::grid::{grid_path, GridError, GridFile};
+use crate::control::compensation::GravityModel;
+use crate::figure::{FigureError, OutError};
+use crate::grid::GridFile;
 use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, ServoError, ServoOptions};
 use crate::transport::{self, Pacing, TransportError};
@@ -51,20 +52,8 @@ pub enum RecordError {
     Duration(f64),
     #[error(transparent)]
     Open(TransportError),
-    #[error(
-        "no calibration grid for {device} at {}: calibrate it first (`hgcd calibrate --device \
-         {device}`) or pass --grid FILE",
-        path.display()
-    )]
-    NoGrid { device: String, path: PathBuf },
     #[error(transparent)]
-    Grid(GridError),
-    #[error("grid {}: {source}", path.display())]
-    Model {
-        path: PathBuf,
-        #[source]
-        source: ModelError,
-    },
+    Grid(#[from] GridModelError),
     #[error(transparent)]
     Thread(#[from] ThreadError),
     #[error("the recording stopped")]
@@ -104,23 +93,10 @@ pub fn record(
     let device = transport::identify(transport.as_ref(), &request.device, config)
         .map_err(RecordError::Open)?;
     let config = &config.for_device(device.info.as_ref());
-    let path = match &request.grid {
-        Some(path) => path.clone(),
-        None => grid_path(&config.state_dir(), &device.grid_id()),
-    };
-    let file = match GridFile::load_for(&path, &device) {
-        Ok(file) => file,
-        Err(GridError::Missing { .. }) if request.grid.is_none() => {
-            return Err(RecordError::NoGrid {
-                device: device.spec.to_string(),
-                path,
-            })
-        }
-        Err(e) => return Err(RecordError::Grid(e)),
-    };
+    let (file, path) = device_grid(request.grid.as_deref(), &config.state_dir(), &device)?;
     let c = &config.compensation;
     let model = GravityModel::configured(file, c.mode, c.outside_grid)
-        .map_err(|source| RecordError::Model { path, source })?;
+        .map_err(GridModelError::model(&path))?;
     let params = RecordParams::inside(&model, request.duration);
     let recorder = Recorder::new(params, model, config.servo_period());
     let elapsed_ms = recorder.elapsed_ms();
@@ -166,13 +142,7 @@ pub enum AnalyzeError {
     #[error(transparent)]
     Log(#[from] LogError),
     #[error(transparent)]
-    Grid(GridError),
-    #[error("grid {}: {source}", path.display())]
-    Model {
-        path: PathBuf,
-        #[source]
-        source: ModelError,
-    },
+    Grid(#[from] GridModelError),
     #[error(
         "the grid {} was calibrated on {grid_device} and the log {} recorded on {log_device}: \
          analyse a log with the grid of the same device",
@@ -200,12 +170,8 @@ pub enum AnalyzeError {
         .0.display()
     )]
     NoExcitation(PathBuf),
-    #[error("cannot write the results in {} (--out)", path.display())]
-    Out {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Out(#[from] OutError),
     #[error(transparent)]
     Figure(#[from] FigureError),
 }
@@ -256,7 +222,7 @@ pub fn analyze(
     let started = std::time::Instant::now();
     progress("reading the log and the grid");
     let log = Log::load(&request.log)?;
-    let file = GridFile::load(&request.grid).map_err(AnalyzeError::Grid)?;
+    let file = GridFile::load(&request.grid).map_err(GridModelError::Grid)?;
     if let (Some(grid_device), Some(log_device)) = (file.device.as_ref(), log.device.as_ref()) {
         if &grid_device.id != log_device {
             return Err(AnalyzeError::ForeignGrid {
@@ -268,12 +234,8 @@ pub fn analyze(
         }
     }
     let outside = crate::config::Config::default().compensation.outside_grid;
-    let model = GravityModel::configured(file.clone(), None, outside).map_err(|source| {
-        AnalyzeError::Model {
-            path: request.grid.clone(),
-            source,
-        }
-    })?;
+    let model = GravityModel::configured(file.clone(), None, outside)
+        .map_err(GridModelError::model(&request.grid))?;
     let outside = log
         .position
         .iter()
@@ -287,7 +249,7 @@ pub fn analyze(
             share: outside * 1e2,
         });
     }
-    check_out(&request.out)?;
+    crate::figure::check_out_dir(&request.out, "analyze")?;
 
     progress("smoothing and differentiating the position");
     let signals = Signals::new(&log, &model);
@@ -343,16 +305,4 @@ pub fn analyze(
     progress("writing the report");
     report::write(request, &file, &signals, &analysis)?;
     Ok(analysis)
-}
-
-/// Create `out` if needed and check a file can be written there.
-fn check_out(out: &Path) -> Result<(), AnalyzeError> {
-    let err = |source| AnalyzeError::Out {
-        path: out.to_path_buf(),
-        source,
-    };
-    std::fs::create_dir_all(out).map_err(err)?;
-    let probe = out.join(".hgcd-analyze-write-check");
-    std::fs::write(&probe, b"").map_err(err)?;
-    std::fs::remove_file(&probe).map_err(err)
 }

@@ -14,7 +14,7 @@ use super::analysis::{self, Fit, Signals};
 use super::effects::Effect;
 use super::{Analysis, AnalyzeError, AnalyzeRequest};
 use crate::control::compensation::GravityModel;
-use crate::figure::{self, Figure};
+use crate::figure::{self, Figure, OutError};
 use crate::grid::{EffectRecord, GridFile, ModelFile, MODEL_FORMAT};
 
 /// Speed bands the residual is split into, m/s: holds, slow and fast motion.
@@ -247,7 +247,7 @@ pub(super) fn write(
     let up = file.grid.gravity_direction;
     let write = |name: &str, text: String| {
         let path = out.join(name);
-        std::fs::write(&path, text).map_err(|source| AnalyzeError::Out { path, source })
+        std::fs::write(&path, text).map_err(|source| OutError { path, source })
     };
     let (before, after) = a.errors();
     let d = &a.diagnostics;
@@ -307,18 +307,17 @@ pub(super) fn write(
 
     // The augmented model: the grid, and the effect beside it.
     let grid_path = out.join("grid.toml");
-    file.save_atomic(&grid_path)
-        .map_err(|e| AnalyzeError::Out {
-            path: grid_path.clone(),
-            source: std::io::Error::other(e.to_string()),
-        })?;
+    file.save_atomic(&grid_path).map_err(|e| OutError {
+        path: grid_path.clone(),
+        source: std::io::Error::other(e.to_string()),
+    })?;
     let model = ModelFile {
         format: MODEL_FORMAT.into(),
         grid: "grid.toml".into(),
         effect: effect_record(&a.augmented, &up),
     };
     let model_path = out.join("model.toml");
-    model.save(&model_path).map_err(|e| AnalyzeError::Out {
+    model.save(&model_path).map_err(|e| OutError {
         path: model_path.clone(),
         source: std::io::Error::other(e.to_string()),
     })?;

@@ -167,21 +167,15 @@ impl fmt::Display for TimingStats {
             self.ticks,
             1.0 / self.nominal_period
         )?;
+        let tail = |h: &Histogram| {
+            let [p50, p99, p999] = [0.5, 0.99, 0.999].map(|p| q(h, p));
+            format!("p50 {p50}  p99 {p99}  p99.9 {p999}  max {:.0}", h.max_us())
+        };
+        writeln!(f, "  period µs     {}", tail(&self.period))?;
         writeln!(
             f,
-            "  period µs     p50 {}  p99 {}  p99.9 {}  max {:.0}",
-            q(&self.period, 0.5),
-            q(&self.period, 0.99),
-            q(&self.period, 0.999),
-            self.period.max_us()
-        )?;
-        writeln!(
-            f,
-            "  lateness µs   p50 {}  p99 {}  p99.9 {}  max {:.0}  (more than a period late: {})",
-            q(&self.lateness, 0.5),
-            q(&self.lateness, 0.99),
-            q(&self.lateness, 0.999),
-            self.lateness.max_us(),
+            "  lateness µs   {}  (more than a period late: {})",
+            tail(&self.lateness),
             self.late_wakeups
         )?;
         writeln!(

@@ -24,15 +24,17 @@ use nalgebra::Vector3;
 use thiserror::Error;
 use tracing::info;
 
-pub use crate::figure::FigureError;
+pub use crate::figure::{FigureError, OutError};
 pub use probe::Reading;
 pub use report::{ModeReport, PointStats, Readings, Report, Sample};
 
-use crate::calibrate::{calibrate, CalibrateError, CalibrateRequest, CalibrationRun};
+use crate::calibrate::{
+    calibrate, device_grid, CalibrateError, CalibrateRequest, CalibrationRun, GridModelError,
+};
 use crate::config::{CompensationMode, Config, ConfigError, DeviceSpec};
 use crate::control::calibration::CalibrationEvent;
-use crate::control::compensation::{Compensation, ForceOffset, GravityModel, ModelError};
-use crate::grid::{grid_path, GridError, GridFile};
+use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
+use crate::grid::GridFile;
 use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
 use crate::sim::SimDevice;
@@ -122,29 +124,13 @@ pub enum ValidateError {
     Repetitions(usize),
     #[error("--modes names no mode, or one twice; give some of none, scalar, vector once each")]
     Modes,
-    #[error("cannot write the results in {} (--out)", path.display())]
-    Out {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Out(#[from] OutError),
     /// The device cannot be opened (the error names it).
     #[error(transparent)]
     Open(TransportError),
-    #[error(
-        "no calibration grid for {device} at {}: calibrate it first (`hgcd calibrate --device \
-         {device}`) or pass --grid FILE",
-        path.display()
-    )]
-    NoGrid { device: String, path: PathBuf },
     #[error(transparent)]
-    Grid(GridError),
-    #[error("grid {}: {source}", path.display())]
-    Model {
-        path: PathBuf,
-        #[source]
-        source: ModelError,
-    },
+    Grid(#[from] GridModelError),
     #[error(
         "contact point ({:.1}, {:.1}, {:.1}) mm lies outside the grid {} or outside \
          device.workspace_*_mm: lower validation.point_spacing_mm or calibrate a larger grid",
@@ -235,7 +221,7 @@ pub struct Validation {
 pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, ValidateError> {
     config.validate()?;
     check_request(request)?;
-    check_out(&request.out)?;
+    crate::figure::check_out_dir(&request.out, "validate")?;
     let mut request = request.clone();
     let simulated = matches!(request.device, DeviceSpec::Sim { .. });
     // On a simulated device the probe mass is part of the plant; on hardware the user attaches it.
@@ -250,23 +236,10 @@ pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, V
     // What the device says about itself stands in for the workspace keys the config omits.
     let config = &config.for_device(device.info.as_ref());
     let grid = match &request.grid {
-        Some(path) => {
-            let file = GridFile::load_for(path, &device).map_err(ValidateError::Grid)?;
-            GridSource::File(Box::new(file), path.clone())
-        }
         None if simulated => GridSource::Calibrate(request.out.join("grid.toml")),
-        None => {
-            let path = grid_path(&config.state_dir(), &device.grid_id());
-            match GridFile::load_for(&path, &device) {
-                Ok(file) => GridSource::File(Box::new(file), path),
-                Err(GridError::Missing { .. }) => {
-                    return Err(ValidateError::NoGrid {
-                        device: request.device.to_string(),
-                        path,
-                    })
-                }
-                Err(e) => return Err(ValidateError::Grid(e)),
-            }
+        given => {
+            let (file, path) = device_grid(given.as_deref(), &config.state_dir(), &device)?;
+            GridSource::File(Box::new(file), path)
         }
     };
     if let GridSource::File(file, path) = &grid {
@@ -329,18 +302,6 @@ fn check_request(r: &ValidateRequest) -> Result<(), ValidateError> {
     Ok(())
 }
 
-/// Create `out` if needed and check a file can be written there.
-fn check_out(out: &Path) -> Result<(), ValidateError> {
-    let err = |source| ValidateError::Out {
-        path: out.to_path_buf(),
-        source,
-    };
-    std::fs::create_dir_all(out).map_err(err)?;
-    let probe = out.join(".hgcd-validate-write-check");
-    std::fs::write(&probe, b"").map_err(err)?;
-    std::fs::remove_file(&probe).map_err(err)
-}
-
 /// What the experiment needs from a grid.
 struct Setup {
     plan: ContactPlan,
@@ -379,17 +340,7 @@ fn experiment_setup(
             });
         }
     }
-    let params = ProbeParams {
-        stiffness: request.stiffness,
-        surface_damping: v.surface_damping_n_s_per_m,
-        hold_stiffness: v.hold_stiffness(),
-        lift: v.lift(),
-        drop: v.drop(),
-        steady_samples: v.n_s,
-        steady_radius: v.eps_s(),
-        settle_timeout: v.settle_timeout_s,
-        max_force: config.safety.max_force_n,
-    };
+    let params = ProbeParams::configured(config, request.stiffness);
     let models = request
         .modes
         .iter()
@@ -397,10 +348,7 @@ fn experiment_setup(
             None => Ok(None),
             Some(m) => GravityModel::new(file.clone(), m, config.compensation.outside_grid)
                 .map(|model| Some(Box::new(model)))
-                .map_err(|source| ValidateError::Model {
-                    path: path.to_path_buf(),
-                    source,
-                }),
+                .map_err(GridModelError::model(path)),
         })
         .collect::<Result<Vec<_>, _>>()?;
     Ok(Setup {

@@ -21,6 +21,7 @@
 
 use nalgebra::Vector3;
 
+use crate::config::Config;
 use crate::control::calibration::steady::SteadyState;
 use crate::control::DeviceState;
 
@@ -62,6 +63,25 @@ pub struct ProbeParams {
     pub settle_timeout: f64,
     /// Largest force per axis an application may ask for, N.
     pub max_force: f64,
+}
+
+impl ProbeParams {
+    /// The parameters `config` gives (`validation.*`, `safety.max_force_n`) for a surface of
+    /// stiffness `stiffness`, N/m.
+    pub fn configured(config: &Config, stiffness: f64) -> Self {
+        let v = &config.validation;
+        Self {
+            stiffness,
+            surface_damping: v.surface_damping_n_s_per_m,
+            hold_stiffness: v.hold_stiffness(),
+            lift: v.lift(),
+            drop: v.drop(),
+            steady_samples: v.n_s,
+            steady_radius: v.eps_s(),
+            settle_timeout: v.settle_timeout_s,
+            max_force: config.safety.max_force_n,
+        }
+    }
 }
 
 /// Where and how often: the contact points (in their numbered order), the order they are visited
@@ -494,18 +514,9 @@ mod tests {
         }
     }
 
+    /// The defaults, on a surface of 1 N/mm.
     fn params() -> ProbeParams {
-        ProbeParams {
-            stiffness: 1000.0,
-            surface_damping: 10.0,
-            hold_stiffness: 1000.0,
-            lift: 0.005,
-            drop: 0.001,
-            steady_samples: 50,
-            steady_radius: 5e-5,
-            settle_timeout: 5.0,
-            max_force: 8.0,
-        }
+        ProbeParams::configured(&Config::default(), 1000.0)
     }
 
     /// A point mass m under gravity g along −z, pushed by the probe's force one tick late (as a

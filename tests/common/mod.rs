@@ -83,6 +83,16 @@ pub fn hgcd() -> Command {
     c
 }
 
+/// `hgcd` arguments for a short run: half a second of virtual time on the simulated point mass.
+pub const BRIEF_RUN: [&str; 6] = [
+    "run",
+    "--device",
+    "sim:point-mass",
+    "--virtual-time",
+    "--duration",
+    "0.5",
+];
+
 /// The stdout of a command that must have succeeded (its stderr fails the test otherwise).
 pub fn succeeded(out: &Output) -> String {
     assert!(
@@ -98,6 +108,16 @@ pub fn failed(out: &Output) -> String {
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(!out.status.success(), "{stderr}");
     stderr
+}
+
+/// The distance in mm an example printed as `<distance> mm at <at>` (the two-handle examples:
+/// "at the start", "at the end").
+pub fn distance_mm(stdout: &str, at: &str) -> f64 {
+    let before = stdout
+        .split(&format!(" mm at {at}"))
+        .next()
+        .unwrap_or_else(|| panic!("no distance at {at}: {stdout}"));
+    before.rsplit(' ').next().unwrap().parse().unwrap()
 }
 
 /// Run `command` to its end with its output captured; one still going after `limit` is killed
