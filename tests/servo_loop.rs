@@ -16,7 +16,7 @@ use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions, ServoReport};
 use hgcd::sim::SimDevice;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
-use hgcd::transport::{Pacing, Transport};
+use hgcd::transport::{Pacing, Speaks, Transport};
 
 mod common;
 use common::tap::{Fault, Tap};
@@ -381,7 +381,7 @@ fn socket_transport_carries_the_same_protocol() {
     let mut config = Config::default();
     config.sim.start_position_mm = [0.0, 0.0, 5.0];
     let (server_stop, server) = serve_one_host(&path, &config);
-    let mut transport = SocketTransport::connect(&path).unwrap();
+    let mut transport = SocketTransport::connect(&path, Speaks::default()).unwrap();
     let hold = pd_hold();
     let set_point = hold.set_point;
     let stop = AtomicBool::new(false);
