@@ -300,7 +300,7 @@ fn a_device_behind_the_socket_transport() {
     let config = config();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("device.sock");
-    let (stop_device, device) = serve_one_host(&path, &config);
+    let (stop_device, device) = serve_one_host(&path, &config, "point-mass");
     let (mut tap, seen) = counting(SocketTransport::connect(&path, Speaks::default()).unwrap());
     let mut options = ServoOptions::from_config(&config);
     options.watchdog = 5.0; // wall clock in lock-step: generous on a loaded machine

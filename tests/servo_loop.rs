@@ -11,6 +11,7 @@ use hgcd::config::Config;
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
 use hgcd::grid::GridFile;
+use hgcd::profile::Profile;
 use hgcd::protocol::OutputReport;
 use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions, ServoReport};
 use hgcd::sim::SimDevice;
@@ -380,7 +381,7 @@ fn socket_transport_carries_the_same_protocol() {
     let path = dir.path().join("device.sock");
     let mut config = Config::default();
     config.sim.start_position_mm = [0.0, 0.0, 5.0];
-    let (server_stop, server) = serve_one_host(&path, &config);
+    let (server_stop, server) = serve_one_host(&path, &config, "point-mass");
     let mut transport = SocketTransport::connect(&path, Speaks::default()).unwrap();
     let hold = pd_hold();
     let set_point = hold.set_point;
@@ -397,5 +398,43 @@ fn socket_transport_carries_the_same_protocol() {
     server_stop.store(true, Ordering::SeqCst);
     let device = server.join().unwrap();
     assert_eq!(device.last_output().unwrap().force, Vector3::zeros());
+    assert_eq!(device.rejected_outputs(), 0);
+}
+
+/// The socket carries a joint-space profile's raw reports (`docs/devices.md`): a host that speaks
+/// the WoodenHaptics profile drives `sim:woodenhaptics` over it, reading positions through the
+/// arm's kinematics to within the encoders' step of the plant's own, and writing currents.
+#[test]
+fn socket_transport_carries_a_joint_space_profile() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("device.sock");
+    let config = Config::default();
+    let (server_stop, server) = serve_one_host(&path, &config, "woodenhaptics");
+    let profile = Profile::built_in("woodenhaptics_v2015").unwrap();
+    let speaks = Speaks::profile(&profile, config.servo.rate_hz);
+    let mut transport = SocketTransport::connect(&path, speaks).unwrap();
+    // It has no device-info report: its profile speaks for it (and nothing waited for one).
+    let info = transport.device_info().unwrap();
+    assert_eq!(info.model, "woodenhaptics_v2015");
+    assert_eq!(info.workspace_half_extents, Vector3::repeat(0.1));
+    let stop = AtomicBool::new(false);
+    let mut c = Ticks(pd_hold(), 500);
+    let mut o = ServoOptions::from_config(&config);
+    o.watchdog = 1.0; // wall-clock watchdog: generous on a loaded CI machine
+    let report = servo::run(&mut transport, &mut c, &o, &stop, None).unwrap();
+    assert_eq!(report.exit, ExitReason::ControllerDone);
+    assert_eq!(report.stats.garbled, 0);
+    let last = report.last_state.unwrap();
+    drop(transport);
+    server_stop.store(true, Ordering::SeqCst);
+    let device = server.join().unwrap();
+    // One count of the coarsest joint is 0.26 mrad: under 0.1 mm at the handle.
+    let truth = device.plant().position();
+    assert!(
+        (last.position - truth).norm() < 1e-4,
+        "{last:?} vs {truth:?}"
+    );
+    // The hold moved the handle off its start, towards the set point 5 mm up.
+    assert!(truth.z > 1e-3, "{truth:?}");
     assert_eq!(device.rejected_outputs(), 0);
 }

@@ -345,27 +345,29 @@ impl Profile {
         Self::parse(&text, &path.display().to_string())
     }
 
-    /// The profile for the device `spec`: the configured one (`device.profile`, which
-    /// `--profile` sets), else the first profile claiming a HID device's USB IDs (the user's,
-    /// by name, then the built-in ones), `woodenhaptics_v2015` for `sim:woodenhaptics`, and
-    /// [`CARTESIAN_V1`] for anything else.
+    /// The profile for the device `spec`: [`CARTESIAN_V1`] for the simulated v1 devices
+    /// (`sim:point-mass`, `sim:phantom`, `sim:delta`); else the configured one
+    /// (`device.profile`, which `--profile` sets); else the first profile claiming a HID
+    /// device's USB IDs (the user's, by name, then the built-in ones), `woodenhaptics_v2015`
+    /// for `sim:woodenhaptics`, and [`CARTESIAN_V1`] for anything else.
     ///
     /// # Errors
     /// Those of [`Profile::load`].
     pub fn for_device(spec: &DeviceSpec, config: &Config) -> Result<Self, ProfileError> {
         let dir = config.profile_dir();
-        if !config.device.profile.is_empty() {
-            return Self::load(&config.device.profile, &dir);
-        }
+        let configured = !config.device.profile.is_empty();
         match spec {
+            // The other simulated devices' firmware speaks protocol v1, whatever is configured.
+            DeviceSpec::Sim { model } if model != crate::config::SIM_WOODENHAPTICS => {
+                Ok(Self::cartesian())
+            }
+            _ if configured => Self::load(&config.device.profile, &dir),
             DeviceSpec::Hid { vid, pid, .. } => Ok(Self::all(&dir)?
                 .into_iter()
                 .find(|p| p.usb_ids.contains(&(*vid, *pid)))
                 .unwrap_or_else(Self::cartesian)),
-            DeviceSpec::Sim { model } if model == crate::config::SIM_WOODENHAPTICS => {
-                Ok(Self::built_in(SIM_PROFILE).expect("built in"))
-            }
-            _ => Ok(Self::cartesian()),
+            DeviceSpec::Sim { .. } => Ok(Self::built_in(SIM_PROFILE).expect("built in")),
+            DeviceSpec::Socket { .. } => Ok(Self::cartesian()),
         }
     }
 
@@ -644,6 +646,7 @@ mod tests {
         assert_eq!(name(&hid(0x1234, 6), &config), "my-polhem");
         config.device.profile = "polhem_v1".into();
         assert_eq!(name(&hid(0x1234, 6), &config), "polhem_v1");
+        assert_eq!(name(&"sim:delta".parse().unwrap(), &config), CARTESIAN_V1);
         config.device.profile = "nope".into();
         let err = Profile::for_device(&hid(0x1234, 6), &config).unwrap_err();
         assert!(
