@@ -438,3 +438,48 @@ fn socket_transport_carries_a_joint_space_profile() {
     assert!(truth.z > 1e-3, "{truth:?}");
     assert_eq!(device.rejected_outputs(), 0);
 }
+
+/// Remembers every state it is given; renders nothing.
+struct Seen(Vec<DeviceState>);
+
+impl Controller for Seen {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        self.0.push(*s);
+        ControlOutput::force(Vector3::zeros())
+    }
+}
+
+/// A WoodenHaptics powered on away from where its counters say (they start at 0 wherever the arm
+/// is) with its calibration switch pressed at the calibration pose: the loop sees a device fault
+/// until the host has answered with the set-encoders command, then positions the plant confirms.
+#[test]
+fn a_joint_space_device_asking_for_calibration_is_a_fault_until_the_host_homes_its_counters() {
+    use hgcd::protocol::Status;
+    let mut config = Config::default();
+    // The calibration pose of woodenhaptics_v2015: base and upper arm at 0, forearm horizontal.
+    config.sim.start_position_mm = [25.0, 0.0, 205.0];
+    let mut device = SimDevice::from_config("woodenhaptics", &config).unwrap();
+    device
+        .joint_firmware()
+        .unwrap()
+        .press_calibration_switch([123, -456, 789]);
+    let mut transport = SimTransport::new(device, Pacing::Virtual);
+    let mut seen = Seen(Vec::new());
+    let mut o = ServoOptions::from_config(&config);
+    o.duration = Some(0.005);
+    servo::run(&mut transport, &mut seen, &o, &AtomicBool::new(false), None).unwrap();
+    let states = seen.0;
+    assert!(states[0].status.contains(Status::FAULT));
+    assert!((states[0].position - Vector3::new(0.025, 0.0, 0.205)).norm() > 0.01);
+    let after = &states[1..];
+    assert!(after.iter().all(|s| !s.status.contains(Status::FAULT)));
+    // The jump from relative to homed counts (tens of mm in a period) is no velocity: the
+    // estimator restarted; what is left is the arm starting to fall.
+    assert!(after.iter().all(|s| s.velocity.norm() < 0.5), "{after:?}");
+    let truth = transport.device().plant().position();
+    let last = states.last().unwrap();
+    assert!(
+        (last.position - truth).norm() < 1e-4,
+        "{last:?} vs {truth:?}"
+    );
+}

@@ -318,6 +318,9 @@ impl ServoCore {
             let event = if faulted {
                 ServoEvent::DeviceFault
             } else {
+                // What the device reported during the fault may not continue into what it
+                // reports now (a joint-space device's counters homed): the filter restarts.
+                self.resync = true;
                 ServoEvent::DeviceFaultCleared
             };
             emit(events, event);
