@@ -187,25 +187,25 @@ fn the_woodenhaptics_arm_through_its_joint_space_protocol_with_a_pd_hold() {
     quiet_pd_hold_on("woodenhaptics", None);
 }
 
-#[test]
-fn a_calibration_on_the_woodenhaptics_arm_through_its_joint_space_protocol() {
-    let config = config();
-    let (mut tap, seen) = counting_sim("woodenhaptics", &config);
+/// A whole calibration on `sim:MODEL` of `config` allocates nothing per tick.
+fn quiet_calibration_on(model: &str, config: &Config) {
+    let (mut tap, seen) = counting_sim(model, config);
     let (tx, _rx) = crossbeam_channel::bounded(4096);
     let mut calibration =
-        Calibration::new(CalibrationParams::from_config(&config), Some(tx)).unwrap();
-    let mut options = ServoOptions::from_config(&config);
+        Calibration::new(CalibrationParams::from_config(config), Some(tx)).unwrap();
+    let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
     run(&mut tap, &mut calibration, &options, None);
     assert!(
         matches!(calibration.outcome(), Some(Ok(_))),
         "the calibration completes"
     );
-    assert_quiet(
-        "calibration through the joint-space protocol",
-        &seen,
-        10_000,
-    );
+    assert_quiet(&format!("calibration on sim:{model}"), &seen, 10_000);
+}
+
+#[test]
+fn a_calibration_on_the_woodenhaptics_arm_through_its_joint_space_protocol() {
+    quiet_calibration_on("woodenhaptics", &config());
 }
 
 #[test]
@@ -213,18 +213,7 @@ fn a_calibration_on_a_simulated_device() {
     let dir = tempfile::tempdir().unwrap();
     let mut config = config_with_truth(dir.path());
     config.sim.damping_n_s_per_m = 1.0;
-    let (mut tap, seen) = counting_sim("point-mass", &config);
-    let (tx, _rx) = crossbeam_channel::bounded(4096);
-    let mut calibration =
-        Calibration::new(CalibrationParams::from_config(&config), Some(tx)).unwrap();
-    let mut options = ServoOptions::from_config(&config);
-    options.stop_on_fault = true;
-    run(&mut tap, &mut calibration, &options, None);
-    assert!(
-        matches!(calibration.outcome(), Some(Ok(_))),
-        "the calibration completes"
-    );
-    assert_quiet("calibration", &seen, 10_000);
+    quiet_calibration_on("point-mass", &config);
 }
 
 /// The scalar model of the truth field the tests' devices carry.

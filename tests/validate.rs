@@ -66,8 +66,9 @@ fn truth_penalty(truth: &MassGrid, p: &Vector3<f64>) -> f64 {
 }
 
 /// The issue's targets for a compensated run, from `reading`: the mean within 5 % of the ideal
-/// m_p g / k, every contact point within 10 %. The worst point's error, for reports.
-fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading) -> f64 {
+/// m_p g / k, every contact point within `point` (10 % on devices whose resolution allows it).
+/// The worst point's error, for reports.
+fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading, point: f64) -> f64 {
     let r = m.of(reading);
     let ideal = report.ideal;
     let name = format!("{case}, {} from {}", m.mode.name(), reading.name());
@@ -82,7 +83,7 @@ fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading) -
     for (n, s) in r.points.iter().enumerate() {
         let error = (s.mean / ideal - 1.0).abs();
         assert!(
-            error < 0.10,
+            error < point,
             "{name}, point {}: {:.4} mm, ideal {:.4} mm",
             n + 1,
             s.mean * 1e3,
@@ -91,6 +92,39 @@ fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading) -
         worst = worst.max(error);
     }
     worst
+}
+
+/// Uncompensated (`none`), every point's penalty is within 10 % of what the linkage `sim:MODEL`
+/// of `config` gives: the surface carries the probe and the handle's own gravity force F_g (the
+/// plant's analytic holding force at P) along up, d = (F_g·up + m_p g) / k, and the horizontal
+/// hold its part across, l = |F_g across| / k_h: ΔX = √(d² + l²).
+fn assert_uncompensated_follows_the_plant(
+    case: &str,
+    report: &Report,
+    none: &ModeReport,
+    model: &str,
+    config: &Config,
+) {
+    let hold = config.validation.hold_stiffness();
+    for (n, s) in none.two_sided.points.iter().enumerate() {
+        let mut at = config.clone();
+        at.sim.start_position_mm = (report.points[n] * 1e3).into();
+        let force = SimDevice::from_config(model, &at)
+            .unwrap()
+            .plant()
+            .holding_force();
+        let along = force.dot(&report.up);
+        let depth = (along + PROBE * 9.81) / STIFFNESS;
+        let lateral = (force - report.up * along).norm() / hold;
+        let expected = depth.hypot(lateral);
+        assert!(
+            (s.mean / expected - 1.0).abs() < 0.10,
+            "{case}, none, point {}: {:.4} mm, plant {:.4} mm",
+            n + 1,
+            s.mean * 1e3,
+            expected * 1e3
+        );
+    }
 }
 
 #[test]
@@ -127,7 +161,7 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
         } else {
             // Without friction both sides find the same rest, and the paper's reading is exact.
             for reading in Reading::ALL {
-                assert_ideal("point mass", report, m, reading);
+                assert_ideal("point mass", report, m, reading, 0.10);
             }
         }
     }
@@ -197,7 +231,7 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
 
         let vector = mode(Mode::Vector);
-        let worst = assert_ideal(&case, report, vector, Reading::TwoSided);
+        let worst = assert_ideal(&case, report, vector, Reading::TwoSided, 0.10);
         // The paper's reading from above stops short by the friction over k, several percent.
         assert!(
             vector.above.mean < 0.95 * report.ideal,
@@ -205,30 +239,8 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
             vector.above.mean * 1e3
         );
 
-        // Uncompensated: the surface carries the probe and the handle's own gravity force
-        // F_g (the plant's analytic holding force at P) along up, d = (F_g·up + m_p g) / k, and
-        // the horizontal hold its part across, l = |F_g across| / k_h: ΔX = √(d² + l²).
         let none = mode(Mode::None);
-        let hold = config.validation.hold_stiffness();
-        for (n, s) in none.two_sided.points.iter().enumerate() {
-            let mut at = config.clone();
-            at.sim.start_position_mm = (report.points[n] * 1e3).into();
-            let force = SimDevice::from_config(model, &at)
-                .unwrap()
-                .plant()
-                .holding_force();
-            let along = force.dot(&report.up);
-            let depth = (along + PROBE * 9.81) / STIFFNESS;
-            let lateral = (force - report.up * along).norm() / hold;
-            let expected = depth.hypot(lateral);
-            assert!(
-                (s.mean / expected - 1.0).abs() < 0.10,
-                "{case}, none, point {}: {:.4} mm, plant {:.4} mm",
-                n + 1,
-                s.mean * 1e3,
-                expected * 1e3
-            );
-        }
+        assert_uncompensated_follows_the_plant(&case, report, none, model, &config);
         println!(
             "{case}: vector two-sided mean {:+.1} %, worst point {:.1} %; from above {:+.1} %; \
              scalar {:+.1} %; none {:.3}–{:.3} mm",
@@ -274,47 +286,10 @@ fn on_the_woodenhaptics_arm_through_its_joint_space_protocol_compensation_leaves
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
         let mut worst: f64 = 0.0;
         for m in [mode(Mode::Vector), mode(Mode::Scalar)] {
-            let r = &m.two_sided;
-            assert_eq!(r.unsettled, 0, "{case}");
-            assert!(
-                (r.mean / report.ideal - 1.0).abs() < 0.05,
-                "{case}, {}: mean {:.4} mm, ideal {:.4} mm",
-                m.mode.name(),
-                r.mean * 1e3,
-                report.ideal * 1e3
-            );
-            for (n, p) in r.points.iter().enumerate() {
-                let error = (p.mean / report.ideal - 1.0).abs();
-                assert!(
-                    error < 0.15,
-                    "{case}, {}, point {}: {error}",
-                    m.mode.name(),
-                    n + 1
-                );
-                worst = worst.max(error);
-            }
+            worst = worst.max(assert_ideal(&case, report, m, Reading::TwoSided, 0.15));
         }
         let none = mode(Mode::None);
-        let hold = config.validation.hold_stiffness();
-        for (n, s) in none.two_sided.points.iter().enumerate() {
-            let mut at = config.clone();
-            at.sim.start_position_mm = (report.points[n] * 1e3).into();
-            let force = SimDevice::from_config("woodenhaptics", &at)
-                .unwrap()
-                .plant()
-                .holding_force();
-            let along = force.dot(&report.up);
-            let depth = (along + PROBE * 9.81) / STIFFNESS;
-            let lateral = (force - report.up * along).norm() / hold;
-            let expected = depth.hypot(lateral);
-            assert!(
-                (s.mean / expected - 1.0).abs() < 0.10,
-                "{case}, none, point {}: {:.4} mm, plant {:.4} mm",
-                n + 1,
-                s.mean * 1e3,
-                expected * 1e3
-            );
-        }
+        assert_uncompensated_follows_the_plant(&case, report, none, "woodenhaptics", &config);
         println!(
             "{case}: vector mean {:+.1} %, scalar mean {:+.1} %, worst point {:.1} %",
             (mode(Mode::Vector).two_sided.mean / report.ideal - 1.0) * 1e2,

@@ -12,10 +12,11 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-/// A point of the arm at (q, q̇): where it is, ∂x/∂q, and the part of its acceleration that does
-/// not come from q̈ (J̇ q̇).
+/// Kinematics of one point of a mechanism at (q, q̇): where it is, ∂x/∂q, and the part of its
+/// acceleration that does not come from q̈ (ẍ = J q̈ + bias, bias = J̇ q̇). The simulated
+/// linkages (`sim::linkage`) describe their points with it too.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct ArmPoint {
+pub struct Point {
     pub position: Vector3<f64>,
     pub jacobian: Matrix3<f64>,
     pub bias: Vector3<f64>,
@@ -82,7 +83,7 @@ impl ArmModel {
 
     /// The point `upper` along body b from the shoulder and then `fore` along body c's direction
     /// (from elbow to handle), at joint angles `q` moving at `qd`, in the device frame.
-    pub fn point(&self, q: &Vector3<f64>, qd: &Vector3<f64>, upper: f64, fore: f64) -> ArmPoint {
+    pub fn point(&self, q: &Vector3<f64>, qd: &Vector3<f64>, upper: f64, fore: f64) -> Point {
         let (sa, ca) = q[0].sin_cos();
         let (sb, cb) = q[1].sin_cos();
         let (sc, cc) = q[2].sin_cos();
@@ -94,7 +95,7 @@ impl ArmModel {
         let r_bias = -upper * sb * qd[1] * qd[1] - fore * sc * qd[2] * qd[2];
         let h_bias = -upper * cb * qd[1] * qd[1] + fore * cc * qd[2] * qd[2];
         let wa = qd[0];
-        ArmPoint {
+        Point {
             position: Vector3::new(ca * r, sa * r, h) - self.origin,
             jacobian: Matrix3::new(
                 -sa * r,
@@ -116,7 +117,7 @@ impl ArmModel {
     }
 
     /// The handle at joint angles `q` (at rest: no bias).
-    pub fn handle(&self, q: &Vector3<f64>) -> ArmPoint {
+    pub fn handle(&self, q: &Vector3<f64>) -> Point {
         self.point(q, &Vector3::zeros(), self.lengths[1], self.lengths[2])
     }
 

@@ -16,14 +16,7 @@ use rand_chacha::ChaCha8Rng;
 use super::Plant;
 use crate::config::SimConfig;
 
-/// Kinematics of one point of a mechanism at (q, q̇): where it is, ∂x/∂q, and the part of its
-/// acceleration that does not come from q̈ (ẍ = J q̈ + bias, bias = J̇ q̇).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Point {
-    pub position: Vector3<f64>,
-    pub jacobian: Matrix3<f64>,
-    pub bias: Vector3<f64>,
-}
+pub use crate::profile::kinematics::Point;
 
 /// The geometry and masses of a mechanism (kinematics only: no friction, motors or sensors).
 /// Positions are in the device frame, m, with the handle at the origin at q = 0.

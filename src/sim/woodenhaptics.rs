@@ -11,7 +11,6 @@ use nalgebra::{Matrix3, Vector3};
 use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use super::{Encoder, Plant};
 use crate::config::SimConfig;
-use crate::profile::kinematics::ArmPoint;
 use crate::profile::woodenhaptics::{
     CurrentReport, EncoderReport, COMMAND_SET_ENCODERS, FIRMWARE_WATCHDOG, REPORT_LEN,
 };
@@ -62,18 +61,10 @@ impl WoodenArm {
     }
 }
 
-fn point(p: ArmPoint) -> Point {
-    Point {
-        position: p.position,
-        jacobian: p.jacobian,
-        bias: p.bias,
-    }
-}
-
 impl Mechanism for WoodenArm {
     fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point {
         let l = self.model.lengths;
-        point(self.model.point(q, qd, l[1], l[2]))
+        self.model.point(q, qd, l[1], l[2])
     }
 
     fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
@@ -87,16 +78,13 @@ impl Mechanism for WoodenArm {
         _handle: &Point,
         visit: &mut dyn FnMut(f64, &Point),
     ) {
-        visit(
-            self.masses[0],
-            &point(self.model.point(q, qd, self.centres[0], 0.0)),
-        );
+        // The upper arm's along body b from the shoulder, the forearm's along body c from the
+        // elbow.
+        let [b, c] = self.centres;
+        visit(self.masses[0], &self.model.point(q, qd, b, 0.0));
         visit(
             self.masses[1],
-            &point(
-                self.model
-                    .point(q, qd, self.model.lengths[1], self.centres[1]),
-            ),
+            &self.model.point(q, qd, self.model.lengths[1], c),
         );
     }
 
