@@ -266,18 +266,18 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
 
 /// The Must show on a joint-space device: calibration and the experiment run on
 /// `sim:woodenhaptics` through the WoodenHaptics protocol (encoder counts in, motor currents out,
-/// the host's kinematics between), with the validation config that ships for it, two units. With
+/// the host's kinematics between), with the validation configs that ship for two units. With
 /// compensation the mean penalty is within 5 % of m_p g / k; every point within the step of its
 /// encoders (65 µm at the handle, 22 % of the ideal 0.294 mm: 15 % is asked); without
 /// compensation each point follows the plant's own gravity force.
 #[test]
 fn on_the_woodenhaptics_arm_through_its_joint_space_protocol_compensation_leaves_only_the_probe() {
-    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/validate-woodenhaptics.toml");
-    for seed in [1, 2] {
-        let case = format!("sim:woodenhaptics unit {seed}");
+    for unit in [1, 2] {
+        let case = format!("sim:woodenhaptics unit {unit}");
         let dir = tempfile::tempdir().unwrap();
-        let mut config = Config::load(&shipped).unwrap();
-        config.sim.unit_seed = seed;
+        let shipped = format!("config/validate-woodenhaptics-unit-{unit}.toml");
+        let config = Config::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(shipped)).unwrap();
+        assert_eq!(config.sim.unit_seed, unit);
         // It speaks the joint-space protocol, not v1.
         let device = SimDevice::from_config("woodenhaptics", &config).unwrap();
         assert_eq!(device.profile().wire, Wire::WoodenHaptics);

@@ -371,7 +371,8 @@ impl Profile {
         }
     }
 
-    /// The user's profiles in `dir` (by file name), then the built-in ones.
+    /// The user's profiles in `dir` (by file name), then the built-in ones; a user's profile
+    /// with a built-in one's name (an edited copy) takes that one's place.
     ///
     /// # Errors
     /// Those of [`Profile::load`] for a user's profile that does not load.
@@ -385,11 +386,16 @@ impl Profile {
             })
             .unwrap_or_default();
         names.sort();
-        let mut all = names
-            .iter()
-            .map(|p| Self::load(&p.display().to_string(), dir))
-            .collect::<Result<Vec<_>, _>>()?;
-        all.extend(Self::built_ins());
+        let mut built_ins = Self::built_ins();
+        let mut all = Vec::new();
+        for path in &names {
+            let profile = Self::load(&path.display().to_string(), dir)?;
+            match built_ins.iter_mut().find(|b| b.name == profile.name) {
+                Some(built_in) => *built_in = profile,
+                None => all.push(profile),
+            }
+        }
+        all.extend(built_ins);
         Ok(all)
     }
 
@@ -644,6 +650,16 @@ mod tests {
             .replace("name = \"polhem_v1\"", "name = \"my-polhem\"");
         std::fs::write(dir.path().join("my-polhem.toml"), mine).unwrap();
         assert_eq!(name(&hid(0x1234, 6), &config), "my-polhem");
+        // Copies of the built-in profiles (the repository's config/profiles) change no order.
+        let copies = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/profiles");
+        config.paths.profile_dir = Some(copies);
+        assert_eq!(name(&hid(0x1234, 6), &config), "woodenhaptics_v2015");
+        assert_eq!(
+            Profile::all(config.paths.profile_dir.as_ref().unwrap())
+                .unwrap()
+                .len(),
+            3
+        );
         config.device.profile = "polhem_v1".into();
         assert_eq!(name(&hid(0x1234, 6), &config), "polhem_v1");
         assert_eq!(name(&"sim:delta".parse().unwrap(), &config), CARTESIAN_V1);
