@@ -177,6 +177,8 @@ mod tests {
     }
 
     proptest! {
+        #![proptest_config(crate::protocol::fuzz::config())]
+
         #[test]
         fn every_fourteen_bytes_decode_and_encode_back_exactly(bytes in prop::array::uniform14(any::<u8>())) {
             let mut out = [0; REPORT_LEN];
