@@ -197,6 +197,33 @@ mod tests {
     }
 
     #[test]
+    fn forward_then_inverse_kinematics_returns_the_joint_angles_over_the_workspace() {
+        // Joint angles on a lattice; those that put the handle inside the workspace sphere.
+        for (name, arm) in arms() {
+            let mut inside = 0;
+            for n in 0..9261 {
+                let s = Vector3::new((n % 21) as f64, ((n / 21) % 21) as f64, (n / 441) as f64);
+                let q =
+                    Vector3::new(-1.0, -0.6, -0.4) + s.component_mul(&Vector3::new(0.1, 0.1, 0.1));
+                let x = arm.handle(&q).position;
+                if x.norm() > arm.workspace_radius {
+                    continue;
+                }
+                inside += 1;
+                let back = arm.joints_at(&x).unwrap_or_else(|| panic!("{name}: {q:?}"));
+                assert!(
+                    (back - q).norm() < 1e-9,
+                    "{name}: {q:?} -> {x:?} -> {back:?}"
+                );
+            }
+            assert!(
+                inside > 100,
+                "{name}: {inside} lattice points in the workspace"
+            );
+        }
+    }
+
+    #[test]
     fn counts_round_trip_through_angles_to_the_resolution() {
         for (name, arm) in arms() {
             for x in workspace(&arm) {
