@@ -556,7 +556,7 @@ impl JointCodec {
 
     /// The currents, mA, that render `force` at the last position read, each clamped to the
     /// amplifier's full scale.
-    pub fn milliamps(&self, force: &Vector3<f64>) -> [i16; 3] {
+    fn milliamps(&self, force: &Vector3<f64>) -> [i16; 3] {
         let limit = self.arm.max_current * 1e3;
         let amps = self.arm.currents(&self.angles, force) * 1e3;
         amps.map(|ma| {

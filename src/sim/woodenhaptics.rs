@@ -168,26 +168,11 @@ impl JointFirmware {
         &self.arm
     }
 
-    /// The arm's linkage (joint angles for tests).
-    pub fn arm(&self) -> &Linkage<WoodenArm> {
-        &self.arm
-    }
-
     /// The counters stop reading absolute counts (power-on anywhere but at the calibration
     /// pose) and the calibration switch is pressed.
     pub fn press_calibration_switch(&mut self, offset: [i32; 3]) {
         self.offset = offset;
         self.switch = true;
-    }
-
-    /// The currents being rendered, A.
-    pub fn currents(&self) -> Vector3<f64> {
-        self.currents
-    }
-
-    /// Whether the amplifiers are enabled.
-    pub fn enabled(&self) -> bool {
-        self.enabled
     }
 
     /// The counters' true reading (the arm's joints in counts, with the measurement noise).
@@ -309,7 +294,7 @@ mod tests {
         let mut bytes = [0; REPORT_LEN];
         fw.input_report(&mut bytes);
         let homed = EncoderReport::decode(&bytes).unwrap();
-        let q = fw.arm().joints();
+        let q = fw.arm.joints();
         let expected = model.counts(&q).map(f64::round);
         assert_eq!(homed.counts[2], expected[2] as i16);
         assert_eq!(homed.info, 0);
@@ -317,7 +302,7 @@ mod tests {
         let mut out = [0; REPORT_LEN];
         CurrentReport::currents([9000, -100, 0]).encode(&mut out);
         fw.receive_output(&out).unwrap();
-        assert_eq!(fw.currents(), Vector3::new(6.0, -0.1, 0.0));
+        assert_eq!(fw.currents, Vector3::new(6.0, -0.1, 0.0));
         // Power-on elsewhere: the switch asks, the host's command sets the counters.
         fw.press_calibration_switch([100, -200, 300]);
         fw.input_report(&mut bytes);
@@ -326,21 +311,21 @@ mod tests {
         assert_eq!(asked.counts[0], homed.counts[0] + 100);
         CurrentReport::set_encoders([1, 2, 3]).encode(&mut out);
         fw.receive_output(&out).unwrap();
-        assert_eq!(fw.currents(), Vector3::zeros());
+        assert_eq!(fw.currents, Vector3::zeros());
         fw.input_report(&mut bytes);
         let set = EncoderReport::decode(&bytes).unwrap();
         assert_eq!((set.counts[..3].to_vec(), set.info), (vec![1, 2, 3], 0));
         // Silence for longer than the watchdog: the amplifiers are off.
         CurrentReport::currents([500, 500, 500]).encode(&mut out);
         fw.receive_output(&out).unwrap();
-        assert!(fw.enabled());
+        assert!(fw.enabled);
         for _ in 0..499 {
             fw.advance(1e-3, 1);
         }
-        assert!(fw.enabled());
+        assert!(fw.enabled);
         fw.advance(2e-3, 1);
-        assert!(!fw.enabled());
-        assert_eq!(fw.currents(), Vector3::zeros());
+        assert!(!fw.enabled);
+        assert_eq!(fw.currents, Vector3::zeros());
         // A report of another length is refused.
         assert!(fw.receive_output(&out[..13]).is_err());
     }
