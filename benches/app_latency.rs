@@ -21,8 +21,8 @@ use rand::{Rng, SeedableRng};
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
 use hgcd::daemon::{Daemon, RunRequest, Signals};
+use hgcd::protocol::OutputReport;
 use hgcd::protocol::MAX_REPORT_LEN;
-use hgcd::protocol::{OutputReport, OUTPUT_REPORT_LEN};
 use hgcd::sim::SimDevice;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::{Pacing, Transport, TransportError};
@@ -57,7 +57,7 @@ impl Transport for Stamping {
     ) -> Result<Option<usize>, TransportError> {
         self.inner.read_input(buf, timeout)
     }
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+    fn write_output(&mut self, report: &[u8]) -> Result<(), TransportError> {
         let at = monotonic_ns();
         let fx = OutputReport::decode(report)
             .map(|r| r.force.x)

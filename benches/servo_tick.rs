@@ -20,7 +20,7 @@ use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::daemon::controller::DaemonController;
 use hgcd::grid::MassGrid;
 use hgcd::mailbox::{mailbox, OffsetCommand, ServoCommand};
-use hgcd::protocol::INPUT_REPORT_LEN;
+use hgcd::protocol::{INPUT_REPORT_LEN, MAX_REPORT_LEN};
 use hgcd::servo::{ServoCore, ServoOptions};
 use hgcd::sim::SimDevice;
 
@@ -51,10 +51,11 @@ fn bench_tick(c: &mut Criterion) {
     let mut controller = hold();
     let mut reports = Vec::with_capacity(4096);
     for k in 0..4096 {
-        let mut report = [0u8; INPUT_REPORT_LEN];
-        device.input_report(&mut report);
+        let mut report = [0u8; MAX_REPORT_LEN];
+        let n = device.input_report(&mut report);
+        assert_eq!(n, INPUT_REPORT_LEN);
         reports.push(report);
-        core.tick(&report, k as f64 * 1e-3, &mut controller, None)
+        core.tick(&report[..n], k as f64 * 1e-3, &mut controller, None)
             .unwrap();
         device.receive_output(core.output()).unwrap();
         device.advance();
@@ -66,6 +67,7 @@ fn bench_tick(c: &mut Criterion) {
         b.iter(|| {
             let report = &reports[k % reports.len()];
             k += 1;
+            let report = &report[..INPUT_REPORT_LEN];
             let outcome = core.tick(black_box(report), k as f64 * 1e-3, &mut controller, None);
             let _ = black_box((outcome, core.output()));
         })
@@ -75,10 +77,10 @@ fn bench_tick(c: &mut Criterion) {
     let mut k = 0usize;
     group.bench_function("with_mock_device", |b| {
         b.iter(|| {
-            let mut report = [0u8; INPUT_REPORT_LEN];
-            device.input_report(&mut report);
+            let mut report = [0u8; MAX_REPORT_LEN];
+            let n = device.input_report(&mut report);
             k += 1;
-            let outcome = core.tick(&report, k as f64 * 1e-3, &mut controller, None);
+            let outcome = core.tick(&report[..n], k as f64 * 1e-3, &mut controller, None);
             device.receive_output(core.output()).unwrap();
             device.advance();
             black_box(outcome)

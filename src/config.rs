@@ -229,7 +229,11 @@ pub enum DeviceSpec {
 }
 
 /// Simulated plants `sim:MODEL` knows.
-pub const SIM_MODELS: &[&str] = &["point-mass", "phantom", "delta"];
+pub const SIM_MODELS: &[&str] = &["point-mass", "phantom", "delta", SIM_WOODENHAPTICS];
+/// The simulated WoodenHaptics-protocol device (`sim:woodenhaptics`, a joint-space profile).
+pub const SIM_WOODENHAPTICS: &str = "woodenhaptics";
+/// Default directory of the user's device profiles (`NAME.toml`, `docs/devices.md`).
+pub const DEFAULT_PROFILE_DIR: &str = "/etc/hgcd/profiles";
 
 impl FromStr for DeviceSpec {
     type Err = ConfigError;
@@ -392,6 +396,8 @@ pub struct Config {
 pub struct DeviceConfig {
     /// Device spec used when the command line gives none.
     pub spec: String,
+    /// Device profile by name or path (`docs/devices.md`); empty: chosen by the device.
+    pub profile: String,
     /// Box the handle may safely be driven in, mm, in the device frame (smallest corner).
     pub workspace_min_mm: [f64; 3],
     /// Largest corner of that box, mm.
@@ -402,6 +408,7 @@ impl Default for DeviceConfig {
     fn default() -> Self {
         Self {
             spec: "sim:point-mass".into(),
+            profile: String::new(),
             workspace_min_mm: [-70.0; 3],
             workspace_max_mm: [70.0; 3],
         }
@@ -676,12 +683,18 @@ impl Default for AppConfig {
 pub struct PathsConfig {
     /// Where calibration grids live (default: [`Config::state_dir`]).
     pub state_dir: Option<PathBuf>,
+    /// Where the user's device profiles are (default: `profiles/` beside the config file, else
+    /// [`DEFAULT_PROFILE_DIR`]).
+    pub profile_dir: Option<PathBuf>,
 }
 
 #[allow(clippy::derivable_impls)]
 impl Default for PathsConfig {
     fn default() -> Self {
-        Self { state_dir: None }
+        Self {
+            state_dir: None,
+            profile_dir: None,
+        }
     }
 }
 
@@ -970,6 +983,10 @@ impl Config {
                 config.sim.mass_grid = Some(dir.join(grid));
             }
         }
+        // The user's profiles are beside the config file unless it says otherwise.
+        if config.paths.profile_dir.is_none() {
+            config.paths.profile_dir = path.parent().map(|dir| dir.join("profiles"));
+        }
         Ok(config)
     }
 
@@ -1184,6 +1201,14 @@ impl Config {
             }
         }
         config
+    }
+
+    /// Where the user's device profiles are (`paths.profile_dir`).
+    pub fn profile_dir(&self) -> PathBuf {
+        self.paths
+            .profile_dir
+            .clone()
+            .unwrap_or_else(|| PathBuf::from(DEFAULT_PROFILE_DIR))
     }
 
     /// The configured device spec.

@@ -13,6 +13,7 @@ pub mod figure; //     SVG and PNG figures without system libraries
 pub mod grid; //       apparent-mass grid, trilinear interpolation, hgcd-grid/1 files
 pub mod mailbox; //    what the daemon hands the servo thread and gets back, lock-free
 pub mod newest; //     a slot where the newest value wins, wait-free on both sides
+pub mod profile; //    device profiles: wire protocol and host-side kinematics per device
 pub mod protocol; //   HID report layout v1: encode/decode
 pub mod servo; //      the 1 kHz tick loop, safety layer, timing statistics
 pub mod sim; //        simulated devices: plants, encoders, firmware, socket server

@@ -16,6 +16,7 @@ use hgcd::discrepancy::{self, AnalyzeRequest, RecordError, RecordRequest};
 
 mod ctl;
 mod progress;
+use hgcd::profile::Profile;
 use hgcd::servo::ServoError;
 use hgcd::transport::{hid, Pacing, TransportError};
 use hgcd::validate::{self, Mode, ValidateError, ValidateRequest};
@@ -39,6 +40,11 @@ struct Cli {
     /// --via-daemon` find by --device).
     #[arg(long, global = true, value_name = "PATH")]
     socket: Option<PathBuf>,
+    /// Device profile: a built-in name (cartesian-v1, woodenhaptics_v2015, polhem_v1), a user
+    /// profile's name or a profile file (default: config `device.profile`, else chosen by the
+    /// device; docs/devices.md).
+    #[arg(long, global = true, value_name = "NAME|FILE")]
+    profile: Option<String>,
     /// Log level: error, warn, info, debug or trace (RUST_LOG overrides).
     #[arg(long, global = true, default_value = "info", value_name = "LEVEL")]
     log_level: String,
@@ -181,9 +187,9 @@ enum Command {
 /// Global options a subcommand ignores, by subcommand: left out of its help. (They are still
 /// accepted there, as global options are everywhere.)
 const IGNORED_OPTIONS: &[(&str, &[&str])] = &[
-    ("status", &["state_dir"]),
+    ("status", &["state_dir", "profile"]),
     ("sim-device", &["state_dir", "socket"]),
-    ("devices", &["config", "state_dir", "socket"]),
+    ("devices", &["state_dir", "socket"]),
 ];
 
 /// The command line, each subcommand's help listing only the global options it uses.
@@ -282,7 +288,7 @@ fn device_spec(arg: Option<&str>, config: &Config) -> Result<DeviceSpec> {
 
 fn real_main(cli: Cli) -> Result<()> {
     init_logging(&cli.log_level)?;
-    // Read by the commands that use it (`devices` does not).
+    // Read by the commands that use it.
     let config = || -> Result<Config> {
         let mut config = load_config(cli.config.as_deref())?;
         if let Some(dir) = &cli.state_dir {
@@ -290,6 +296,9 @@ fn real_main(cli: Cli) -> Result<()> {
         }
         if let Some(socket) = &cli.socket {
             config.app.socket = Some(socket.clone());
+        }
+        if let Some(profile) = &cli.profile {
+            config.device.profile = profile.clone();
         }
         Ok(config)
     };
@@ -379,7 +388,7 @@ fn real_main(cli: Cli) -> Result<()> {
             lockstep,
             model,
         } => sim_device(&config()?, &listen, lockstep, &model),
-        Command::Devices => devices(),
+        Command::Devices => devices(&config()?),
     }
 }
 
@@ -587,8 +596,17 @@ fn sim_device(config: &Config, listen: &Path, lockstep: bool, model: &str) -> Re
     ))
 }
 
-/// `hgcd devices`: the HID devices this process can see, then the simulated ones.
-fn devices() -> Result<()> {
+/// The profile hgcd would use for `spec` (docs/devices.md), or why none loads.
+fn profile_of(spec: &DeviceSpec, config: &Config) -> String {
+    match Profile::for_device(spec, config) {
+        Ok(p) => format!("profile {}", p.name),
+        Err(e) => format!("no profile: {e}"),
+    }
+}
+
+/// `hgcd devices`: the HID devices this process can see, then the simulated ones, each with the
+/// profile it would be driven with.
+fn devices(config: &Config) -> Result<()> {
     let listed = hid::list_devices();
     match &listed {
         Ok(devices) if devices.is_empty() => {
@@ -596,9 +614,15 @@ fn devices() -> Result<()> {
         }
         Ok(devices) => {
             for d in devices {
+                let spec = DeviceSpec::Hid {
+                    vid: d.vid,
+                    pid: d.pid,
+                    serial: d.serial.clone(),
+                };
                 out(&format!(
-                    "{:<32} {} {} (interface {}, {})\n",
+                    "{:<32} {}: {} {} (interface {}, {})\n",
                     d.spec(),
+                    profile_of(&spec, config),
                     d.manufacturer.as_deref().unwrap_or("?"),
                     d.product.as_deref().unwrap_or("?"),
                     d.interface,
@@ -613,9 +637,10 @@ fn devices() -> Result<()> {
             model: model.to_string(),
         };
         out(&format!(
-            "{:<32} simulated: mock-HID firmware around a {model} plant (config [sim]); no \
-             hardware needed\n",
-            spec.to_string()
+            "{:<32} {}: simulated, firmware around a {model} plant (config [sim]); no hardware \
+             needed\n",
+            spec.to_string(),
+            profile_of(&spec, config)
         ))?;
     }
     listed.map(|_| ()).context("listing HID devices")

@@ -313,7 +313,8 @@ impl OutputReport {
 /// that cannot answer, described by configuration) describes itself with the same type.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DeviceInfo {
-    /// Model name, at most [`MODEL_LEN`] bytes of UTF-8 without control characters; not empty.
+    /// Model name, not empty, without control characters: in a report at most [`MODEL_LEN`]
+    /// bytes of UTF-8; from a profile its name.
     pub model: String,
     /// Serial number of this unit, at most [`SERIAL_LEN`] bytes; empty when the device has none.
     pub serial: String,

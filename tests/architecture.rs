@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 const LAYERS: &[&[&str]] = &[
     &["protocol", "newest", "estimate", "sys", "figure"],
     &["config"],
-    &["grid"],
+    &["grid", "profile"],
     &["sim", "control"],
     &["transport", "mailbox"],
     &["servo"],

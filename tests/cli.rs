@@ -639,13 +639,13 @@ fn help_and_devices_show_what_a_newcomer_can_use() {
     for (sub, shown, hidden) in [
         (
             "devices",
-            &[][..],
-            &["--config", "--socket", "--state-dir"][..],
+            &["--config", "--profile"][..],
+            &["--socket", "--state-dir"][..],
         ),
         (
             "status",
             &["--config", "--socket"][..],
-            &["--state-dir"][..],
+            &["--state-dir", "--profile"][..],
         ),
         (
             "sim-device",
@@ -679,6 +679,23 @@ fn help_and_devices_show_what_a_newcomer_can_use() {
         .map(|m| format!("sim:{m}"))
         .collect();
     assert_eq!(sims, models, "{listing}");
+    // Each with the profile it would be driven with.
+    assert!(
+        listing.contains("sim:woodenhaptics") && listing.contains("profile woodenhaptics_v2015"),
+        "{listing}"
+    );
+    assert!(listing.contains("profile cartesian-v1"), "{listing}");
+    let out = hgcd()
+        .args(["--profile", "polhem_v1", "devices"])
+        .output()
+        .unwrap();
+    let listing = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        listing
+            .lines()
+            .any(|l| l.starts_with("sim:woodenhaptics") && l.contains("profile polhem_v1")),
+        "{listing}"
+    );
     let cfg = empty_config();
     let dir = tempfile::tempdir().unwrap();
     for spec in sims {

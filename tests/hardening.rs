@@ -10,10 +10,11 @@ use nalgebra::Vector3;
 
 use hgcd::client::{Client, Role};
 use hgcd::config::Config;
-use hgcd::protocol::{INPUT_REPORT_LEN, OUTPUT_REPORT_LEN};
+use hgcd::protocol::{INPUT_REPORT_LEN, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
 use hgcd::servo::{self, ExitReason, ServoOptions};
 use hgcd::sim::SimDevice;
 use hgcd::transport::socket::SocketTransport;
+use hgcd::transport::Speaks;
 
 mod common;
 use common::daemon::TestDaemon;
@@ -40,17 +41,18 @@ fn a_burst_whose_newest_report_is_garbled_still_drives_the_loop() {
         let mut outputs = 0u64;
         for _ in 0..BURSTS {
             let mut frames = Vec::new();
-            let mut report = [0u8; INPUT_REPORT_LEN];
+            let mut report = [0u8; MAX_REPORT_LEN];
             for _ in 0..9 {
                 device.advance();
-                device.input_report(&mut report);
+                let n = device.input_report(&mut report);
+                assert_eq!(n, INPUT_REPORT_LEN);
                 frames.push(INPUT_REPORT_LEN as u8);
-                frames.extend_from_slice(&report);
+                frames.extend_from_slice(&report[..n]);
             }
-            let mut garbled = report;
+            let garbled = &mut report[..INPUT_REPORT_LEN];
             garbled[1] = 0xee; // an unknown protocol version
             frames.push(INPUT_REPORT_LEN as u8);
-            frames.extend_from_slice(&garbled);
+            frames.extend_from_slice(garbled);
             if stream.write_all(&frames).is_err() {
                 break;
             }
@@ -70,7 +72,7 @@ fn a_burst_whose_newest_report_is_garbled_still_drives_the_loop() {
         let _ = std::io::copy(&mut stream, &mut std::io::sink());
         outputs
     });
-    let mut transport = SocketTransport::connect(&path).unwrap();
+    let mut transport = SocketTransport::connect(&path, Speaks::default()).unwrap();
     let mut options = ServoOptions::from_config(&config);
     options.watchdog = 5.0; // wall clock: generous on a loaded machine
     let report = servo::run(

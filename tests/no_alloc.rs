@@ -25,7 +25,7 @@ use hgcd::sim::SimDevice;
 use hgcd::transport::hid::OutputWriter;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
-use hgcd::transport::{Pacing, Transport};
+use hgcd::transport::{Pacing, Speaks, Transport};
 use hgcd::validate::controller::ExperimentController;
 use hgcd::validate::probe::{ContactPlan, Probe, ProbeParams};
 
@@ -182,22 +182,38 @@ fn the_delta_in_virtual_time_with_a_pd_hold() {
 }
 
 #[test]
-fn a_calibration_on_a_simulated_device() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut config = config_with_truth(dir.path());
-    config.sim.damping_n_s_per_m = 1.0;
-    let (mut tap, seen) = counting_sim("point-mass", &config);
+fn the_woodenhaptics_arm_through_its_joint_space_protocol_with_a_pd_hold() {
+    // Counts to position and force to currents through the profile's kinematics, every tick.
+    quiet_pd_hold_on("woodenhaptics", None);
+}
+
+/// A whole calibration on `sim:MODEL` of `config` allocates nothing per tick.
+fn quiet_calibration_on(model: &str, config: &Config) {
+    let (mut tap, seen) = counting_sim(model, config);
     let (tx, _rx) = crossbeam_channel::bounded(4096);
     let mut calibration =
-        Calibration::new(CalibrationParams::from_config(&config), Some(tx)).unwrap();
-    let mut options = ServoOptions::from_config(&config);
+        Calibration::new(CalibrationParams::from_config(config), Some(tx)).unwrap();
+    let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
     run(&mut tap, &mut calibration, &options, None);
     assert!(
         matches!(calibration.outcome(), Some(Ok(_))),
         "the calibration completes"
     );
-    assert_quiet("calibration", &seen, 10_000);
+    assert_quiet(&format!("calibration on sim:{model}"), &seen, 10_000);
+}
+
+#[test]
+fn a_calibration_on_the_woodenhaptics_arm_through_its_joint_space_protocol() {
+    quiet_calibration_on("woodenhaptics", &config());
+}
+
+#[test]
+fn a_calibration_on_a_simulated_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = config_with_truth(dir.path());
+    config.sim.damping_n_s_per_m = 1.0;
+    quiet_calibration_on("point-mass", &config);
 }
 
 /// The scalar model of the truth field the tests' devices carry.
@@ -264,8 +280,8 @@ fn a_device_behind_the_socket_transport() {
     let config = config();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("device.sock");
-    let (stop_device, device) = serve_one_host(&path, &config);
-    let (mut tap, seen) = counting(SocketTransport::connect(&path).unwrap());
+    let (stop_device, device) = serve_one_host(&path, &config, "point-mass");
+    let (mut tap, seen) = counting(SocketTransport::connect(&path, Speaks::default()).unwrap());
     let mut options = ServoOptions::from_config(&config);
     options.watchdog = 5.0; // wall clock in lock-step: generous on a loaded machine
     run(&mut tap, &mut Ticks(pd_hold(), 1000), &options, None);

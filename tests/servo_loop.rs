@@ -11,12 +11,13 @@ use hgcd::config::Config;
 use hgcd::control::pd::{LinearisedGains, PdHold};
 use hgcd::control::{ControlOutput, Controller, DeviceState, ZeroForce};
 use hgcd::grid::GridFile;
+use hgcd::profile::Profile;
 use hgcd::protocol::OutputReport;
 use hgcd::servo::{self, ExitReason, ServoEvent, ServoOptions, ServoReport};
 use hgcd::sim::SimDevice;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::socket::SocketTransport;
-use hgcd::transport::{Pacing, Transport};
+use hgcd::transport::{Pacing, Speaks, Transport};
 
 mod common;
 use common::tap::{Fault, Tap};
@@ -380,8 +381,8 @@ fn socket_transport_carries_the_same_protocol() {
     let path = dir.path().join("device.sock");
     let mut config = Config::default();
     config.sim.start_position_mm = [0.0, 0.0, 5.0];
-    let (server_stop, server) = serve_one_host(&path, &config);
-    let mut transport = SocketTransport::connect(&path).unwrap();
+    let (server_stop, server) = serve_one_host(&path, &config, "point-mass");
+    let mut transport = SocketTransport::connect(&path, Speaks::default()).unwrap();
     let hold = pd_hold();
     let set_point = hold.set_point;
     let stop = AtomicBool::new(false);
@@ -398,4 +399,87 @@ fn socket_transport_carries_the_same_protocol() {
     let device = server.join().unwrap();
     assert_eq!(device.last_output().unwrap().force, Vector3::zeros());
     assert_eq!(device.rejected_outputs(), 0);
+}
+
+/// The socket carries a joint-space profile's raw reports (`docs/devices.md`): a host that speaks
+/// the WoodenHaptics profile drives `sim:woodenhaptics` over it, reading positions through the
+/// arm's kinematics to within the encoders' step of the plant's own, and writing currents.
+#[test]
+fn socket_transport_carries_a_joint_space_profile() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("device.sock");
+    let config = Config::default();
+    let (server_stop, server) = serve_one_host(&path, &config, "woodenhaptics");
+    let profile = Profile::built_in("woodenhaptics_v2015").unwrap();
+    let speaks = Speaks::profile(&profile, config.servo.rate_hz);
+    let mut transport = SocketTransport::connect(&path, speaks).unwrap();
+    // It has no device-info report: its profile speaks for it (and nothing waited for one).
+    let info = transport.device_info().unwrap();
+    assert_eq!(info.model, "woodenhaptics_v2015");
+    assert_eq!(info.workspace_half_extents, Vector3::repeat(0.1));
+    let stop = AtomicBool::new(false);
+    let mut c = Ticks(pd_hold(), 500);
+    let mut o = ServoOptions::from_config(&config);
+    o.watchdog = 1.0; // wall-clock watchdog: generous on a loaded CI machine
+    let report = servo::run(&mut transport, &mut c, &o, &stop, None).unwrap();
+    assert_eq!(report.exit, ExitReason::ControllerDone);
+    assert_eq!(report.stats.garbled, 0);
+    let last = report.last_state.unwrap();
+    drop(transport);
+    server_stop.store(true, Ordering::SeqCst);
+    let device = server.join().unwrap();
+    // One count of the coarsest joint is 0.26 mrad: under 0.1 mm at the handle.
+    let truth = device.plant().position();
+    assert!(
+        (last.position - truth).norm() < 1e-4,
+        "{last:?} vs {truth:?}"
+    );
+    // The hold moved the handle off its start, towards the set point 5 mm up.
+    assert!(truth.z > 1e-3, "{truth:?}");
+    assert_eq!(device.rejected_outputs(), 0);
+}
+
+/// Remembers every state it is given; renders nothing.
+struct Seen(Vec<DeviceState>);
+
+impl Controller for Seen {
+    fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        self.0.push(*s);
+        ControlOutput::force(Vector3::zeros())
+    }
+}
+
+/// A WoodenHaptics powered on away from where its counters say (they start at 0 wherever the arm
+/// is) with its calibration switch pressed at the calibration pose: the loop sees a device fault
+/// until the host has answered with the set-encoders command, then positions the plant confirms.
+#[test]
+fn a_joint_space_device_asking_for_calibration_is_a_fault_until_the_host_homes_its_counters() {
+    use hgcd::protocol::Status;
+    let mut config = Config::default();
+    // The calibration pose of woodenhaptics_v2015: base and upper arm at 0, forearm horizontal.
+    config.sim.start_position_mm = [25.0, 0.0, 205.0];
+    let mut device = SimDevice::from_config("woodenhaptics", &config).unwrap();
+    device
+        .joint_firmware()
+        .unwrap()
+        .press_calibration_switch([123, -456, 789]);
+    let mut transport = SimTransport::new(device, Pacing::Virtual);
+    let mut seen = Seen(Vec::new());
+    let mut o = ServoOptions::from_config(&config);
+    o.duration = Some(0.005);
+    servo::run(&mut transport, &mut seen, &o, &AtomicBool::new(false), None).unwrap();
+    let states = seen.0;
+    assert!(states[0].status.contains(Status::FAULT));
+    assert!((states[0].position - Vector3::new(0.025, 0.0, 0.205)).norm() > 0.01);
+    let after = &states[1..];
+    assert!(after.iter().all(|s| !s.status.contains(Status::FAULT)));
+    // The jump from relative to homed counts (tens of mm in a period) is no velocity: the
+    // estimator restarted; what is left is the arm starting to fall.
+    assert!(after.iter().all(|s| s.velocity.norm() < 0.5), "{after:?}");
+    let truth = transport.device().plant().position();
+    let last = states.last().unwrap();
+    assert!(
+        (last.position - truth).norm() < 1e-4,
+        "{last:?} vs {truth:?}"
+    );
 }

@@ -18,13 +18,13 @@ use hgcd::control::calibration::CalibrationEvent;
 use hgcd::control::ZeroForce;
 use hgcd::protocol::{
     DeviceInfo, InputReport, OutputReport, Status, DEVICE_INFO_LEN, INPUT_REPORT_LEN,
-    OUTPUT_REPORT_LEN,
+    MAX_REPORT_LEN, OUTPUT_REPORT_LEN,
 };
 use hgcd::servo::{self, ServoError, ServoEvent, ServoOptions};
 use hgcd::sim::socket::{self, Served};
 use hgcd::sim::SimDevice;
 use hgcd::transport::socket::SocketTransport;
-use hgcd::transport::{Pacing, TransportError};
+use hgcd::transport::{Pacing, Speaks, TransportError};
 
 mod common;
 use common::serial;
@@ -226,16 +226,16 @@ fn a_lock_step_device_that_hangs_ends_the_run_without_a_watchdog_fault() {
         let mut sim = SimDevice::from_config("point-mass", &Config::default()).unwrap();
         let mut info = [0u8; DEVICE_INFO_LEN];
         sim.device_info_report(true, &mut info);
-        let mut report = [0u8; INPUT_REPORT_LEN];
-        sim.input_report(&mut report);
+        let mut report = [0u8; MAX_REPORT_LEN];
+        let n = sim.input_report(&mut report);
         stream.write_all(&[DEVICE_INFO_LEN as u8]).unwrap();
         stream.write_all(&info).unwrap();
-        stream.write_all(&[INPUT_REPORT_LEN as u8]).unwrap();
-        stream.write_all(&report).unwrap();
+        stream.write_all(&[n as u8]).unwrap();
+        stream.write_all(&report[..n]).unwrap();
         // Hangs: reads what the host sends, answers nothing, until the host leaves.
         let _ = std::io::copy(&mut stream, &mut std::io::sink());
     });
-    let mut transport = SocketTransport::connect(&path)
+    let mut transport = SocketTransport::connect(&path, Speaks::default())
         .unwrap()
         .stalled_after(Duration::from_millis(300));
     let (tx, events) = crossbeam_channel::unbounded();
@@ -358,7 +358,7 @@ fn a_real_time_socket_calibration_rides_out_late_ticks_and_resumes_its_vertex() 
     let config = quick_calibration("watchdog_ms = 20.0");
     let (path, stop, server) = serve(dir.path(), &config, false);
     let late = [1.5, 3.0, 4.5];
-    let tap = Tap::new(SocketTransport::connect(&path).unwrap())
+    let tap = Tap::new(SocketTransport::connect(&path, Speaks::default()).unwrap())
         .recording()
         .faults(move |_, t| {
             late.iter()

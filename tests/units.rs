@@ -90,6 +90,23 @@ fn udev_rule_grants_group_access_and_starts_the_unit() {
     ] {
         assert!(rule.contains(needle), "missing {needle}");
     }
+    // Every device a built-in profile claims by its USB IDs has a rule of the same shape.
+    for profile in hgcd::profile::Profile::built_ins() {
+        for (vid, pid) in &profile.usb_ids {
+            let ids =
+                format!("ATTRS{{idVendor}}==\"{vid:04x}\", ATTRS{{idProduct}}==\"{pid:04x}\"");
+            let rule = rules
+                .lines()
+                .find(|l| l.starts_with("SUBSYSTEM==\"hidraw\"") && l.contains(&ids))
+                .unwrap_or_else(|| panic!("no rule for {} ({ids})", profile.name));
+            let wants = format!(
+                "ENV{{SYSTEMD_WANTS}}+=\"hgcd@hid:{vid:04x}:{pid:04x}:$attr{{serial}}.service\""
+            );
+            for needle in ["GROUP=\"hgcd\"", "MODE=\"0660\"", &wants] {
+                assert!(rule.contains(needle), "{}: missing {needle}", profile.name);
+            }
+        }
+    }
     // The instance name is a device spec hgcd accepts, with the USB serial number or without.
     let spec: hgcd::config::DeviceSpec = "hid:1209:4847:SN0042".parse().unwrap();
     assert_eq!(spec.device_id(), "hid-1209-4847-SN0042");

@@ -10,6 +10,7 @@ use nalgebra::Vector3;
 
 use hgcd::config::Config;
 use hgcd::grid::{GridFile, MassGrid};
+use hgcd::profile::Wire;
 use hgcd::sim::SimDevice;
 use hgcd::transport::Pacing;
 use hgcd::validate::{self, Mode, ModeReport, Reading, Report, ValidateRequest, Validation};
@@ -65,8 +66,9 @@ fn truth_penalty(truth: &MassGrid, p: &Vector3<f64>) -> f64 {
 }
 
 /// The issue's targets for a compensated run, from `reading`: the mean within 5 % of the ideal
-/// m_p g / k, every contact point within 10 %. The worst point's error, for reports.
-fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading) -> f64 {
+/// m_p g / k, every contact point within `point` (10 % on devices whose resolution allows it).
+/// The worst point's error, for reports.
+fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading, point: f64) -> f64 {
     let r = m.of(reading);
     let ideal = report.ideal;
     let name = format!("{case}, {} from {}", m.mode.name(), reading.name());
@@ -81,7 +83,7 @@ fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading) -
     for (n, s) in r.points.iter().enumerate() {
         let error = (s.mean / ideal - 1.0).abs();
         assert!(
-            error < 0.10,
+            error < point,
             "{name}, point {}: {:.4} mm, ideal {:.4} mm",
             n + 1,
             s.mean * 1e3,
@@ -90,6 +92,39 @@ fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading) -
         worst = worst.max(error);
     }
     worst
+}
+
+/// Uncompensated (`none`), every point's penalty is within 10 % of what the linkage `sim:MODEL`
+/// of `config` gives: the surface carries the probe and the handle's own gravity force F_g (the
+/// plant's analytic holding force at P) along up, d = (F_g·up + m_p g) / k, and the horizontal
+/// hold its part across, l = |F_g across| / k_h: ΔX = √(d² + l²).
+fn assert_uncompensated_follows_the_plant(
+    case: &str,
+    report: &Report,
+    none: &ModeReport,
+    model: &str,
+    config: &Config,
+) {
+    let hold = config.validation.hold_stiffness();
+    for (n, s) in none.two_sided.points.iter().enumerate() {
+        let mut at = config.clone();
+        at.sim.start_position_mm = (report.points[n] * 1e3).into();
+        let force = SimDevice::from_config(model, &at)
+            .unwrap()
+            .plant()
+            .holding_force();
+        let along = force.dot(&report.up);
+        let depth = (along + PROBE * 9.81) / STIFFNESS;
+        let lateral = (force - report.up * along).norm() / hold;
+        let expected = depth.hypot(lateral);
+        assert!(
+            (s.mean / expected - 1.0).abs() < 0.10,
+            "{case}, none, point {}: {:.4} mm, plant {:.4} mm",
+            n + 1,
+            s.mean * 1e3,
+            expected * 1e3
+        );
+    }
 }
 
 #[test]
@@ -126,7 +161,7 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
         } else {
             // Without friction both sides find the same rest, and the paper's reading is exact.
             for reading in Reading::ALL {
-                assert_ideal("point mass", report, m, reading);
+                assert_ideal("point mass", report, m, reading, 0.10);
             }
         }
     }
@@ -196,7 +231,7 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
 
         let vector = mode(Mode::Vector);
-        let worst = assert_ideal(&case, report, vector, Reading::TwoSided);
+        let worst = assert_ideal(&case, report, vector, Reading::TwoSided, 0.10);
         // The paper's reading from above stops short by the friction over k, several percent.
         assert!(
             vector.above.mean < 0.95 * report.ideal,
@@ -204,30 +239,8 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
             vector.above.mean * 1e3
         );
 
-        // Uncompensated: the surface carries the probe and the handle's own gravity force
-        // F_g (the plant's analytic holding force at P) along up, d = (F_g·up + m_p g) / k, and
-        // the horizontal hold its part across, l = |F_g across| / k_h: ΔX = √(d² + l²).
         let none = mode(Mode::None);
-        let hold = config.validation.hold_stiffness();
-        for (n, s) in none.two_sided.points.iter().enumerate() {
-            let mut at = config.clone();
-            at.sim.start_position_mm = (report.points[n] * 1e3).into();
-            let force = SimDevice::from_config(model, &at)
-                .unwrap()
-                .plant()
-                .holding_force();
-            let along = force.dot(&report.up);
-            let depth = (along + PROBE * 9.81) / STIFFNESS;
-            let lateral = (force - report.up * along).norm() / hold;
-            let expected = depth.hypot(lateral);
-            assert!(
-                (s.mean / expected - 1.0).abs() < 0.10,
-                "{case}, none, point {}: {:.4} mm, plant {:.4} mm",
-                n + 1,
-                s.mean * 1e3,
-                expected * 1e3
-            );
-        }
+        assert_uncompensated_follows_the_plant(&case, report, none, model, &config);
         println!(
             "{case}: vector two-sided mean {:+.1} %, worst point {:.1} %; from above {:+.1} %; \
              scalar {:+.1} %; none {:.3}–{:.3} mm",
@@ -247,6 +260,46 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
                 .map(|s| s.mean)
                 .fold(0.0, f64::max)
                 * 1e3,
+        );
+    }
+}
+
+/// The issue's Must show on a joint-space device: calibration and the experiment run on
+/// `sim:woodenhaptics` through the WoodenHaptics protocol (encoder counts in, motor currents out,
+/// the host's kinematics between), with the validation configs that ship for two units. With
+/// compensation (vector, the default, and scalar) the mean penalty is within 5 % of m_p g / k;
+/// with vector compensation every point within about half a step of its encoders (65 µm at the
+/// handle, 22 % of the ideal 0.294 mm: 15 % is asked); without compensation each point follows
+/// the plant's own gravity force.
+#[test]
+fn on_the_woodenhaptics_arm_through_its_joint_space_protocol_compensation_leaves_only_the_probe() {
+    for unit in [1, 2] {
+        let case = format!("sim:woodenhaptics unit {unit}");
+        let dir = tempfile::tempdir().unwrap();
+        let shipped = format!("config/validate-woodenhaptics-unit-{unit}.toml");
+        let config = Config::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(shipped)).unwrap();
+        assert_eq!(config.sim.unit_seed, unit);
+        // It speaks the joint-space protocol, not v1.
+        let device = SimDevice::from_config("woodenhaptics", &config).unwrap();
+        assert_eq!(device.profile().wire, Wire::WoodenHaptics);
+        let run = validate_sim(dir.path(), "woodenhaptics", config.clone());
+        let report = &run.report;
+        let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
+        let worst = assert_ideal(&case, report, mode(Mode::Vector), Reading::TwoSided, 0.15);
+        // The scalar mode leaves the sideways part of the arm's weight to the hold: its mean only.
+        let scalar = &mode(Mode::Scalar).two_sided;
+        assert!(
+            (scalar.mean / report.ideal - 1.0).abs() < 0.05,
+            "{case}, scalar: mean {:.4} mm",
+            scalar.mean * 1e3
+        );
+        let none = mode(Mode::None);
+        assert_uncompensated_follows_the_plant(&case, report, none, "woodenhaptics", &config);
+        println!(
+            "{case}: vector mean {:+.1} %, worst point {:.1} %; scalar mean {:+.1} %",
+            (mode(Mode::Vector).two_sided.mean / report.ideal - 1.0) * 1e2,
+            worst * 1e2,
+            (scalar.mean / report.ideal - 1.0) * 1e2,
         );
     }
 }

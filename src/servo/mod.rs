@@ -1,4 +1,6 @@
 //! The servo loop: once per input report, decode → state estimate → controller → safety → encode.
+//! Decoding and encoding are the device profile's ([`Codec`]): protocol v1 carries positions and
+//! forces, a joint-space device's profile does its kinematics here, on the servo thread.
 //!
 //! The loop is paced by the device's input reports (as a USB interrupt endpoint paces the host)
 //! and guarded by a deadline watchdog. Inside the loop nothing allocates, locks, logs or blocks on
@@ -21,10 +23,9 @@ use thiserror::Error;
 use crate::config::{Config, EstimateConfig, SafetyConfig};
 use crate::control::{Controller, DeviceState};
 use crate::estimate::{Foaw, FoawError};
+use crate::profile::Codec;
 use crate::protocol::MAX_REPORT_LEN;
-use crate::protocol::{
-    DeviceClock, InputReport, OutputReport, ProtocolError, Status, OUTPUT_REPORT_LEN,
-};
+use crate::protocol::{DeviceClock, ProtocolError, Status, OUTPUT_REPORT_LEN};
 use crate::transport::{Transport, TransportError};
 use safety::SafetyLayer;
 pub use stats::TimingStats;
@@ -195,6 +196,8 @@ pub enum TickOutcome {
 /// The hot path of one tick, without I/O: decode → state estimate → controller → safety → encode.
 /// Everything it needs is allocated when it is built.
 pub struct ServoCore {
+    /// The device profile's side of the wire.
+    codec: Codec,
     foaw: Foaw,
     safety: SafetyLayer,
     clock: DeviceClock,
@@ -204,6 +207,8 @@ pub struct ServoCore {
     stop_on_fault: bool,
     out_sequence: u16,
     output: [u8; OUTPUT_REPORT_LEN],
+    /// Length of the report in `output`.
+    output_len: usize,
     /// Restart the velocity filter at the next report (after a silence or missed reports).
     resync: bool,
     pub stats: TimingStats,
@@ -211,13 +216,15 @@ pub struct ServoCore {
 }
 
 impl ServoCore {
-    /// A core for `options`, with everything the loop needs allocated.
+    /// A core for `options` and a protocol v1 device ([`ServoCore::speaking`] for another), with
+    /// everything the loop needs allocated.
     ///
     /// # Errors
     /// [`FoawError`] for estimator parameters out of range.
     pub fn new(options: &ServoOptions) -> Result<Self, FoawError> {
         let est = &options.estimate;
         Ok(Self {
+            codec: Codec::Cartesian,
             foaw: Foaw::new(
                 est.foaw_variant,
                 est.noise_bound(),
@@ -232,44 +239,44 @@ impl ServoCore {
             stop_on_fault: options.stop_on_fault,
             out_sequence: 0,
             output: [0; OUTPUT_REPORT_LEN],
+            output_len: OUTPUT_REPORT_LEN,
             resync: false,
             stats: TimingStats::new(options.period),
             last_state: None,
         })
     }
 
+    /// This core speaking `codec`, the device profile's ([`crate::transport::Transport::codec`]).
+    pub fn speaking(mut self, codec: Codec) -> Self {
+        self.codec = codec;
+        self
+    }
+
     /// The output report the last call prepared.
-    pub fn output(&self) -> &[u8; OUTPUT_REPORT_LEN] {
-        &self.output
+    pub fn output(&self) -> &[u8] {
+        &self.output[..self.output_len]
     }
 
     /// Prepare a zero-force report (faults) and forget the last force.
-    pub fn prepare_zero(&mut self) -> &[u8; OUTPUT_REPORT_LEN] {
+    pub fn prepare_zero(&mut self) -> &[u8] {
         self.safety.reset();
         self.encode(&Vector3::zeros(), true);
-        &self.output
+        self.output()
     }
 
     /// Prepare the last report of a run: zero force, motors disabled.
-    pub fn prepare_shutdown(&mut self) -> &[u8; OUTPUT_REPORT_LEN] {
+    pub fn prepare_shutdown(&mut self) -> &[u8] {
         self.safety.reset();
         self.encode(&Vector3::zeros(), false);
-        &self.output
+        self.output()
     }
 
     fn encode(&mut self, force: &Vector3<f64>, enable: bool) {
-        let report = OutputReport {
-            sequence: self.out_sequence,
-            force: *force,
-            enable,
-        };
-        self.out_sequence = self.out_sequence.wrapping_add(1);
         // The safety layer keeps forces finite and far inside the protocol's range.
-        if report.encode(&mut self.output).is_err() {
-            OutputReport::zero(report.sequence)
-                .encode(&mut self.output)
-                .expect("zero force always encodes");
-        }
+        self.output_len = self
+            .codec
+            .encode(self.out_sequence, force, enable, &mut self.output);
+        self.out_sequence = self.out_sequence.wrapping_add(1);
     }
 
     /// The device went silent and is back: the velocity filter restarts at the next report.
@@ -290,7 +297,7 @@ impl ServoCore {
         controller: &mut dyn Controller,
         events: Option<&Sender<ServoEvent>>,
     ) -> Result<TickOutcome, ProtocolError> {
-        let report = InputReport::decode(bytes)?;
+        let report = self.codec.decode(bytes)?;
         if let Some(prev) = self.last_sequence {
             self.stats.record_period(arrived - self.last_report_at);
             let gap = report.sequence.wrapping_sub(prev).wrapping_sub(1);
@@ -311,6 +318,9 @@ impl ServoCore {
             let event = if faulted {
                 ServoEvent::DeviceFault
             } else {
+                // What the device reported during the fault may not continue into what it
+                // reports now (a joint-space device's counters homed): the filter restarts.
+                self.resync = true;
                 ServoEvent::DeviceFaultCleared
             };
             emit(events, event);
@@ -327,12 +337,19 @@ impl ServoCore {
             self.foaw.reset();
             self.resync = false;
         }
-        let (time, jumped_back) = self.clock.seconds(report.timestamp_us);
-        if jumped_back {
-            // A device reset: the time it lost is not lateness.
-            self.stats.restart_lateness();
-        }
-        self.stats.record_lateness(arrived, time);
+        // A device without a clock is timed by the host's: its reports are never late.
+        let time = match report.timestamp_us {
+            Some(raw) => {
+                let (time, jumped_back) = self.clock.seconds(raw);
+                if jumped_back {
+                    // A device reset: the time it lost is not lateness.
+                    self.stats.restart_lateness();
+                }
+                self.stats.record_lateness(arrived, time);
+                time
+            }
+            None => arrived,
+        };
         let state = DeviceState {
             time,
             host_time: arrived,
@@ -374,7 +391,7 @@ pub fn run(
     stop: &AtomicBool,
     events: Option<&Sender<ServoEvent>>,
 ) -> Result<ServoReport, ServoError> {
-    let mut core = ServoCore::new(options)?;
+    let mut core = ServoCore::new(options)?.speaking(transport.codec());
     core.stats.clock_drift = transport.clock_drift();
     let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         run_loop(
@@ -485,6 +502,7 @@ fn run_loop(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::protocol::{InputReport, OutputReport};
 
     /// Asks for a large force and remembers what `after_tick` says was sent.
     struct Pushy {

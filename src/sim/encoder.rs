@@ -31,13 +31,18 @@ impl Encoder {
 
     /// The position the device reports for the state of `plant`.
     pub fn measure(&mut self, plant: &dyn Plant) -> Vector3<f64> {
+        plant.sensed_position(&self.sample_noise())
+    }
+
+    /// The next displacement of the handle as its sensors see it, m.
+    pub fn sample_noise(&mut self) -> Vector3<f64> {
         let mut noise = Vector3::zeros();
         if let Some(n) = &self.noise {
             for axis in 0..3 {
                 noise[axis] = n.sample(&mut self.rng);
             }
         }
-        plant.sensed_position(&noise)
+        noise
     }
 }
 

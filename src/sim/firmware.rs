@@ -2,29 +2,46 @@
 //! reports exactly as a v1 device would, and answers the device-info feature report, so the whole
 //! byte path runs in tests. The firmware clamps forces to its actuator limit, zeroes force when
 //! the host goes silent (device-side watchdog), and can be told to stop reporting (fault
-//! injection).
+//! injection). `sim:woodenhaptics` speaks its own joint-space protocol instead
+//! ([`JointFirmware`]), with the same clock, pacing and fault injection.
 
 use nalgebra::Vector3;
 
+use super::woodenhaptics::{self, JointFirmware};
 use super::{delta, phantom, Encoder, Plant, PointMass, SimError};
-use crate::config::Config;
+use crate::config::{Config, DeviceSpec};
+use crate::profile::{self, Profile, Wire};
 use crate::protocol::{
     DeviceInfo, InputReport, OutputReport, ProtocolError, Status, DEVICE_INFO_LEN,
-    INPUT_REPORT_LEN, MODEL_LEN,
+    INPUT_REPORT_LEN, MAX_REPORT_LEN, MODEL_LEN,
 };
 
 /// The longest actuator delay simulated, report periods (`sim.force_delay_ms` at 1 kHz is at
 /// most 100).
 const MAX_DELAY_PERIODS: usize = 128;
 
+/// What the firmware drives and how it speaks.
+// One per simulated device, never moved once built.
+#[allow(clippy::large_enum_variant)]
+enum Body {
+    /// Protocol v1 around any plant, its position measured by `encoder`.
+    Cartesian {
+        plant: Box<dyn Plant>,
+        encoder: Encoder,
+    },
+    /// The WoodenHaptics protocol around its arm.
+    Joints(Box<JointFirmware>),
+}
+
 /// Emulated device firmware: one report period at a time.
 pub struct SimDevice {
-    plant: Box<dyn Plant>,
+    body: Body,
+    /// The profile that describes this device to a host.
+    profile: Profile,
     /// Model name in the device-info report (`sim-MODEL`).
     model: String,
     /// Serial number in the device-info report (`sim.serial`; empty: none).
     serial: String,
-    encoder: Encoder,
     /// Report period, s.
     period: f64,
     substeps: u32,
@@ -57,11 +74,22 @@ impl SimDevice {
         max_force: f64,
         device_watchdog: f64,
     ) -> Self {
+        let body = Body::Cartesian { plant, encoder };
+        Self::around(body, period, substep_hz, max_force, device_watchdog)
+    }
+
+    fn around(
+        body: Body,
+        period: f64,
+        substep_hz: f64,
+        max_force: f64,
+        device_watchdog: f64,
+    ) -> Self {
         Self {
-            plant,
+            body,
+            profile: Profile::cartesian(),
             model: "sim".into(),
             serial: String::new(),
-            encoder,
             period,
             substeps: (period * substep_hz).ceil().max(1.0) as u32,
             max_force,
@@ -98,6 +126,7 @@ impl SimDevice {
             "point-mass" => Box::new(PointMass::from_config(sim)?),
             "phantom" => Box::new(phantom::from_config(sim).map_err(|_| unreachable("phantom"))?),
             "delta" => Box::new(delta::from_config(sim).map_err(|_| unreachable("delta"))?),
+            crate::config::SIM_WOODENHAPTICS => return Self::joint_from_config(config),
             _ => {
                 return Err(SimError::UnknownModel {
                     model: model.into(),
@@ -120,6 +149,44 @@ impl SimDevice {
         Ok(device)
     }
 
+    /// `sim:woodenhaptics`: the arm of the configured WoodenHaptics-protocol profile
+    /// (`woodenhaptics_v2015` unless `device.profile` names another) behind its firmware.
+    fn joint_from_config(config: &Config) -> Result<Self, SimError> {
+        let sim = &config.sim;
+        let spec = DeviceSpec::Sim {
+            model: crate::config::SIM_WOODENHAPTICS.into(),
+        };
+        let profile = Profile::for_device(&spec, config)?;
+        let arm = woodenhaptics::plant(sim, &profile)
+            .ok_or_else(|| SimError::NoArm {
+                profile: profile.name.clone(),
+            })?
+            .map_err(|_| SimError::Unreachable {
+                model: crate::config::SIM_WOODENHAPTICS,
+                position_mm: sim.start_position_mm,
+            })?;
+        let period = config.servo_period();
+        let firmware = JointFirmware::new(arm, Encoder::from_config(sim));
+        // The firmware limits currents, not forces: its force limit is the profile's.
+        let mut device = Self::around(
+            Body::Joints(Box::new(firmware)),
+            period,
+            sim.substep_hz,
+            profile.max_force.unwrap_or(sim.max_force_n),
+            profile::woodenhaptics::FIRMWARE_WATCHDOG,
+        );
+        device.stop_reporting_after = sim.stop_reporting_after_s;
+        device.model = profile.name.clone();
+        device.profile = profile;
+        Ok(device)
+    }
+
+    /// The profile that describes this device to a host: what it speaks, and for a joint-space
+    /// device what it cannot say about itself.
+    pub fn profile(&self) -> &Profile {
+        &self.profile
+    }
+
     /// Report period, s.
     pub fn period(&self) -> f64 {
         self.period
@@ -132,7 +199,18 @@ impl SimDevice {
 
     /// The plant (ground truth for tests).
     pub fn plant(&self) -> &dyn Plant {
-        self.plant.as_ref()
+        match &self.body {
+            Body::Cartesian { plant, .. } => plant.as_ref(),
+            Body::Joints(firmware) => firmware.plant(),
+        }
+    }
+
+    /// The joint-space firmware of `sim:woodenhaptics` (None for a v1 device).
+    pub fn joint_firmware(&mut self) -> Option<&mut JointFirmware> {
+        match &mut self.body {
+            Body::Cartesian { .. } => None,
+            Body::Joints(firmware) => Some(firmware),
+        }
     }
 
     /// The last output report the firmware accepted.
@@ -149,7 +227,7 @@ impl SimDevice {
     /// (its mechanical stops), its force limit and report rate. `lockstep` says how it is served
     /// (`docs/hid-protocol.md` §9).
     pub fn device_info(&self, lockstep: bool) -> DeviceInfo {
-        let (lo, hi) = self.plant.workspace();
+        let (lo, hi) = self.plant().workspace();
         // As much of `sim-MODEL` as the report's field holds.
         let mut model = self.model.clone();
         while model.len() > MODEL_LEN {
@@ -183,6 +261,13 @@ impl SimDevice {
     /// # Errors
     /// The [`ProtocolError`] of a report that does not decode (counted as rejected, not latched).
     pub fn receive_output(&mut self, bytes: &[u8]) -> Result<(), ProtocolError> {
+        if let Body::Joints(firmware) = &mut self.body {
+            let received = firmware.receive_output(bytes);
+            if received.is_err() {
+                self.rejected_outputs += 1;
+            }
+            return received;
+        }
         match OutputReport::decode(bytes) {
             Ok(report) => {
                 self.command = if report.enable {
@@ -206,6 +291,11 @@ impl SimDevice {
     /// Integrate one report period under the latched command (clamped; zero after the device
     /// watchdog trips) and advance the clock and sequence number.
     pub fn advance(&mut self) {
+        if let Body::Joints(firmware) = &mut self.body {
+            firmware.advance(self.period, self.substeps);
+            self.clock_us += (self.period * 1e6).round() as u64;
+            return;
+        }
         if (self.clock_us - self.last_command_us) as f64 * 1e-6 > self.device_watchdog {
             self.watchdog_tripped = true;
             self.command = Vector3::zeros();
@@ -224,15 +314,27 @@ impl SimDevice {
             }
         }
         let dt = self.period / f64::from(self.substeps);
-        for _ in 0..self.substeps {
-            self.plant.step(&force, dt);
+        if let Body::Cartesian { plant, .. } = &mut self.body {
+            for _ in 0..self.substeps {
+                plant.step(&force, dt);
+            }
         }
         self.clock_us += (self.period * 1e6).round() as u64;
         self.sequence = self.sequence.wrapping_add(1);
     }
 
-    /// Firmware send path: the input report for the current state.
-    pub fn input_report(&mut self, out: &mut [u8; INPUT_REPORT_LEN]) {
+    /// Firmware send path: the input report for the current state, in the device's protocol
+    /// (its profile's wire); returns its length.
+    pub fn input_report(&mut self, out: &mut [u8; MAX_REPORT_LEN]) -> usize {
+        let (plant, encoder) = match &mut self.body {
+            Body::Cartesian { plant, encoder } => (plant, encoder),
+            Body::Joints(firmware) => {
+                let mut report = [0; profile::woodenhaptics::REPORT_LEN];
+                firmware.input_report(&mut report);
+                out[..report.len()].copy_from_slice(&report);
+                return report.len();
+            }
+        };
         let status = Status::default()
             .with(
                 Status::MOTORS_ENABLED,
@@ -240,8 +342,8 @@ impl SimDevice {
             )
             .with(Status::FORCE_SATURATED, self.saturated)
             .with(Status::DEVICE_WATCHDOG, self.watchdog_tripped);
-        let (lo, hi) = self.plant.workspace();
-        let measured = self.encoder.measure(self.plant.as_ref());
+        let (lo, hi) = plant.workspace();
+        let measured = encoder.measure(plant.as_ref());
         let report = InputReport {
             sequence: self.sequence,
             timestamp_us: self.clock_us as u32,
@@ -251,9 +353,17 @@ impl SimDevice {
                 .inf(&hi.add_scalar(1e-3)),
             status,
         };
+        let mut bytes = [0; INPUT_REPORT_LEN];
         report
-            .encode(out)
+            .encode(&mut bytes)
             .expect("simulated workspace lies within the protocol's position range");
+        out[..INPUT_REPORT_LEN].copy_from_slice(&bytes);
+        INPUT_REPORT_LEN
+    }
+
+    /// The protocol the device speaks.
+    pub fn wire(&self) -> Wire {
+        self.profile.wire
     }
 }
 
@@ -268,7 +378,10 @@ mod tests {
         config.sim.serial = "SN-000000001".into(); // the longest serial the report carries
         config.sim.workspace_min_mm = [-1000.0, 20.0, -80.0];
         config.sim.workspace_max_mm = [1000.0, 220.0, 40.0];
-        for model in SIM_MODELS {
+        for model in SIM_MODELS
+            .iter()
+            .filter(|m| **m != crate::config::SIM_WOODENHAPTICS)
+        {
             let device = SimDevice::from_config(model, &config).unwrap();
             let mut report = [0; DEVICE_INFO_LEN];
             device.device_info_report(true, &mut report);

@@ -16,14 +16,7 @@ use rand_chacha::ChaCha8Rng;
 use super::Plant;
 use crate::config::SimConfig;
 
-/// Kinematics of one point of a mechanism at (q, q̇): where it is, ∂x/∂q, and the part of its
-/// acceleration that does not come from q̈ (ẍ = J q̈ + bias, bias = J̇ q̇).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Point {
-    pub position: Vector3<f64>,
-    pub jacobian: Matrix3<f64>,
-    pub bias: Vector3<f64>,
-}
+pub use crate::profile::kinematics::Point;
 
 /// The geometry and masses of a mechanism (kinematics only: no friction, motors or sensors).
 /// Positions are in the device frame, m, with the handle at the origin at q = 0.
@@ -348,12 +341,28 @@ fn reachable_box<M: Mechanism>(
     (lo.add_scalar(-0.005), hi.add_scalar(0.005))
 }
 
-impl<M: Mechanism> Plant for Linkage<M> {
-    fn step(&mut self, force: &Vector3<f64>, dt: f64) {
+impl<M: Mechanism> Linkage<M> {
+    /// Integrate for `dt` seconds under the motor torques `torque` at the joints (N m, limited
+    /// here to the motors' peak): a joint-space device's firmware drives its arm this way.
+    pub fn step_joint_torque(&mut self, torque: &Vector3<f64>, dt: f64) {
         let handle = self.mechanism.handle(&self.q, &self.qd);
-        let actuator = (handle.jacobian.transpose() * force)
-            .zip_map(&self.peak, |t, peak| t.clamp(-peak, peak));
-        let d = self.dynamics(&handle);
+        self.step_with(&handle, torque, dt);
+    }
+
+    /// The joint angles the encoders see with the handle displaced by `noise` (m) from where it
+    /// is, before they are quantised, rad.
+    pub fn sensed_joints(&self, noise: &Vector3<f64>) -> Vector3<f64> {
+        let zero = Vector3::zeros();
+        if *noise == zero {
+            return self.q;
+        }
+        let j = self.mechanism.handle(&self.q, &zero).jacobian;
+        self.q + j.lu().solve(noise).unwrap_or(zero)
+    }
+
+    fn step_with(&mut self, handle: &Point, torque: &Vector3<f64>, dt: f64) {
+        let actuator = torque.zip_map(&self.peak, |t, peak| t.clamp(-peak, peak));
+        let d = self.dynamics(handle);
         let scale = self.env.friction_scale;
         // Every torque but the holding reaction of held joints; sliding joints feel Coulomb
         // friction against their motion.
@@ -406,6 +415,13 @@ impl<M: Mechanism> Plant for Linkage<M> {
             }
         }
     }
+}
+
+impl<M: Mechanism> Plant for Linkage<M> {
+    fn step(&mut self, force: &Vector3<f64>, dt: f64) {
+        let handle = self.mechanism.handle(&self.q, &self.qd);
+        self.step_with(&handle, &(handle.jacobian.transpose() * force), dt);
+    }
 
     fn position(&self) -> Vector3<f64> {
         self.mechanism.handle(&self.q, &Vector3::zeros()).position
@@ -436,15 +452,10 @@ impl<M: Mechanism> Plant for Linkage<M> {
     }
 
     fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64> {
-        let zero = Vector3::zeros();
-        let mut q = self.q;
-        if *noise != zero {
-            let j = self.mechanism.handle(&q, &zero).jacobian;
-            q += j.lu().solve(noise).unwrap_or(zero);
-        }
+        let q = self.sensed_joints(noise);
         let counts = q.component_div(&self.resolution).map(f64::round);
         self.mechanism
-            .handle(&counts.component_mul(&self.resolution), &zero)
+            .handle(&counts.component_mul(&self.resolution), &Vector3::zeros())
             .position
     }
 }

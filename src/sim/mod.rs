@@ -1,6 +1,7 @@
 //! Simulated devices, in one place: the physics ([`Plant`]: [`PointMass`], and the linkages of
-//! [`linkage`]: [`phantom`], [`delta`]), the position measurement ([`Encoder`]), the emulated v1 firmware
-//! around them ([`SimDevice`]) and the device side of the socket transport ([`socket::serve`],
+//! [`linkage`]: [`phantom`], [`delta`], [`woodenhaptics`]), the position measurement
+//! ([`Encoder`]), the emulated firmware around them ([`SimDevice`]: v1, or the WoodenHaptics
+//! protocol for `sim:woodenhaptics`) and the device side of the socket transport ([`socket::serve`],
 //! behind `hgcd sim-device`). The host reaches an in-process simulated device through
 //! `transport::sim`, an external one through `transport::socket`.
 //!
@@ -15,6 +16,7 @@ pub mod linkage;
 pub mod phantom;
 mod point_mass;
 pub mod socket;
+pub mod woodenhaptics;
 
 pub use encoder::Encoder;
 pub use firmware::SimDevice;
@@ -50,6 +52,13 @@ pub trait Plant: Send {
 pub enum SimError {
     #[error(transparent)]
     Grid(#[from] GridError),
+    #[error(transparent)]
+    Profile(#[from] crate::profile::ProfileError),
+    #[error(
+        "sim:woodenhaptics needs a WoodenHaptics-protocol profile with [kinematics] and [bodies]; \
+         device profile `{profile}` has none (set device.profile, e.g. woodenhaptics_v2015)"
+    )]
+    NoArm { profile: String },
     #[error("unknown simulated model `{model}`; known: {}", crate::config::SIM_MODELS.join(", "))]
     UnknownModel { model: String },
     #[error(

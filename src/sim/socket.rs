@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use tracing::info;
 
 use super::SimDevice;
-use crate::protocol::{DEVICE_INFO_LEN, DEVICE_INFO_REPORT_ID, INPUT_REPORT_LEN, MAX_REPORT_LEN};
+use crate::protocol::{DEVICE_INFO_LEN, DEVICE_INFO_REPORT_ID, MAX_REPORT_LEN};
 use crate::sys::{read_available, wait_readable};
 
 /// How often a device waiting on a host or for one looks at the stop flag.
@@ -143,10 +143,12 @@ pub fn serve_host(
         first = false;
         let reporting = !device.is_silent();
         if reporting {
-            let mut frame = [0u8; INPUT_REPORT_LEN + 1];
-            frame[0] = INPUT_REPORT_LEN as u8;
-            device.input_report((&mut frame[1..]).try_into().expect("input report length"));
-            if link.stream.write_all(&frame).is_err() {
+            let mut report = [0u8; MAX_REPORT_LEN];
+            let n = device.input_report(&mut report);
+            let mut frame = [0u8; MAX_REPORT_LEN + 1];
+            frame[0] = n as u8;
+            frame[1..=n].copy_from_slice(&report[..n]);
+            if link.stream.write_all(&frame[..=n]).is_err() {
                 break HostEnd::Left;
             }
         }
@@ -232,8 +234,9 @@ impl Link {
                 break;
             }
             if n == 1 {
-                // A get-feature request; report IDs without a feature report are ignored.
-                if self.inbuf[1] == DEVICE_INFO_REPORT_ID {
+                // A get-feature request; report IDs without a feature report are ignored (and
+                // so is every request to a device whose protocol has none).
+                if self.inbuf[1] == DEVICE_INFO_REPORT_ID && device.wire().has_device_info() {
                     let mut frame = [0u8; DEVICE_INFO_LEN + 1];
                     frame[0] = DEVICE_INFO_LEN as u8;
                     device.device_info_report(

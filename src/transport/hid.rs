@@ -14,9 +14,10 @@ use std::time::{Duration, Instant};
 
 use hidapi::{HidApi, HidDevice};
 
-use super::{Burst, NoDeviceInfo, Transport, TransportError};
+use super::{Burst, NoDeviceInfo, Speaks, Transport, TransportError};
 use crate::config::DeviceSpec;
 use crate::newest::{newest, NewestWriter};
+use crate::profile::{Codec, Wire};
 use crate::protocol::MAX_REPORT_LEN;
 use crate::protocol::{DeviceInfo, DEVICE_INFO_LEN, DEVICE_INFO_REPORT_ID, OUTPUT_REPORT_LEN};
 
@@ -74,20 +75,26 @@ pub struct HidTransport {
     _lock: std::fs::File,
     /// VID, PID and the serial number the device reports.
     resolved: DeviceSpec,
-    /// Its device-info feature report, asked for when it was opened.
+    /// Its device-info feature report, asked for when it was opened (or what its profile says).
     info: Result<DeviceInfo, NoDeviceInfo>,
+    /// The device's protocol, and the host side of its profile.
+    wire: Wire,
+    codec: Codec,
     reader: HidDevice,
     spec: String,
     start: Instant,
     garbled_skipped: u64,
 }
 
+/// An output report as hidapi writes it (report ID first) and its length.
+type Frame = ([u8; OUTPUT_REPORT_LEN + 1], usize);
+
 /// A thread that writes output reports as they come, newest first: [`OutputWriter::send`] never
 /// blocks, allocates or locks, so the servo thread can call it every tick; a report the thread
 /// has not written yet is replaced by a newer one. Dropping it writes the last report sent (the
 /// final zero force) and joins the thread.
 pub struct OutputWriter {
-    slot: NewestWriter<[u8; OUTPUT_REPORT_LEN]>,
+    slot: NewestWriter<Frame>,
     thread: Thread,
     handle: Option<JoinHandle<()>>,
     failed: Arc<AtomicBool>,
@@ -101,9 +108,9 @@ impl OutputWriter {
     /// The [`std::io::Error`] of a thread that cannot be spawned.
     pub fn spawn<W>(mut write: W) -> std::io::Result<Self>
     where
-        W: FnMut(&[u8; OUTPUT_REPORT_LEN]) -> std::io::Result<()> + Send + 'static,
+        W: FnMut(&[u8]) -> std::io::Result<()> + Send + 'static,
     {
-        let (slot, mut reports) = newest::<[u8; OUTPUT_REPORT_LEN]>();
+        let (slot, mut reports) = newest::<Frame>();
         let failed = Arc::new(AtomicBool::new(false));
         let closing = Arc::new(AtomicBool::new(false));
         let (failed_w, closing_w) = (failed.clone(), closing.clone());
@@ -113,8 +120,8 @@ impl OutputWriter {
                 // Read the flag before the slot: a report sent before closing is still written.
                 let last_round = closing_w.load(Ordering::Acquire);
                 match reports.take() {
-                    Some(report) => {
-                        if write(&report).is_err() {
+                    Some((bytes, len)) => {
+                        if write(&bytes[..len]).is_err() {
                             failed_w.store(true, Ordering::Release);
                             return;
                         }
@@ -133,9 +140,13 @@ impl OutputWriter {
         })
     }
 
-    /// Hand `report` to the writer thread.
-    pub fn send(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) {
-        self.slot.publish(*report);
+    /// Hand `report` (at most [`OUTPUT_REPORT_LEN`] + 1 bytes: longer ones are cut) to the
+    /// writer thread.
+    pub fn send(&mut self, report: &[u8]) {
+        let mut frame = [0u8; OUTPUT_REPORT_LEN + 1];
+        let len = report.len().min(frame.len());
+        frame[..len].copy_from_slice(&report[..len]);
+        self.slot.publish((frame, len));
         self.thread.unpark();
     }
 
@@ -162,7 +173,12 @@ impl HidTransport {
     /// [`TransportError::NotFound`] when none is plugged in, [`TransportError::Busy`] when another
     /// hgcd holds it, [`TransportError::Hid`] or [`TransportError::Open`] when it or its writer
     /// thread cannot be opened.
-    pub fn open(vid: u16, pid: u16, serial: Option<&str>) -> Result<Self, TransportError> {
+    pub fn open(
+        vid: u16,
+        pid: u16,
+        serial: Option<&str>,
+        speaks: Speaks,
+    ) -> Result<Self, TransportError> {
         let spec = match serial {
             Some(s) => format!("hid:{vid:04x}:{pid:04x}:{s}"),
             None => format!("hid:{vid:04x}:{pid:04x}"),
@@ -196,7 +212,11 @@ impl HidTransport {
         };
         let lock = lock_device(&spec, &path)?;
         let reader = open("opening")?;
-        let info = device_info(&reader);
+        let info = match speaks.info {
+            // A protocol without the report: its profile speaks for the device.
+            Some(info) => Ok(info),
+            None => device_info(&reader),
+        };
         let writer_dev = open("opening a second handle on")?;
         let writer = OutputWriter::spawn(move |report| {
             writer_dev
@@ -217,6 +237,8 @@ impl HidTransport {
                 serial: found_serial,
             },
             info,
+            wire: speaks.wire,
+            codec: speaks.codec,
             reader,
             spec,
             start: Instant::now(),
@@ -280,7 +302,7 @@ impl Transport for HidTransport {
             return Ok(None);
         }
         // Skip ahead to the newest valid queued report rather than work through a backlog.
-        let mut burst = Burst::default();
+        let mut burst = Burst::new(self.wire);
         burst.offer(&report[..n], buf);
         loop {
             let m = self.reader.read_timeout(&mut report, 0).map_err(map)?;
@@ -294,10 +316,22 @@ impl Transport for HidTransport {
         Ok(chosen)
     }
 
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+    fn write_output(&mut self, report: &[u8]) -> Result<(), TransportError> {
         // A writer still busy with an older report finds this one in its place.
-        self.writer.send(report);
+        if self.wire.numbered_reports() {
+            self.writer.send(report);
+        } else {
+            // hidapi takes the report ID first, 0 for a device without IDs.
+            let mut numbered = [0u8; OUTPUT_REPORT_LEN + 1];
+            let n = report.len().min(OUTPUT_REPORT_LEN);
+            numbered[1..=n].copy_from_slice(&report[..n]);
+            self.writer.send(&numbered[..=n]);
+        }
         Ok(())
+    }
+
+    fn codec(&self) -> Codec {
+        self.codec.clone()
     }
 
     fn now(&self) -> f64 {

@@ -13,7 +13,8 @@ use tracing::{info, warn};
 
 use crate::config::{Config, DeviceSpec};
 use crate::grid::DeviceIdentity;
-use crate::protocol::{DeviceInfo, InputReport, ProtocolError, MAX_REPORT_LEN, OUTPUT_REPORT_LEN};
+use crate::profile::{Codec, Profile, ProfileError, Wire};
+use crate::protocol::{DeviceInfo, ProtocolError, MAX_REPORT_LEN};
 use crate::sim::SimError;
 
 /// How fast a device clock may run slow against the host's unless its transport says otherwise
@@ -76,6 +77,13 @@ pub enum TransportError {
     /// clock stands still while it is silent, so no watchdog can tell; it has hung.
     #[error("device {spec} (lock-step) has sent nothing for {after:?}: it has stopped")]
     Stalled { spec: String, after: Duration },
+    /// The device's profile cannot be loaded (`device.profile`, `--profile`).
+    #[error("cannot open device {spec}: {source}")]
+    Profile {
+        spec: String,
+        #[source]
+        source: ProfileError,
+    },
     /// The device's native rate (its device-info report) is not the host's `servo.rate_hz`.
     #[error(
         "device {spec} reports at {device_hz} Hz (its device-info report) but servo.rate_hz is \
@@ -93,7 +101,10 @@ impl TransportError {
     /// or a device hgcd is not configured for): `hgcd` exits with its own status for these, so
     /// udev can start it again on replug.
     pub fn device_unavailable(&self) -> bool {
-        !matches!(self, Self::Framing { .. } | Self::Rate { .. })
+        !matches!(
+            self,
+            Self::Framing { .. } | Self::Rate { .. } | Self::Profile { .. }
+        )
     }
 }
 
@@ -143,12 +154,19 @@ pub trait Transport: Send {
         timeout: Duration,
     ) -> Result<Option<usize>, TransportError>;
 
-    /// Hand an output report to the device. Must not block the caller for longer than a small
+    /// Hand an output report (at most [`crate::protocol::OUTPUT_REPORT_LEN`] bytes, in the
+    /// device's protocol) to the device. Must not block the caller for longer than a small
     /// fraction of a servo period.
     ///
     /// # Errors
     /// [`TransportError::Disconnected`] when the device is gone.
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError>;
+    fn write_output(&mut self, report: &[u8]) -> Result<(), TransportError>;
+
+    /// The host side of the device's profile: what turns its reports into positions and forces
+    /// into its reports. Protocol v1 unless the transport was opened with another profile.
+    fn codec(&self) -> Codec {
+        Codec::Cartesian
+    }
 
     /// Seconds on this transport's clock: virtual time for batch simulations, monotonic otherwise.
     fn now(&self) -> f64;
@@ -177,7 +195,8 @@ pub trait Transport: Send {
     }
 
     /// What the device said about itself in its device-info report, asked for once when it was
-    /// opened (`docs/hid-protocol.md` §5a), or why it said nothing.
+    /// opened (`docs/hid-protocol.md` §5a), or why it said nothing; for a device whose protocol
+    /// has no such report, what its profile says in its place.
     fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {
         Err(&NOT_ASKED)
     }
@@ -247,18 +266,29 @@ pub fn identify(
 /// Picks the report to act on from a burst of queued input reports, offered oldest first: the
 /// newest valid one. A garbled report is never chosen over a valid one, so a device (or a line)
 /// that garbles the last report of every burst still drives the loop; garbled ones are counted.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(crate) struct Burst {
+    /// The protocol valid reports are in.
+    wire: Wire,
     /// Length of the chosen report (in the caller's buffer) and whether it is valid.
     chosen: Option<(usize, bool)>,
     garbled: u64,
 }
 
 impl Burst {
+    /// An empty burst of reports in `wire`'s protocol.
+    pub(crate) fn new(wire: Wire) -> Self {
+        Self {
+            wire,
+            chosen: None,
+            garbled: 0,
+        }
+    }
+
     /// Consider `report` (newer than all offered before); copied into `buf` if it is chosen.
     pub(crate) fn offer(&mut self, report: &[u8], buf: &mut [u8; MAX_REPORT_LEN]) {
         let n = report.len().min(MAX_REPORT_LEN);
-        let valid = InputReport::decode(&report[..n]).is_ok();
+        let valid = self.wire.input_valid(&report[..n]);
         if !valid {
             self.garbled += 1;
         }
@@ -302,21 +332,63 @@ impl Pacing {
     }
 }
 
-/// Open the device `spec` names. `pacing` applies to simulated devices only.
+/// How a transport speaks to a device of `profile` (a simulated device knows its own).
+#[derive(Clone, Debug)]
+pub struct Speaks {
+    pub wire: Wire,
+    /// For a protocol without a device-info report, what the profile says in its place.
+    pub info: Option<DeviceInfo>,
+    pub codec: Codec,
+}
+
+impl Default for Speaks {
+    /// Protocol v1 (the default profile, [`crate::profile::CARTESIAN_V1`]).
+    fn default() -> Self {
+        Self {
+            wire: Wire::CartesianV1,
+            info: None,
+            codec: Codec::Cartesian,
+        }
+    }
+}
+
+impl Speaks {
+    /// A device of `profile` reporting at `rate_hz`.
+    pub fn profile(profile: &Profile, rate_hz: f64) -> Self {
+        Self {
+            wire: profile.wire,
+            info: profile.device_info(rate_hz),
+            codec: profile.codec(),
+        }
+    }
+}
+
+/// Open the device `spec` names, speaking its profile ([`Profile::for_device`]). `pacing`
+/// applies to simulated devices only.
 ///
 /// # Errors
-/// Those of [`hid::HidTransport::open`] and [`socket::SocketTransport::connect`], and
+/// Those of [`hid::HidTransport::open`] and [`socket::SocketTransport::connect`],
+/// [`TransportError::Profile`] for a profile that does not load, and
 /// [`TransportError::Simulation`] for a simulated device its `[sim]` section cannot build.
 pub fn open(
     spec: &DeviceSpec,
     config: &Config,
     pacing: Pacing,
 ) -> Result<Box<dyn Transport>, TransportError> {
+    let speaks = || {
+        Profile::for_device(spec, config)
+            .map(|p| Speaks::profile(&p, config.servo.rate_hz))
+            .map_err(|source| TransportError::Profile {
+                spec: spec.to_string(),
+                source,
+            })
+    };
     match spec {
         DeviceSpec::Hid { vid, pid, serial } => Ok(Box::new(hid::HidTransport::open(
             *vid,
             *pid,
             serial.as_deref(),
+            speaks()?,
         )?)),
         DeviceSpec::Sim { model } => {
             let device = crate::sim::SimDevice::from_config(model, config).map_err(|source| {
@@ -327,7 +399,9 @@ pub fn open(
             })?;
             Ok(Box::new(sim::SimTransport::new(device, pacing)))
         }
-        DeviceSpec::Socket { path } => Ok(Box::new(socket::SocketTransport::connect(path)?)),
+        DeviceSpec::Socket { path } => {
+            Ok(Box::new(socket::SocketTransport::connect(path, speaks()?)?))
+        }
     }
 }
 

@@ -4,9 +4,8 @@
 use std::time::{Duration, Instant};
 
 use super::{NoDeviceInfo, Pacing, Transport, TransportError};
-use crate::protocol::{
-    DeviceInfo, DEVICE_INFO_LEN, INPUT_REPORT_LEN, MAX_REPORT_LEN, OUTPUT_REPORT_LEN,
-};
+use crate::profile::Codec;
+use crate::protocol::{DeviceInfo, DEVICE_INFO_LEN, MAX_REPORT_LEN};
 use crate::sim::SimDevice;
 use crate::sys::sleep_until;
 
@@ -25,11 +24,19 @@ pub struct SimTransport {
 impl SimTransport {
     pub fn new(device: SimDevice, pacing: Pacing) -> Self {
         let now = Instant::now();
-        // As a HID host would: ask for the feature report and decode its bytes.
-        let mut report = [0u8; DEVICE_INFO_LEN];
-        device.device_info_report(false, &mut report);
+        let profile = device.profile();
+        let info = if profile.wire.has_device_info() {
+            // As a HID host would: ask for the feature report and decode its bytes.
+            let mut report = [0u8; DEVICE_INFO_LEN];
+            device.device_info_report(false, &mut report);
+            DeviceInfo::decode(&report).map_err(NoDeviceInfo::Malformed)
+        } else {
+            profile
+                .device_info(1.0 / device.period())
+                .ok_or(NoDeviceInfo::NotAsked)
+        };
         Self {
-            info: DeviceInfo::decode(&report).map_err(NoDeviceInfo::Malformed),
+            info,
             device,
             pacing,
             started: false,
@@ -87,13 +94,10 @@ impl Transport for SimTransport {
                 }
             }
         }
-        let mut report = [0u8; INPUT_REPORT_LEN];
-        self.device.input_report(&mut report);
-        buf[..INPUT_REPORT_LEN].copy_from_slice(&report);
-        Ok(Some(INPUT_REPORT_LEN))
+        Ok(Some(self.device.input_report(buf)))
     }
 
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+    fn write_output(&mut self, report: &[u8]) -> Result<(), TransportError> {
         // A real device silently drops malformed reports; so does the firmware (and counts them).
         let _ = self.device.receive_output(report);
         Ok(())
@@ -108,6 +112,10 @@ impl Transport for SimTransport {
 
     fn clock_drift(&self) -> f64 {
         0.0
+    }
+
+    fn codec(&self) -> Codec {
+        self.device.profile().codec()
     }
 
     fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {

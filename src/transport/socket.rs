@@ -4,6 +4,10 @@
 //! report ID first, exactly as over HID; a frame of one byte asks for the feature report it names
 //! (`docs/hid-protocol.md` §9).
 //!
+//! Frames carry any profile's raw reports: a device of a profile without report IDs (the
+//! WoodenHaptics protocol, `docs/devices.md`) sends its reports as they are, and the host does not
+//! ask it for a device-info report (its profile stands in).
+//!
 //! On connecting, the host asks for the device-info report and waits for it at most
 //! [`DEVICE_INFO_WAIT`]. A device that says it runs in lock-step advances only when the host
 //! answers: its clock, not the wall clock, is then the transport's ([`Transport::now`]), so the
@@ -15,7 +19,8 @@ use std::os::unix::net::UnixStream;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use super::{Burst, NoDeviceInfo, Transport, TransportError};
+use super::{Burst, NoDeviceInfo, Speaks, Transport, TransportError};
+use crate::profile::{Codec, Wire};
 use crate::protocol::{
     DeviceClock, DeviceInfo, InputReport, DEVICE_INFO_REPORT_ID, MAX_REPORT_LEN, OUTPUT_REPORT_LEN,
 };
@@ -39,8 +44,11 @@ pub struct SocketTransport {
     filled: usize,
     start: Instant,
     garbled_skipped: u64,
-    /// What the device answered when asked for its device-info report.
+    /// What the device answered when asked for its device-info report (or its profile says).
     info: Result<DeviceInfo, NoDeviceInfo>,
+    /// The device's protocol, and the host side of its profile.
+    wire: Wire,
+    codec: Codec,
     /// Input reports that came while the host waited for the device-info answer: the first read
     /// hands up the newest valid one (a lock-step device waits for the host's reply to it).
     held: Option<(usize, u64)>,
@@ -54,12 +62,13 @@ pub struct SocketTransport {
 }
 
 impl SocketTransport {
-    /// Connect to the device side listening at `path` and ask for its device-info report.
+    /// Connect to the device side listening at `path`, speaking `speaks`, and ask for its
+    /// device-info report when its protocol has one.
     ///
     /// # Errors
     /// [`TransportError::Open`] when nobody listens at `path`; [`TransportError::Disconnected`]
     /// or [`TransportError::Framing`] when the device fails while it is asked.
-    pub fn connect(path: &Path) -> Result<Self, TransportError> {
+    pub fn connect(path: &Path, speaks: Speaks) -> Result<Self, TransportError> {
         let spec = format!("socket:{}", path.display());
         let stream = UnixStream::connect(path).map_err(|source| TransportError::Open {
             spec: spec.clone(),
@@ -84,6 +93,8 @@ impl SocketTransport {
             start: now,
             garbled_skipped: 0,
             info: Err(NoDeviceInfo::NotAsked),
+            wire: speaks.wire,
+            codec: speaks.codec,
             held: None,
             held_report: [0; MAX_REPORT_LEN],
             device_clock: DeviceClock::default(),
@@ -91,7 +102,11 @@ impl SocketTransport {
             last_heard: now,
             stall: LOCKSTEP_STALL,
         };
-        transport.info = transport.ask_device_info()?;
+        transport.info = match speaks.info {
+            // A protocol without the report: its profile speaks for the device.
+            Some(info) => Ok(info),
+            None => transport.ask_device_info()?,
+        };
         Ok(transport)
     }
 
@@ -120,7 +135,7 @@ impl SocketTransport {
             .write_all(&[1, DEVICE_INFO_REPORT_ID])
             .map_err(|e| self.disconnected(e))?;
         let deadline = Instant::now() + DEVICE_INFO_WAIT;
-        let mut burst = Burst::default();
+        let mut burst = Burst::new(self.wire);
         let mut held = [0u8; MAX_REPORT_LEN];
         let mut frame = [0u8; MAX_REPORT_LEN];
         let answer = loop {
@@ -224,13 +239,13 @@ impl Transport for SocketTransport {
             return Ok(self.chosen(Some(n), garbled, &buf[..]));
         }
         let deadline = Instant::now() + timeout;
-        let mut burst = Burst::default();
+        let mut burst = Burst::new(self.wire);
         let mut frame = [0u8; MAX_REPORT_LEN];
         loop {
             // Drain every complete frame; keep the newest valid one (skip ahead after an overrun).
             // A device-info answer that came after the host stopped waiting is not a report.
             while let Some(n) = self.take_frame(&mut frame)? {
-                if frame[0] != DEVICE_INFO_REPORT_ID {
+                if !(self.wire.has_device_info() && frame[0] == DEVICE_INFO_REPORT_ID) {
                     burst.offer(&frame[..n], buf);
                 }
             }
@@ -258,10 +273,12 @@ impl Transport for SocketTransport {
         }
     }
 
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+    fn write_output(&mut self, report: &[u8]) -> Result<(), TransportError> {
         let mut frame = [0u8; OUTPUT_REPORT_LEN + 1];
-        frame[0] = OUTPUT_REPORT_LEN as u8;
-        frame[1..].copy_from_slice(report);
+        let n = report.len().min(OUTPUT_REPORT_LEN);
+        frame[0] = n as u8;
+        frame[1..=n].copy_from_slice(&report[..n]);
+        let frame = &frame[..=n];
         let mut sent = 0;
         while sent < frame.len() {
             match self.stream.write(&frame[sent..]) {
@@ -297,6 +314,10 @@ impl Transport for SocketTransport {
         } else {
             super::CLOCK_DRIFT
         }
+    }
+
+    fn codec(&self) -> Codec {
+        self.codec.clone()
     }
 
     fn describe(&self) -> String {

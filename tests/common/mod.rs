@@ -197,15 +197,19 @@ pub fn pd_hold() -> hgcd::control::pd::PdHold {
     }
 }
 
-/// The simulated point mass of `config` serving one host in lock-step on a new socket at `path`:
-/// the flag that stops it, and its thread, which gives the device back.
-pub fn serve_one_host(path: &Path, config: &Config) -> (Arc<AtomicBool>, JoinHandle<SimDevice>) {
+/// The simulated `sim:MODEL` of `config` serving one host in lock-step on a new socket at
+/// `path`: the flag that stops it, and its thread, which gives the device back.
+pub fn serve_one_host(
+    path: &Path,
+    config: &Config,
+    model: &'static str,
+) -> (Arc<AtomicBool>, JoinHandle<SimDevice>) {
     let listener = UnixListener::bind(path).unwrap();
     let config = config.clone();
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
     let device = std::thread::spawn(move || {
-        let mut device = SimDevice::from_config("point-mass", &config).unwrap();
+        let mut device = SimDevice::from_config(model, &config).unwrap();
         let host = socket::accept(&listener, &flag).unwrap().unwrap();
         socket::serve_host(host, &mut device, true, &flag).unwrap();
         device

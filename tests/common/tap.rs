@@ -6,8 +6,9 @@
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use hgcd::profile::Codec;
 use hgcd::protocol::MAX_REPORT_LEN;
-use hgcd::protocol::{DeviceInfo, OutputReport, OUTPUT_REPORT_LEN};
+use hgcd::protocol::{DeviceInfo, OutputReport};
 use hgcd::transport::{NoDeviceInfo, Transport, TransportError};
 
 /// How long a gated device waits for the test to let a report through, and the test for the
@@ -130,7 +131,7 @@ impl<T: Transport> Transport for Tap<T> {
         }))
     }
 
-    fn write_output(&mut self, report: &[u8; OUTPUT_REPORT_LEN]) -> Result<(), TransportError> {
+    fn write_output(&mut self, report: &[u8]) -> Result<(), TransportError> {
         if let Some(writes) = &self.writes {
             let decoded =
                 OutputReport::decode(report).expect("the servo loop writes valid reports");
@@ -156,6 +157,10 @@ impl<T: Transport> Transport for Tap<T> {
 
     fn device_info(&self) -> Result<&DeviceInfo, &NoDeviceInfo> {
         self.inner.device_info()
+    }
+
+    fn codec(&self) -> Codec {
+        self.inner.codec()
     }
 }
 
