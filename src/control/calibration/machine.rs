@@ -248,9 +248,11 @@ enum Phase {
     /// axis tells a frictional axis from one whose stick band at X_C was only the slip
     /// detection's lag, which the bands alone cannot do near a coarse encoder's step.
     InitStrokes(Strokes),
-    /// Strokes through the vertex along each axis, one way and back, whose mean force is the
-    /// vertex's holding force (friction cancels between the passes); `error` is the distance
-    /// from the vertex of the rest the bands were measured at.
+    /// Strokes through the vertex along three diagonals, one way and back, whose mean force is
+    /// the vertex's holding force (friction cancels between the passes); `error` is the distance
+    /// from the vertex of the rest the bands were measured at, `late` the failure to report if
+    /// the strokes are blocked after the vertex ran out of time, `again` whether they may be
+    /// repeated once.
     Strokes {
         strokes: Strokes,
         error: f64,
@@ -1355,10 +1357,7 @@ impl Calibration {
     }
 
     /// With friction at the vertex, the bands have brought F̂ within a few millinewtons; strokes
-    /// through the vertex measure it to one ([`Strokes`]). The hold follows the stroke's set
-    /// point and its velocity.
-    /// A vertex that ran out of time goes on to strokes too, and fails with `late` only if they
-    /// are blocked as well; `again`: strokes that move F̂ far may be repeated once.
+    /// through the vertex measure it to one ([`Strokes`]), following [`Phase::Strokes`].
     fn stroke(
         &mut self,
         s: &DeviceState,
@@ -1387,8 +1386,8 @@ impl Calibration {
 
     /// The strokes at X_C ([`Phase::InitStrokes`]): an axis the bands took for frictionless
     /// whose passes differ by more than `STROKE_FRICTION` has friction after all (or viscous
-    /// damping, which strokes measure through as well), and is measured as such at every
-    /// vertex. Then the first vertex.
+    /// damping well beyond 1 N·s/m, which strokes measure through as well), and is measured as
+    /// such at every vertex. Then the first vertex.
     fn init_strokes(&mut self, s: &DeviceState, mut strokes: Strokes) -> ControlOutput {
         let force = self.stroke_force(&strokes, s);
         match strokes.observe(s, &force) {
