@@ -1376,7 +1376,8 @@ impl Calibration {
         ControlOutput::force(self.hold_force(&vertex.position, s, &self.estimate))
     }
 
-    /// The hold on a stroke's set point, damping the velocity relative to the set point's.
+    /// The hold on a stroke's set point at full gains (a backed-off hold would trail it further),
+    /// damping the velocity relative to the set point's.
     fn stroke_force(&self, strokes: &Strokes, s: &DeviceState) -> Vector3<f64> {
         let (target, velocity) = strokes.set_point(s.time);
         let mut relative = *s;

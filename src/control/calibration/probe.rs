@@ -809,6 +809,28 @@ mod tests {
         }
     }
 
+    /// One tick `dt` of a point of mass `m` under the net force `net` with isotropic Coulomb
+    /// friction `f` (static as kinetic), in ten substeps.
+    fn slide(
+        x: &mut Vector3<f64>,
+        v: &mut Vector3<f64>,
+        net: Vector3<f64>,
+        m: f64,
+        f: f64,
+        dt: f64,
+    ) {
+        let h = dt / 10.0;
+        for _ in 0..10 {
+            let trial = *v + net * (h / m);
+            *v = if trial.norm() <= f * h / m {
+                Vector3::zeros()
+            } else {
+                trial - trial.normalize() * (f * h / m)
+            };
+            *x += *v * h;
+        }
+    }
+
     /// A 1-D point of mass `m` with Coulomb friction `f` around the holding force `hold`, under
     /// a critically damped spring `k` to the origin plus the probe's offset; the probe's band.
     fn band_of(m: f64, f: f64, hold: f64, k: f64) -> Band {
@@ -819,28 +841,24 @@ mod tests {
             limit: 3.0,
         };
         let mut probe = BandProbe::new(0, Vector3::x(), ramp, 5e-6, 2e-6, 0.0);
-        let (mut x, mut v) = (0.0f64, 0.0f64);
+        let (mut x, mut v) = (Vector3::zeros(), Vector3::zeros());
         let dt = 1e-3;
         for n in 0..20_000 {
             let t = n as f64 * dt;
-            let force = -k * x - 2.0 * (k * m).sqrt() * v + probe.offset(t);
-            let smoothed = Vector3::new(x, 0.0, 0.0);
-            match probe.observe(&state(t, x), &smoothed, &Vector3::new(force, 0.0, 0.0)) {
+            let force = -k * x.x - 2.0 * (k * m).sqrt() * v.x + probe.offset(t);
+            match probe.observe(&state(t, x.x), &x, &Vector3::new(force, 0.0, 0.0)) {
                 Step::Done(band) => return band,
                 Step::Blocked { .. } => panic!("blocked"),
                 Step::Running => {}
             }
-            for _ in 0..10 {
-                let h = dt / 10.0;
-                let net = force - hold;
-                let trial = v + net * h / m;
-                v = if trial.abs() <= f * h / m {
-                    0.0
-                } else {
-                    trial - f * h / m * trial.signum()
-                };
-                x += v * h;
-            }
+            slide(
+                &mut x,
+                &mut v,
+                Vector3::new(force - hold, 0.0, 0.0),
+                m,
+                f,
+                dt,
+            );
         }
         panic!("no band");
     }
@@ -877,17 +895,7 @@ mod tests {
                 Step::Blocked { .. } => panic!("blocked"),
                 Step::Running => {}
             }
-            for _ in 0..10 {
-                let h = dt / 10.0;
-                let net = force - hold;
-                let trial = v + net * (h / m);
-                v = if trial.norm() <= f * h / m {
-                    Vector3::zeros()
-                } else {
-                    trial - trial.normalize() * (f * h / m)
-                };
-                x += v * h;
-            }
+            slide(&mut x, &mut v, force - hold, m, f, dt);
         }
         panic!("never done");
     }
