@@ -164,6 +164,15 @@ const GAIN_BACKOFF_AFTER: f64 = 1.0;
 /// A handle whose velocity keeps a root mean square above this at a steady state of the initial
 /// field chatters (m/s): its damping is too strong for it.
 const CHATTER_SPEED: f64 = 2e-3;
+/// A reading that flickers by one encoder step q between ticks reads as speed in the velocity
+/// filter's short windows: about q over this time in root mean square (s). On the simulated
+/// WoodenHaptics arm, frictionless and at rest in the initial field, its 43–50 µm steps read
+/// 7–14 mm/s; at the point mass's 5 µm this is `CHATTER_SPEED`. Speed up to q / `FLICKER_TIME` is
+/// no chatter: halving the damping for it left the frictionless arm ringing.
+const FLICKER_TIME: f64 = 2.5e-3;
+/// A handle at rest on joint encoders reads within about one step of each joint: the initial
+/// field's steady state asks its samples within this many steps, where ε_init is tighter.
+const STEADY_STEPS: f64 = 3.0;
 
 /// The gains are halved at most three times (1, ½, ¼, ⅛).
 const MIN_GAIN_SCALE: f64 = 0.2;
@@ -584,6 +593,18 @@ impl Calibration {
         false
     }
 
+    /// The steady-state test of the initial field: n_init samples within ε_init, or within
+    /// `STEADY_STEPS` encoder steps where the encoder is that coarse.
+    fn init_detector(&self) -> SteadyState {
+        let step = self.noise.step();
+        let eps = if step.is_finite() {
+            self.params.eps_init.max(STEADY_STEPS * step)
+        } else {
+            self.params.eps_init
+        };
+        SteadyState::new(self.params.n_init, eps)
+    }
+
     /// A steady state of the initial field, unless the handle chatters about it (small and fast
     /// enough to average out of the windows, but not of the velocity): then the damping is
     /// halved and the wait goes on.
@@ -602,11 +623,17 @@ impl Calibration {
                 self.filter = filter;
                 self.filter_bound = step;
                 self.speed_square = 0.0;
-                self.detector.reset();
+                self.detector = self.init_detector();
                 return None;
             }
         }
-        if self.speed_square.sqrt() > CHATTER_SPEED && self.field_scale > MIN_GAIN_SCALE {
+        let flicker = if step.is_finite() {
+            step / FLICKER_TIME
+        } else {
+            0.0
+        };
+        let chatter = CHATTER_SPEED.max(flicker);
+        if self.speed_square.sqrt() > chatter && self.field_scale > MIN_GAIN_SCALE {
             self.field_scale *= 0.5;
             self.detector.reset();
             self.field_since = s.time;
@@ -677,7 +704,7 @@ impl Calibration {
                     ))
                 } else {
                     self.catch_force = self.initial.load;
-                    self.detector = SteadyState::new(self.params.n_init, self.params.eps_init);
+                    self.detector = self.init_detector();
                     Phase::Recentre {
                         axis: 0,
                         excess: self.pulse_excess(0),
@@ -724,7 +751,7 @@ impl Calibration {
             });
         }
         self.catch_force = Vector3::zeros();
-        self.detector = SteadyState::new(self.params.n_init, self.params.eps_init);
+        self.detector = self.init_detector();
         self.phase = Phase::Catch(Glide {
             from: self.rest_point,
             to: self.rest_point,
@@ -802,7 +829,7 @@ impl Calibration {
                 (a, excess)
             }
         };
-        self.detector = SteadyState::new(self.params.n_init, self.params.eps_init);
+        self.detector = self.init_detector();
         self.phase = Phase::Recentre {
             axis: next_axis,
             excess,
