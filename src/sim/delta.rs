@@ -186,14 +186,11 @@ impl Mechanism for Delta {
         Some(q)
     }
 
-    fn masses(
-        &self,
-        q: &Vector3<f64>,
-        qd: &Vector3<f64>,
-        handle: &Point,
-        visit: &mut dyn FnMut(f64, &Point),
-    ) {
-        visit(self.m_platform + 1.5 * self.m_rods, handle);
+    fn handle_mass(&self) -> f64 {
+        self.m_platform + 1.5 * self.m_rods
+    }
+
+    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
         for i in 0..3 {
             visit(0.5 * self.m_rods, &self.arm_point(i, q, qd, self.arm));
             visit(self.m_arm, &self.arm_point(i, q, qd, self.arm_com));

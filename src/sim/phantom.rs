@@ -207,13 +207,7 @@ impl Mechanism for Phantom {
         Some(Vector3::new(theta1, theta2, theta3))
     }
 
-    fn masses(
-        &self,
-        q: &Vector3<f64>,
-        qd: &Vector3<f64>,
-        _handle: &Point,
-        visit: &mut dyn FnMut(f64, &Point),
-    ) {
+    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
         let t = Trig::new(q);
         visit(
             self.m_a,
