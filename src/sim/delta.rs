@@ -240,8 +240,7 @@ mod tests {
     use crate::sim::Plant;
 
     fn delta_at(x_mm: [f64; 3], env: Environment) -> Linkage<Delta> {
-        let x = Vector3::from(x_mm) * 1e-3;
-        Linkage::new(Delta::nominal(), nominal_drives(), env, &x).unwrap()
+        checks::at(Delta::nominal(), nominal_drives(), x_mm, env)
     }
 
     #[test]

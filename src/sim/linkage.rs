@@ -484,6 +484,16 @@ pub(crate) mod checks {
         }
     }
 
+    /// `mechanism` with `drives` at rest in `env`, its handle at `x_mm` (mm).
+    pub(crate) fn at<M: Mechanism>(
+        mechanism: M,
+        drives: Drives,
+        x_mm: [f64; 3],
+        env: Environment,
+    ) -> Linkage<M> {
+        Linkage::new(mechanism, drives, env, &(Vector3::from(x_mm) * 1e-3)).unwrap()
+    }
+
     /// Gravity tilted off every device axis, with a 30 g payload.
     pub(crate) fn tilted() -> Environment {
         Environment {

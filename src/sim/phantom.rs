@@ -269,8 +269,7 @@ mod tests {
     use crate::sim::Plant;
 
     fn arm_at(x_mm: [f64; 3], env: Environment) -> Linkage<Phantom> {
-        let x = Vector3::from(x_mm) * 1e-3;
-        Linkage::new(Phantom::published(), published_drives(), env, &x).unwrap()
+        checks::at(Phantom::published(), published_drives(), x_mm, env)
     }
 
     /// Joint configurations spread over the working range.

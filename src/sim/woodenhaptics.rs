@@ -247,7 +247,7 @@ mod tests {
         let p = profile();
         let model = *p.arm().unwrap();
         let arm = WoodenArm::unit(model, &p.bodies.unwrap(), &mut UnitVariation::new(0));
-        Linkage::new(arm, drives(&model), env, &(Vector3::from(x_mm) * 1e-3)).unwrap()
+        checks::at(arm, drives(&model), x_mm, env)
     }
 
     #[test]
