@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod daemon;
+pub mod file_size;
 pub mod tap;
 
 use std::io::{BufRead, BufReader};
