@@ -21,6 +21,15 @@ fn start(config: Config, grid: Option<&GridFile>) -> Running {
     TestDaemon::new(config).grid(grid).start()
 }
 
+/// A daemon on the simulated device that serves at most `max_clients` connections and closes one
+/// that has not said hello within `hello_timeout_ms`.
+fn start_limited(max_clients: usize, hello_timeout_ms: f64) -> Running {
+    let mut config = Config::default();
+    config.app.max_clients = max_clients;
+    config.app.hello_timeout_ms = hello_timeout_ms;
+    start(config, None)
+}
+
 /// A raw connection to `daemon`'s socket.
 fn connect(daemon: &Running) -> UnixStream {
     UnixStream::connect(&daemon.socket).unwrap()
@@ -444,11 +453,9 @@ fn a_client_trickling_bytes_is_closed_at_the_hello_deadline() {
 #[test]
 fn status_still_answers_when_max_clients_connections_are_held() {
     let _serial = serial();
-    let mut config = Config::default();
-    config.app.max_clients = 4;
-    // Long enough that the idle connections below are all still open when status is asked.
-    config.app.hello_timeout_ms = 60_000.0;
-    let daemon = start(config, None);
+    // A hello deadline long enough that the idle connections below are all still open when
+    // status is asked.
+    let daemon = start_limited(4, 60_000.0);
 
     // Every place taken: two subscribers that said hello, two connections that never will.
     let mut held = Vec::new();
@@ -519,10 +526,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
 #[test]
 fn a_status_only_connection_is_closed_at_its_deadline() {
     let _serial = serial();
-    let mut config = Config::default();
-    config.app.max_clients = 1;
-    config.app.hello_timeout_ms = 300.0;
-    let daemon = start(config, None);
+    let daemon = start_limited(1, 300.0);
     // The one place, held by a client that said hello (no deadline for it).
     let mut held = Client::connect(&daemon.socket, Role::Observe, "held").unwrap();
 
