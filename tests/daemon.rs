@@ -191,6 +191,17 @@ fn dist(a: [f64; 3], b: Vector3<f64>) -> f64 {
     (Vector3::from(a) - b).norm()
 }
 
+/// The handle released at `p` (mm) is within `within` (m) of it in `s`, 2 s later; `how` adds to
+/// the message.
+fn assert_stayed(s: &StateSample, p: [f64; 3], within: f64, how: &str) {
+    let drift = dist(s.position, Vector3::from(p) * 1e-3);
+    assert!(
+        drift < within,
+        "released at {p:?} mm{how}: drifted {:.3} mm in 2 s",
+        drift * 1e3
+    );
+}
+
 #[test]
 fn compensation_holds_the_handle_anywhere_in_the_grid_and_it_falls_without() {
     let grid = with_device_id(truth_field_27(), "sim-point-mass");
@@ -209,12 +220,7 @@ fn compensation_holds_the_handle_anywhere_in_the_grid_and_it_falls_without() {
         let mut client = running.client(Role::Control, "test");
         client.set_force(Vector3::zeros()).unwrap();
         let s = running.state_at_2_s_then_stop(client);
-        let drift = dist(s.position, Vector3::from(p) * 1e-3);
-        assert!(
-            drift < 0.5e-3,
-            "released at {p:?} mm: drifted {:.3} mm in 2 s",
-            drift * 1e3
-        );
+        assert_stayed(&s, p, 0.5e-3, "");
     }
     // Without a grid the same device falls.
     let mut config = Config::default();
@@ -723,15 +729,10 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
             Compensating::from(Some(mode))
         );
         let s = running.state_at_2_s_then_stop(client);
-        let drift = dist(s.position, Vector3::from(p) * 1e-3);
         // The calibrated masses are within about 0.1 % of the truth on this field (five-fold
         // contrast between neighbours); on a plant with only 1 N·s/m of friction that leaves a
         // few millimetres of creep in 2 s, where the uncompensated handle falls 80 mm in 0.3 s.
         // (With the exact grid the daemon holds it within 0.5 mm: the test above.)
-        assert!(
-            drift < 10e-3,
-            "released at {p:?} mm ({mode:?} mode): drifted {:.3} mm in 2 s",
-            drift * 1e3
-        );
+        assert_stayed(&s, p, 10e-3, &format!(" ({mode:?} mode)"));
     }
 }
