@@ -14,7 +14,7 @@ use hgcd::grid::GridFile;
 
 mod common;
 use common::daemon::{Running, TestDaemon};
-use common::{hgcd, serial, succeeded, truth_field_27, with_device_id};
+use common::{hgcd, serial, stdout_of, truth_field_27, with_device_id};
 
 /// A daemon serving the simulated point mass in virtual time, with its own socket and state dir.
 fn start(config: Config, grid: Option<&GridFile>) -> Running {
@@ -466,15 +466,14 @@ fn status_still_answers_when_max_clients_connections_are_held() {
     }
     let idle: Vec<UnixStream> = (0..2).map(|_| connect(&daemon)).collect();
 
-    let out = hgcd()
-        .arg("--config")
-        .arg("/dev/null")
-        .arg("--socket")
-        .arg(&daemon.socket)
-        .arg("status")
-        .output()
-        .unwrap();
-    let stdout = succeeded(&out);
+    let stdout = stdout_of(
+        hgcd()
+            .arg("--config")
+            .arg("/dev/null")
+            .arg("--socket")
+            .arg(&daemon.socket)
+            .arg("status"),
+    );
     assert!(stdout.contains("device        sim:point-mass"), "{stdout}");
     // The four held connections and the status query itself.
     assert!(stdout.contains("clients       5 "), "{stdout}");

@@ -104,6 +104,16 @@ pub fn succeeded(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// Run `command` to its end; its stdout (it must succeed, as in [`succeeded`]).
+pub fn stdout_of(command: &mut Command) -> String {
+    succeeded(&command.output().unwrap())
+}
+
+/// Run `command` to its end; its stderr (it must fail, as in [`failed`]).
+pub fn stderr_of(command: &mut Command) -> String {
+    failed(&command.output().unwrap())
+}
+
 /// The stderr of a command that must have failed.
 pub fn failed(out: &Output) -> String {
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
