@@ -225,6 +225,16 @@ impl Script<'_> {
     }
 
     /// The welcome, which must grant `role` and number the client `client_id`.
+    /// Connect `name` and say hello as the client `client` asking for control; the daemon
+    /// welcomes it as `role` with the id `client_id`.
+    fn hello_control(&mut self, name: char, client: &str, role: Role, client_id: u64) -> Peer {
+        let mut peer = self.connect(name);
+        let hello = format!(r#"{{"type":"hello","version":1,"role":"control","name":"{client}"}}"#);
+        self.send(&mut peer, &hello);
+        self.expect_welcome(&mut peer, role, client_id);
+        peer
+    }
+
     fn expect_welcome(&mut self, peer: &mut Peer, role: Role, client_id: u64) {
         let welcome = self.expect(peer, |r| matches!(r, Reply::Welcome { .. }));
         assert!(
@@ -280,12 +290,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
     };
 
     s.note("A asks for the force and gets it; its status names it as the owner.");
-    let mut a = s.connect('A');
-    s.send(
-        &mut a,
-        r#"{"type":"hello","version":1,"role":"control","name":"golden"}"#,
-    );
-    s.expect_welcome(&mut a, Role::Control, 1);
+    let mut a = s.hello_control('A', "golden", Role::Control, 1);
     let status = s.status(&mut a);
     assert_eq!(
         (status.mode, status.owner.as_deref()),
@@ -346,12 +351,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
     assert!(GridFile::load(&grid_file).is_ok());
 
     s.note("B asks for the force while A owns it: B may observe, and is refused what only the owner may do.");
-    let mut b = s.connect('B');
-    s.send(
-        &mut b,
-        r#"{"type":"hello","version":1,"role":"control","name":"second"}"#,
-    );
-    s.expect_welcome(&mut b, Role::Observe, 2);
+    let mut b = s.hello_control('B', "second", Role::Observe, 2);
     s.expect(&mut b, is_error);
     s.send(
         &mut b,
