@@ -345,10 +345,9 @@ fn real_main(cli: Cli) -> Result<()> {
                 .map_err(|e| anyhow::anyhow!("--modes: {e}"))?;
             let config = config()?;
             let device = device_spec(device.as_deref(), &config)?;
-            let simulated = matches!(device, DeviceSpec::Sim { .. });
             let request = ValidateRequest {
+                pacing: pacing(&device, real_time),
                 device,
-                pacing: pacing(simulated, real_time),
                 grid,
                 out,
                 probe_mass: probe_mass_g * 1e-3,
@@ -368,13 +367,10 @@ fn real_main(cli: Cli) -> Result<()> {
         } => {
             let config = config()?;
             let device = device_spec(device.as_deref(), &config)?;
-            let simulated = matches!(device, DeviceSpec::Sim { .. });
-            if !simulated && !yes {
-                confirm_start()?;
-            }
+            let pacing = confirmed_pacing(&device, real_time, yes)?;
             let request = RecordRequest {
                 device,
-                pacing: pacing(simulated, real_time),
+                pacing,
                 grid,
                 out,
                 duration,
@@ -451,13 +447,10 @@ fn calibrate_here(
     yes: bool,
 ) -> Result<()> {
     let device = device_spec(device, config)?;
-    let simulated = matches!(device, DeviceSpec::Sim { .. });
-    if !simulated && !yes {
-        confirm_start()?;
-    }
+    let pacing = confirmed_pacing(&device, real_time, yes)?;
     let request = CalibrateRequest {
         device,
-        pacing: pacing(simulated, real_time),
+        pacing,
         output,
         state_dir: config.state_dir(),
     };
@@ -470,12 +463,21 @@ fn calibrate_here(
 }
 
 /// Virtual time for a simulated device unless `--real-time`; hardware always runs in real time.
-fn pacing(simulated: bool, real_time: bool) -> Pacing {
-    if simulated && !real_time {
+fn pacing(device: &DeviceSpec, real_time: bool) -> Pacing {
+    if matches!(device, DeviceSpec::Sim { .. }) && !real_time {
         Pacing::Virtual
     } else {
         Pacing::RealTime
     }
+}
+
+/// The pacing of a command that moves the handle on `device`, once it may start: a real device
+/// waits for the user's confirmation unless `--yes` was given.
+fn confirmed_pacing(device: &DeviceSpec, real_time: bool, yes: bool) -> Result<Pacing> {
+    if !matches!(device, DeviceSpec::Sim { .. }) && !yes {
+        confirm_start()?;
+    }
+    Ok(pacing(device, real_time))
 }
 
 /// `hgcd record`: the identification run; says where the log went.

@@ -14,11 +14,20 @@ use hgcd::grid::GridFile;
 
 mod common;
 use common::daemon::{Running, TestDaemon};
-use common::{hgcd, serial, succeeded, truth_field_27, with_device_id};
+use common::{hgcd, serial, stdout_of, truth_field_27, with_device_id};
 
 /// A daemon serving the simulated point mass in virtual time, with its own socket and state dir.
 fn start(config: Config, grid: Option<&GridFile>) -> Running {
     TestDaemon::new(config).grid(grid).start()
+}
+
+/// A daemon on the simulated device that serves at most `max_clients` connections and closes one
+/// that has not said hello within `hello_timeout_ms`.
+fn start_limited(max_clients: usize, hello_timeout_ms: f64) -> Running {
+    let mut config = Config::default();
+    config.app.max_clients = max_clients;
+    config.app.hello_timeout_ms = hello_timeout_ms;
+    start(config, None)
 }
 
 /// A raw connection to `daemon`'s socket.
@@ -216,6 +225,16 @@ impl Script<'_> {
     }
 
     /// The welcome, which must grant `role` and number the client `client_id`.
+    /// Connect `name` and say hello as the client `client` asking for control; the daemon
+    /// welcomes it as `role` with the id `client_id`.
+    fn hello_control(&mut self, name: char, client: &str, role: Role, client_id: u64) -> Peer {
+        let mut peer = self.connect(name);
+        let hello = format!(r#"{{"type":"hello","version":1,"role":"control","name":"{client}"}}"#);
+        self.send(&mut peer, &hello);
+        self.expect_welcome(&mut peer, role, client_id);
+        peer
+    }
+
     fn expect_welcome(&mut self, peer: &mut Peer, role: Role, client_id: u64) {
         let welcome = self.expect(peer, |r| matches!(r, Reply::Welcome { .. }));
         assert!(
@@ -271,12 +290,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
     };
 
     s.note("A asks for the force and gets it; its status names it as the owner.");
-    let mut a = s.connect('A');
-    s.send(
-        &mut a,
-        r#"{"type":"hello","version":1,"role":"control","name":"golden"}"#,
-    );
-    s.expect_welcome(&mut a, Role::Control, 1);
+    let mut a = s.hello_control('A', "golden", Role::Control, 1);
     let status = s.status(&mut a);
     assert_eq!(
         (status.mode, status.owner.as_deref()),
@@ -337,12 +351,7 @@ fn the_scripted_session_matches_its_golden_transcript() {
     assert!(GridFile::load(&grid_file).is_ok());
 
     s.note("B asks for the force while A owns it: B may observe, and is refused what only the owner may do.");
-    let mut b = s.connect('B');
-    s.send(
-        &mut b,
-        r#"{"type":"hello","version":1,"role":"control","name":"second"}"#,
-    );
-    s.expect_welcome(&mut b, Role::Observe, 2);
+    let mut b = s.hello_control('B', "second", Role::Observe, 2);
     s.expect(&mut b, is_error);
     s.send(
         &mut b,
@@ -444,11 +453,9 @@ fn a_client_trickling_bytes_is_closed_at_the_hello_deadline() {
 #[test]
 fn status_still_answers_when_max_clients_connections_are_held() {
     let _serial = serial();
-    let mut config = Config::default();
-    config.app.max_clients = 4;
-    // Long enough that the idle connections below are all still open when status is asked.
-    config.app.hello_timeout_ms = 60_000.0;
-    let daemon = start(config, None);
+    // A hello deadline long enough that the idle connections below are all still open when
+    // status is asked.
+    let daemon = start_limited(4, 60_000.0);
 
     // Every place taken: two subscribers that said hello, two connections that never will.
     let mut held = Vec::new();
@@ -459,15 +466,14 @@ fn status_still_answers_when_max_clients_connections_are_held() {
     }
     let idle: Vec<UnixStream> = (0..2).map(|_| connect(&daemon)).collect();
 
-    let out = hgcd()
-        .arg("--config")
-        .arg("/dev/null")
-        .arg("--socket")
-        .arg(&daemon.socket)
-        .arg("status")
-        .output()
-        .unwrap();
-    let stdout = succeeded(&out);
+    let stdout = stdout_of(
+        hgcd()
+            .arg("--config")
+            .arg("/dev/null")
+            .arg("--socket")
+            .arg(&daemon.socket)
+            .arg("status"),
+    );
     assert!(stdout.contains("device        sim:point-mass"), "{stdout}");
     // The four held connections and the status query itself.
     assert!(stdout.contains("clients       5 "), "{stdout}");
@@ -519,10 +525,7 @@ fn status_still_answers_when_max_clients_connections_are_held() {
 #[test]
 fn a_status_only_connection_is_closed_at_its_deadline() {
     let _serial = serial();
-    let mut config = Config::default();
-    config.app.max_clients = 1;
-    config.app.hello_timeout_ms = 300.0;
-    let daemon = start(config, None);
+    let daemon = start_limited(1, 300.0);
     // The one place, held by a client that said hello (no deadline for it).
     let mut held = Client::connect(&daemon.socket, Role::Observe, "held").unwrap();
 

@@ -56,6 +56,12 @@ fn config(dir: &Path, extra: &str) -> Config {
 
 type Outcome = Result<CalibrationResult, CalibrationFailure>;
 
+/// [`run_calibration`] on the simulated device of a fresh [`setup`] with the config lines `extra`.
+fn calibrate_fresh(extra: &str) -> (Outcome, Vec<CalibrationEvent>) {
+    let dir = tempfile::tempdir().unwrap();
+    run_calibration(&config(dir.path(), extra))
+}
+
 /// A calibration driven tick by tick through the servo loop on the simulated device of `config`,
 /// in virtual time, as `hgcd calibrate` runs it: its outcome and every event it sent.
 fn run_calibration(config: &Config) -> (Outcome, Vec<CalibrationEvent>) {
@@ -288,8 +294,7 @@ const STOP_AT_30_MM: &str = "workspace_max_mm = [80.0, 80.0, 30.0]\n[calibration
 fn vertices_behind_a_mechanical_stop_are_marked_unreachable_and_filled_from_their_neighbours() {
     // Issue 14, item 3: unreachable vertices do not throw the others away. The whole top layer
     // (z = +40 mm) lies 10 mm beyond the stop; the 18 vertices below it are calibrated.
-    let dir = tempfile::tempdir().unwrap();
-    let (outcome, events) = run_calibration(&config(dir.path(), STOP_AT_30_MM));
+    let (outcome, events) = calibrate_fresh(STOP_AT_30_MM);
     let result = outcome.unwrap();
     assert_eq!(vertices_done(&events), 18);
     let unreachable: Vec<_> = events
@@ -388,13 +393,9 @@ fn position_noise_beyond_eps_init_keeps_the_initialisation_from_any_steady_state
 
 #[test]
 fn a_vertex_that_needs_more_time_than_allowed_fails_with_vertex_timeout() {
-    let dir = tempfile::tempdir().unwrap();
     // The first vertex (−40, −40, −40) mm weighs 50 g, against 219 g at the start: its move,
     // an update, a settle, a round of bands and the check take over a second.
-    let (outcome, events) = run_calibration(&config(
-        dir.path(),
-        "[calibration]\nvertex_timeout_s = 1.0\n",
-    ));
+    let (outcome, events) = calibrate_fresh("[calibration]\nvertex_timeout_s = 1.0\n");
     let Err(CalibrationFailure::VertexTimeout {
         vertex, timeout, ..
     }) = outcome
@@ -411,11 +412,8 @@ fn a_sphere_smaller_than_the_noise_fails_with_vertex_timeout_not_a_panic() {
     // ε_M = 5 µm, below the simulated encoder's step: no steady state at a vertex. Its creep
     // limit (ε_M / 10 = 0.5 µm) is below the 1 µm floor the noise sets, which panicked the
     // servo thread ("min > max" in a clamp) until the limit took the smaller of the two.
-    let dir = tempfile::tempdir().unwrap();
-    let (outcome, events) = run_calibration(&config(
-        dir.path(),
-        "[calibration]\neps_m_mm = 0.005\nvertex_timeout_s = 2.0\n",
-    ));
+    let (outcome, events) =
+        calibrate_fresh("[calibration]\neps_m_mm = 0.005\nvertex_timeout_s = 2.0\n");
     let Err(CalibrationFailure::VertexTimeout { vertex, .. }) = outcome else {
         panic!("{outcome:?}");
     };
@@ -427,12 +425,10 @@ fn a_sphere_smaller_than_the_noise_fails_with_vertex_timeout_not_a_panic() {
 fn a_handle_resting_on_a_support_inside_the_grid_fails_as_held() {
     // A floor at z = −10 mm, inside the grid's box, with the handle on it: pushed down it does
     // not move, however hard (up to a quarter of safety.max_force_n), so something holds it.
-    let dir = tempfile::tempdir().unwrap();
-    let (outcome, _) = run_calibration(&config(
-        dir.path(),
+    let (outcome, _) = calibrate_fresh(
         "workspace_min_mm = [-80.0, -80.0, -10.0]\nstart_position_mm = [0.0, 0.0, -10.0]\n\
          [calibration]\nvertex_timeout_s = 3.0\n",
-    ));
+    );
     assert_eq!(
         outcome,
         Err(CalibrationFailure::Held {
@@ -444,11 +440,9 @@ fn a_handle_resting_on_a_support_inside_the_grid_fails_as_held() {
 
 #[test]
 fn a_vertex_that_needs_more_updates_than_allowed_fails_with_too_many_iterations() {
-    let dir = tempfile::tempdir().unwrap();
     // Vertex 1 weighs 50 g against the 219 g found at the start: the hold rests 6 mm off it,
     // and the force there is one update; the bands at the vertex are another.
-    let (outcome, events) =
-        run_calibration(&config(dir.path(), "[calibration]\nmax_iterations = 2\n"));
+    let (outcome, events) = calibrate_fresh("[calibration]\nmax_iterations = 2\n");
     let Err(CalibrationFailure::TooManyIterations { vertex, iterations }) = outcome else {
         panic!("{outcome:?}");
     };

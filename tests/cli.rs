@@ -1,7 +1,7 @@
 //! The `hgcd` binary as a user runs it.
 
 mod common;
-use common::{failed, hgcd, serial, spawn_until, succeeded, BRIEF_RUN};
+use common::{hgcd, serial, spawn_until, stderr_of, stdout_of, succeeded, BRIEF_RUN};
 
 /// `hgcd` with a config file, an application socket and a state directory of the test's own.
 fn hgcd_in(
@@ -21,6 +21,21 @@ fn hgcd_in(
 
 fn empty_config() -> tempfile::NamedTempFile {
     tempfile::NamedTempFile::new().unwrap()
+}
+
+/// The number `text` gives right after the first `marker`, up to the next space.
+fn number_after<T: std::str::FromStr>(text: &str, marker: &str) -> Option<T> {
+    let rest = text.split(marker).nth(1)?;
+    rest.split(' ').next()?.parse().ok()
+}
+
+/// `hgcd run` on `device` with the config file `cfg`.
+fn run_on(cfg: &tempfile::NamedTempFile, device: &str) -> std::process::Command {
+    let mut c = hgcd();
+    c.arg("--config")
+        .arg(cfg.path())
+        .args(["run", "--device", device]);
+    c
 }
 
 #[test]
@@ -62,18 +77,14 @@ fn virtual_time_runs_as_fast_as_the_cpu_allows() {
     let cfg = empty_config();
     let dir = tempfile::tempdir().unwrap();
     let started = std::time::Instant::now();
-    let out = hgcd_in(&cfg, &dir.path().join("s.sock"), dir.path())
-        .args([
-            "run",
-            "--device",
-            "sim:point-mass",
-            "--duration",
-            "20",
-            "--virtual-time",
-        ])
-        .output()
-        .unwrap();
-    let stdout = succeeded(&out);
+    let stdout = stdout_of(hgcd_in(&cfg, &dir.path().join("s.sock"), dir.path()).args([
+        "run",
+        "--device",
+        "sim:point-mass",
+        "--duration",
+        "20",
+        "--virtual-time",
+    ]));
     assert!(stdout.contains("servo loop: 2000"), "{stdout}");
     // 20 s of device time; only a sanity bound on the wall clock, not a performance claim.
     assert!(started.elapsed().as_secs_f64() < 20.0);
@@ -92,13 +103,12 @@ fn sigterm_stops_the_daemon_with_status_0_and_status_works_while_it_runs() {
             .stdout(std::process::Stdio::piped()),
         "hgcd running on",
     );
-    let status = hgcd()
-        .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
-        .arg(&socket)
-        .arg("status")
-        .output()
-        .unwrap();
-    let text = succeeded(&status);
+    let text = stdout_of(
+        hgcd()
+            .args(["--config", cfg.path().to_str().unwrap(), "--socket"])
+            .arg(&socket)
+            .arg("status"),
+    );
     assert!(text.contains("sim:point-mass (sim-point-mass)"), "{text}");
     assert!(text.contains("compensation  none"), "{text}");
     // SAFETY: kill(2) on our own child.
@@ -116,51 +126,27 @@ fn bad_input_gets_one_clear_line() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("bad.toml");
     std::fs::write(&cfg, "[safety]\nmax_force_n = 0.0\n").unwrap();
-    let out = hgcd()
-        .args([
-            "--config",
-            cfg.to_str().unwrap(),
-            "run",
-            "--duration",
-            "0.1",
-        ])
-        .output()
-        .unwrap();
-    let stderr = failed(&out);
+    let stderr = stderr_of(hgcd().args([
+        "--config",
+        cfg.to_str().unwrap(),
+        "run",
+        "--duration",
+        "0.1",
+    ]));
     assert!(stderr.contains("safety.max_force_n"), "{stderr}");
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
 
     let cfg = empty_config();
-    let out = hgcd()
-        .args([
-            "--config",
-            cfg.path().to_str().unwrap(),
-            "run",
-            "--device",
-            "sim:nope",
-        ])
-        .output()
-        .unwrap();
-    assert!(failed(&out).contains("known: point-mass"));
+    assert!(stderr_of(&mut run_on(&cfg, "sim:nope")).contains("known: point-mass"));
 
-    let out = hgcd()
-        .args(["--config", "/nonexistent/hgcd.toml", "status"])
-        .output()
-        .unwrap();
-    assert!(failed(&out).contains("/nonexistent/hgcd.toml"));
+    let stderr = stderr_of(hgcd().args(["--config", "/nonexistent/hgcd.toml", "status"]));
+    assert!(stderr.contains("/nonexistent/hgcd.toml"));
 }
 
 #[test]
 fn missing_hid_device_is_reported_clearly() {
     let cfg = empty_config();
-    let out = hgcd()
-        .args([
-            "--config",
-            cfg.path().to_str().unwrap(),
-            "run",
-            "--device",
-            "hid:dead:beef",
-        ])
+    let out = run_on(&cfg, "hid:dead:beef")
         .args(["--duration", "0.1"])
         .output()
         .unwrap();
@@ -218,12 +204,8 @@ fn hgcd_sim_device_serves_host_after_host_and_run_duration_counts_its_time() {
         let stdout = String::from_utf8_lossy(&out.stdout);
         assert!(stdout.contains("watchdog faults 0"), "{stdout}");
         // One tick per report from 0 to 500 ms of device time.
-        let ticks: u64 = stdout
-            .split("servo loop: ")
-            .nth(1)
-            .and_then(|rest| rest.split(' ').next())
-            .and_then(|n| n.parse().ok())
-            .unwrap_or_else(|| panic!("{stdout}"));
+        let ticks: u64 =
+            number_after(&stdout, "servo loop: ").unwrap_or_else(|| panic!("{stdout}"));
         assert!((500..=502).contains(&ticks), "host {host}: {ticks} ticks");
     }
     // Stopped, it says what it served: two hosts, each from power-on (its clock at 0 again).
@@ -242,12 +224,7 @@ fn hgcd_sim_device_serves_host_after_host_and_run_duration_counts_its_time() {
             .lines()
             .find(|l| l.contains(&format!("host {host} left: ")))
             .unwrap_or_else(|| panic!("{log}"));
-        let seconds: f64 = line
-            .split("left: ")
-            .nth(1)
-            .and_then(|rest| rest.split(' ').next())
-            .and_then(|s| s.parse().ok())
-            .unwrap_or_else(|| panic!("{line}"));
+        let seconds: f64 = number_after(line, "left: ").unwrap_or_else(|| panic!("{line}"));
         assert!((0.5..0.51).contains(&seconds), "{line}");
     }
     assert!(!device.exists());

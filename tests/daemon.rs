@@ -73,6 +73,15 @@ impl Running {
         }
     }
 
+    /// The state when the device's clock reads 2 s (`client` subscribed, as in
+    /// [`Running::state_at`]); the client then leaves and the daemon stops.
+    fn state_at_2_s_then_stop(self, mut client: Client) -> StateSample {
+        let s = self.state_at(&mut client, 2.0);
+        drop(client);
+        self.stop().unwrap();
+        s
+    }
+
     /// Let the device run `batch` ticks at a time until `done`, asked before each batch, gives
     /// a value; fail the test, naming `what` was awaited, after `max_ticks`.
     fn run_until<T>(
@@ -182,6 +191,17 @@ fn dist(a: [f64; 3], b: Vector3<f64>) -> f64 {
     (Vector3::from(a) - b).norm()
 }
 
+/// The handle released at `p` (mm) is within `within` (m) of it in `s`, 2 s later; `how` adds to
+/// the message.
+fn assert_stayed(s: &StateSample, p: [f64; 3], within: f64, how: &str) {
+    let drift = dist(s.position, Vector3::from(p) * 1e-3);
+    assert!(
+        drift < within,
+        "released at {p:?} mm{how}: drifted {:.3} mm in 2 s",
+        drift * 1e3
+    );
+}
+
 #[test]
 fn compensation_holds_the_handle_anywhere_in_the_grid_and_it_falls_without() {
     let grid = with_device_id(truth_field_27(), "sim-point-mass");
@@ -196,33 +216,23 @@ fn compensation_holds_the_handle_anywhere_in_the_grid_and_it_falls_without() {
     for p in points_mm {
         let mut config = Config::default();
         config.sim.start_position_mm = p;
-        let start_at = Vector3::from(p) * 1e-3;
         let running = start(config, Some(&grid));
         let mut client = running.client(Role::Control, "test");
         client.set_force(Vector3::zeros()).unwrap();
-        let s = running.state_at(&mut client, 2.0);
-        let drift = dist(s.position, start_at);
-        assert!(
-            drift < 0.5e-3,
-            "released at {p:?} mm: drifted {:.3} mm in 2 s",
-            drift * 1e3
-        );
-        drop(client);
-        running.stop().unwrap();
+        let s = running.state_at_2_s_then_stop(client);
+        assert_stayed(&s, p, 0.5e-3, "");
     }
     // Without a grid the same device falls.
     let mut config = Config::default();
     config.sim.start_position_mm = [13.0, -27.0, 31.0];
     let running = start(config, None);
-    let mut client = running.client(Role::Control, "test");
-    let s = running.state_at(&mut client, 2.0);
+    let client = running.client(Role::Control, "test");
+    let s = running.state_at_2_s_then_stop(client);
     assert!(
         s.position[2] < -0.079,
         "fell to the floor: {:?}",
         s.position
     );
-    drop(client);
-    running.stop().unwrap();
 }
 
 #[test]
@@ -718,18 +728,11 @@ fn calibrate_then_run_end_to_end_holds_the_handle() {
             client.status().unwrap().mode,
             Compensating::from(Some(mode))
         );
-        let s = running.state_at(&mut client, 2.0);
-        let drift = dist(s.position, Vector3::from(p) * 1e-3);
+        let s = running.state_at_2_s_then_stop(client);
         // The calibrated masses are within about 0.1 % of the truth on this field (five-fold
         // contrast between neighbours); on a plant with only 1 N·s/m of friction that leaves a
         // few millimetres of creep in 2 s, where the uncompensated handle falls 80 mm in 0.3 s.
         // (With the exact grid the daemon holds it within 0.5 mm: the test above.)
-        assert!(
-            drift < 10e-3,
-            "released at {p:?} mm ({mode:?} mode): drifted {:.3} mm in 2 s",
-            drift * 1e3
-        );
-        drop(client);
-        running.stop().unwrap();
+        assert_stayed(&s, p, 10e-3, &format!(" ({mode:?} mode)"));
     }
 }

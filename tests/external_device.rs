@@ -173,22 +173,24 @@ fn serve(mut stream: UnixStream, unit: Unit) -> Session {
     }
 }
 
-/// `hgcd` with a config of the test's own (normal scheduling) and a state directory.
-fn hgcd_with(dir: &Path, args: &[&str]) -> Output {
+/// The config of most runs here: normal scheduling.
+const NORMAL_SCHEDULING: &str = "[servo]\nrealtime_priority = 0\nlock_memory = false\n";
+
+/// `hgcd --log-level LEVEL ARGS --device socket:DEVICE` with the config `config` (written to the
+/// test's directory), and a state directory and an application socket of the test's own.
+fn hgcd_on(dir: &Path, config: &str, log_level: &str, args: &[&str], device: &Path) -> Output {
     let cfg = dir.join("hgcd.toml");
-    std::fs::write(
-        &cfg,
-        "[servo]\nrealtime_priority = 0\nlock_memory = false\n",
-    )
-    .unwrap();
+    std::fs::write(&cfg, config).unwrap();
     hgcd()
         .arg("--config")
         .arg(&cfg)
+        .args(["--log-level", log_level])
         .arg("--state-dir")
         .arg(dir.join("state"))
         .arg("--socket")
         .arg(dir.join("app.sock"))
         .args(args)
+        .args(["--device", &spec(device)])
         .output()
         .unwrap()
 }
@@ -216,16 +218,12 @@ fn hgcd_calibrates_each_unit_inside_its_declared_workspace_into_a_grid_named_aft
     let dir = tempfile::tempdir().unwrap();
     for (path, unit) in two_units(dir.path()) {
         let device = spawn_device(&path, unit, 1);
-        let out = hgcd_with(
+        let out = hgcd_on(
             dir.path(),
-            &[
-                "--log-level",
-                "warn",
-                "calibrate",
-                "--yes",
-                "--device",
-                &spec(&path),
-            ],
+            NORMAL_SCHEDULING,
+            "warn",
+            &["calibrate", "--yes"],
+            &path,
         );
         let sessions = device.join().unwrap();
         succeeded(&out);
@@ -289,17 +287,12 @@ fn a_grid_calibrated_on_another_unit_is_refused_with_one_line() {
     grid.save_atomic(&b_grid).unwrap();
 
     let device = spawn_device(&b_path, b, 1);
-    let out = hgcd_with(
+    let out = hgcd_on(
         dir.path(),
-        &[
-            "--log-level",
-            "error",
-            "run",
-            "--duration",
-            "1",
-            "--device",
-            &spec(&b_path),
-        ],
+        NORMAL_SCHEDULING,
+        "error",
+        &["run", "--duration", "1"],
+        &b_path,
     );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{stderr}");
@@ -330,18 +323,13 @@ fn a_device_that_does_not_answer_the_device_info_request_runs_as_before_said_onc
     );
     // Without the report hgcd cannot know it runs in lock-step: the watchdog is wall-clock time,
     // generous here so a loaded machine does not make it a fault.
-    let cfg = dir.path().join("hgcd.toml");
-    std::fs::write(&cfg, "[servo]\nwatchdog_ms = 1000\nrealtime_priority = 0\n").unwrap();
-    let out = hgcd()
-        .arg("--config")
-        .arg(&cfg)
-        .args(["--log-level", "warn", "--state-dir"])
-        .arg(dir.path().join("state"))
-        .arg("--socket")
-        .arg(dir.path().join("app.sock"))
-        .args(["run", "--duration", "0.3", "--device", &spec(&path)])
-        .output()
-        .unwrap();
+    let out = hgcd_on(
+        dir.path(),
+        "[servo]\nwatchdog_ms = 1000\nrealtime_priority = 0\n",
+        "warn",
+        &["run", "--duration", "0.3"],
+        &path,
+    );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     let said: Vec<&str> = stderr

@@ -8,6 +8,7 @@ use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
 mod common;
+use common::file_size::limit_file_size;
 use common::{
     failed, file_names, hgcd, output_within, serial, spawn_until, truth_field_27, with_device_id,
     BRIEF_RUN,
@@ -131,25 +132,6 @@ fn an_unsearchable_state_directory_is_not_taken_for_a_missing_grid() {
     std::fs::set_permissions(&state, std::fs::Permissions::from_mode(0o700)).unwrap();
     refused_with(&out, "cannot read grid file");
     assert!(String::from_utf8_lossy(&out.stderr).contains("Permission denied"));
-}
-
-/// Make `command` run with files limited to `bytes` (writes past it fail with EFBIG, as on a
-/// full disk).
-fn limit_file_size(command: &mut Command, bytes: u64) {
-    // SAFETY: only async-signal-safe calls between fork and exec.
-    unsafe {
-        command.pre_exec(move || {
-            libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
-            let limit = libc::rlimit {
-                rlim_cur: bytes,
-                rlim_max: bytes,
-            };
-            if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            Ok(())
-        });
-    }
 }
 
 #[test]

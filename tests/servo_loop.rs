@@ -30,6 +30,11 @@ fn sim_transport(config: &Config) -> SimTransport {
     )
 }
 
+/// The force of the last output report the simulated device behind `transport` received, N.
+fn last_force(transport: &SimTransport) -> Vector3<f64> {
+    transport.device().last_output().unwrap().force
+}
+
 /// Wraps a controller and records every state it sees.
 struct Recorder<C> {
     inner: C,
@@ -218,10 +223,7 @@ fn silent_device_trips_the_watchdog_and_force_is_zeroed_at_the_fault() {
     .unwrap();
     assert!(matches!(report.exit, ExitReason::Fault(_)));
     assert!(transport.device().time() < 1.0 + 2.0 * deadline);
-    assert_eq!(
-        transport.device().last_output().unwrap().force,
-        Vector3::zeros()
-    );
+    assert_eq!(last_force(&transport), Vector3::zeros());
 }
 
 #[test]
@@ -352,10 +354,7 @@ fn stop_request_writes_zero_force_last() {
     let report = servo::run(&mut transport, &mut c, &options(&config, 10.0), &stop, None).unwrap();
     assert_eq!(report.exit, ExitReason::Stopped);
     assert_eq!(report.stats.ticks, 301);
-    assert_eq!(
-        transport.device().last_output().unwrap().force,
-        Vector3::zeros()
-    );
+    assert_eq!(last_force(&transport), Vector3::zeros());
 }
 
 #[test]

@@ -81,17 +81,30 @@ fn assert_ideal(case: &str, report: &Report, m: &ModeReport, reading: Reading, p
     );
     let mut worst: f64 = 0.0;
     for (n, s) in r.points.iter().enumerate() {
-        let error = (s.mean / ideal - 1.0).abs();
-        assert!(
-            error < point,
-            "{name}, point {}: {:.4} mm, ideal {:.4} mm",
-            n + 1,
-            s.mean * 1e3,
-            ideal * 1e3
-        );
-        worst = worst.max(error);
+        worst = worst.max(assert_point_near(&name, n, s.mean, ideal, "ideal", point));
     }
     worst
+}
+
+/// Point `n`'s mean penetration `mean` within `share` of `expected` (both m; `source` says where
+/// `expected` comes from, `case` names the run): its relative error.
+fn assert_point_near(
+    case: &str,
+    n: usize,
+    mean: f64,
+    expected: f64,
+    source: &str,
+    share: f64,
+) -> f64 {
+    let error = (mean / expected - 1.0).abs();
+    assert!(
+        error < share,
+        "{case}, point {}: {:.4} mm, {source} {:.4} mm",
+        n + 1,
+        mean * 1e3,
+        expected * 1e3
+    );
+    error
 }
 
 /// Uncompensated (`none`), every point's penalty is within 10 % of what the linkage `sim:MODEL`
@@ -117,13 +130,7 @@ fn assert_uncompensated_follows_the_plant(
         let depth = (along + PROBE * 9.81) / STIFFNESS;
         let lateral = (force - report.up * along).norm() / hold;
         let expected = depth.hypot(lateral);
-        assert!(
-            (s.mean / expected - 1.0).abs() < 0.10,
-            "{case}, none, point {}: {:.4} mm, plant {:.4} mm",
-            n + 1,
-            s.mean * 1e3,
-            expected * 1e3
-        );
+        assert_point_near(&format!("{case}, none"), n, s.mean, expected, "plant", 0.10);
     }
 }
 
@@ -145,13 +152,7 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
             // The handle's own apparent mass sinks in with the probe, as the plant's field says.
             for (n, s) in m.two_sided.points.iter().enumerate() {
                 let expected = truth_penalty(&truth, &report.points[n]);
-                assert!(
-                    (s.mean / expected - 1.0).abs() < 0.02,
-                    "{name}, point {}: {:.4} mm, truth {:.4} mm",
-                    n + 1,
-                    s.mean * 1e3,
-                    expected * 1e3
-                );
+                assert_point_near(name, n, s.mean, expected, "truth", 0.02);
             }
             let means: Vec<f64> = m.two_sided.points.iter().map(|s| s.mean).collect();
             let (lo, hi) = means

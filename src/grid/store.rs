@@ -205,12 +205,18 @@ pub fn check_room(path: &Path, bytes: u64) -> Result<(), GridError> {
     result.map_err(|source| GridError::NoRoom { dir, bytes, source })
 }
 
+/// The integration tests' file size limit, for the child of a unit test below.
+#[cfg(test)]
+#[path = "../../tests/common/file_size.rs"]
+mod file_size;
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::os::unix::fs::{symlink, MetadataExt, PermissionsExt};
     use std::time::Duration;
 
+    use super::file_size::limit_file_size;
     use crate::grid::lattice::tests::sample;
     use crate::grid::GridFile;
 
@@ -422,25 +428,6 @@ mod tests {
         assert_eq!(read("b", "dev.toml"), vec![b'n'; 2 << 10]);
         assert_eq!(read("b", "dev.toml.bak"), old);
         assert_eq!(names("b"), 2);
-    }
-
-    /// Make `command` run with files limited to `bytes` (writes past it fail with EFBIG).
-    fn limit_file_size(command: &mut std::process::Command, bytes: u64) {
-        use std::os::unix::process::CommandExt;
-        // SAFETY: only async-signal-safe calls between fork and exec.
-        unsafe {
-            command.pre_exec(move || {
-                libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
-                let limit = libc::rlimit {
-                    rlim_cur: bytes,
-                    rlim_max: bytes,
-                };
-                if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
-                    return Err(io::Error::last_os_error());
-                }
-                Ok(())
-            });
-        }
     }
 
     #[test]

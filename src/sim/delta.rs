@@ -186,14 +186,11 @@ impl Mechanism for Delta {
         Some(q)
     }
 
-    fn masses(
-        &self,
-        q: &Vector3<f64>,
-        qd: &Vector3<f64>,
-        handle: &Point,
-        visit: &mut dyn FnMut(f64, &Point),
-    ) {
-        visit(self.m_platform + 1.5 * self.m_rods, handle);
+    fn handle_mass(&self) -> f64 {
+        self.m_platform + 1.5 * self.m_rods
+    }
+
+    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
         for i in 0..3 {
             visit(0.5 * self.m_rods, &self.arm_point(i, q, qd, self.arm));
             visit(self.m_arm, &self.arm_point(i, q, qd, self.arm_com));
@@ -243,8 +240,7 @@ mod tests {
     use crate::sim::Plant;
 
     fn delta_at(x_mm: [f64; 3], env: Environment) -> Linkage<Delta> {
-        let x = Vector3::from(x_mm) * 1e-3;
-        Linkage::new(Delta::nominal(), nominal_drives(), env, &x).unwrap()
+        checks::at(Delta::nominal(), nominal_drives(), x_mm, env)
     }
 
     #[test]

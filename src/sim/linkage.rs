@@ -26,15 +26,14 @@ pub trait Mechanism: Send + 'static {
     /// Joint angles that put the handle at `x`, in the mechanism's working assembly mode; `None`
     /// out of reach.
     fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>>;
-    /// Visit every lumped mass (kg) with its kinematics: the masses carry both weight and inertia.
-    /// `handle` is [`Mechanism::handle`] at the same state, for masses that ride on the handle.
-    fn masses(
-        &self,
-        q: &Vector3<f64>,
-        qd: &Vector3<f64>,
-        handle: &Point,
-        visit: &mut dyn FnMut(f64, &Point),
-    );
+    /// The mass that rides on the handle, kg (a delta's platform); [`Linkage`] adds it at the
+    /// handle's kinematics, after the payload.
+    fn handle_mass(&self) -> f64 {
+        0.0
+    }
+    /// Visit every other lumped mass (kg) with its kinematics: the masses carry both weight and
+    /// inertia.
+    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point));
     /// What the links' rotation about their own centres of mass adds to the joint-space
     /// dynamics: (inertia, kg m²; velocity-product torques, N m), from the kinetic energy
     /// ½ ωᵀ I ω of each link.
@@ -251,9 +250,12 @@ impl<M: Mechanism> Linkage<M> {
         let zero = Vector3::zeros();
         let handle = self.mechanism.handle(&self.q, &zero);
         let mut u = -self.env.payload * g.dot(&handle.position);
-        self.mechanism.masses(&self.q, &zero, &handle, &mut |m, p| {
-            u -= m * g.dot(&p.position)
-        });
+        let on_handle = self.mechanism.handle_mass();
+        if on_handle > 0.0 {
+            u -= on_handle * g.dot(&handle.position);
+        }
+        self.mechanism
+            .masses(&self.q, &zero, &mut |m, p| u -= m * g.dot(&p.position));
         u
     }
 
@@ -276,8 +278,11 @@ impl<M: Mechanism> Linkage<M> {
         if self.env.payload > 0.0 {
             add_mass(self.env.payload, handle);
         }
-        self.mechanism
-            .masses(&self.q, &self.qd, handle, &mut add_mass);
+        let on_handle = self.mechanism.handle_mass();
+        if on_handle > 0.0 {
+            add_mass(on_handle, handle);
+        }
+        self.mechanism.masses(&self.q, &self.qd, &mut add_mass);
         d
     }
 
@@ -479,6 +484,16 @@ pub(crate) mod checks {
         }
     }
 
+    /// `mechanism` with `drives` at rest in `env`, its handle at `x_mm` (mm).
+    pub(crate) fn at<M: Mechanism>(
+        mechanism: M,
+        drives: Drives,
+        x_mm: [f64; 3],
+        env: Environment,
+    ) -> Linkage<M> {
+        Linkage::new(mechanism, drives, env, &(Vector3::from(x_mm) * 1e-3)).unwrap()
+    }
+
     /// Gravity tilted off every device axis, with a 30 g payload.
     pub(crate) fn tilted() -> Environment {
         Environment {
@@ -509,7 +524,7 @@ pub(crate) mod checks {
         let points = |q: &Vector3<f64>, qd: &Vector3<f64>| {
             let handle = mechanism.handle(q, qd);
             let mut all = vec![handle];
-            mechanism.masses(q, qd, &handle, &mut |_, p| all.push(*p));
+            mechanism.masses(q, qd, &mut |_, p| all.push(*p));
             all
         };
         for (n, p) in points(q, qd).iter().enumerate() {

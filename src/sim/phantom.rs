@@ -207,13 +207,7 @@ impl Mechanism for Phantom {
         Some(Vector3::new(theta1, theta2, theta3))
     }
 
-    fn masses(
-        &self,
-        q: &Vector3<f64>,
-        qd: &Vector3<f64>,
-        _handle: &Point,
-        visit: &mut dyn FnMut(f64, &Point),
-    ) {
+    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
         let t = Trig::new(q);
         visit(
             self.m_a,
@@ -275,8 +269,7 @@ mod tests {
     use crate::sim::Plant;
 
     fn arm_at(x_mm: [f64; 3], env: Environment) -> Linkage<Phantom> {
-        let x = Vector3::from(x_mm) * 1e-3;
-        Linkage::new(Phantom::published(), published_drives(), env, &x).unwrap()
+        checks::at(Phantom::published(), published_drives(), x_mm, env)
     }
 
     /// Joint configurations spread over the working range.

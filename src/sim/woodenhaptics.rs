@@ -71,13 +71,7 @@ impl Mechanism for WoodenArm {
         self.model.joints_at(x)
     }
 
-    fn masses(
-        &self,
-        q: &Vector3<f64>,
-        qd: &Vector3<f64>,
-        _handle: &Point,
-        visit: &mut dyn FnMut(f64, &Point),
-    ) {
+    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
         // The upper arm's along body b from the shoulder, the forearm's along body c from the
         // elbow.
         let [b, c] = self.centres;
@@ -253,7 +247,7 @@ mod tests {
         let p = profile();
         let model = *p.arm().unwrap();
         let arm = WoodenArm::unit(model, &p.bodies.unwrap(), &mut UnitVariation::new(0));
-        Linkage::new(arm, drives(&model), env, &(Vector3::from(x_mm) * 1e-3)).unwrap()
+        checks::at(arm, drives(&model), x_mm, env)
     }
 
     #[test]

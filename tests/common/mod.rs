@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod daemon;
+pub mod file_size;
 pub mod tap;
 
 use std::io::{BufRead, BufReader};
@@ -101,6 +102,16 @@ pub fn succeeded(out: &Output) -> String {
         String::from_utf8_lossy(&out.stderr)
     );
     String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Run `command` to its end; its stdout (it must succeed, as in [`succeeded`]).
+pub fn stdout_of(command: &mut Command) -> String {
+    succeeded(&command.output().unwrap())
+}
+
+/// Run `command` to its end; its stderr (it must fail, as in [`failed`]).
+pub fn stderr_of(command: &mut Command) -> String {
+    failed(&command.output().unwrap())
 }
 
 /// The stderr of a command that must have failed.
