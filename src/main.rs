@@ -116,6 +116,10 @@ enum Command {
             default_value = "none,scalar,vector"
         )]
         modes: Vec<String>,
+        /// Also compare the grid's force with the plant's own at N random points of a simulated
+        /// device's reachable workspace; writes DIR/sweep.json (docs/calibration.md §11).
+        #[arg(long, value_name = "N")]
+        sweep: Option<usize>,
         /// Run a simulated device in real time (default for simulated devices: virtual time).
         #[arg(long)]
         real_time: bool,
@@ -335,6 +339,7 @@ fn real_main(cli: Cli) -> Result<()> {
             stiffness_n_per_mm,
             repetitions,
             modes,
+            sweep,
             real_time,
             yes,
         } => {
@@ -354,6 +359,7 @@ fn real_main(cli: Cli) -> Result<()> {
                 stiffness: stiffness_n_per_mm * 1e3,
                 repetitions,
                 modes,
+                sweep,
             };
             validate_here(&config, &request, yes)
         }
@@ -544,7 +550,20 @@ fn validate_here(config: &Config, request: &ValidateRequest, yes: bool) -> Resul
         file_name(&run.outputs.svg),
         file_name(&run.outputs.png),
         run.wall_time
-    ))
+    ))?;
+    if let Some(sweep) = &run.sweep {
+        let r = &sweep.cube.residual_pct;
+        out(&format!(
+            "sweep over {} reachable points (sweep.json): the grid covers {:.1} % of them; \
+             residual p50 {:.1} %, p95 {:.1} %, max {:.1} %\n",
+            sweep.points,
+            100.0 * sweep.cube.covered_fraction,
+            r.p50,
+            r.p95,
+            r.max
+        ))?;
+    }
+    Ok(())
 }
 
 fn file_name(path: &Path) -> String {

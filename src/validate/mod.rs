@@ -14,6 +14,7 @@ pub mod controller;
 mod figure;
 pub mod probe;
 mod report;
+pub mod sweep;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -102,6 +103,9 @@ pub struct ValidateRequest {
     pub repetitions: usize,
     /// Runs, in this order.
     pub modes: Vec<Mode>,
+    /// Also sweep the grid over this many random reachable points (`sweep.json`; simulated
+    /// devices only).
+    pub sweep: Option<usize>,
 }
 
 /// Probe masses the experiment accepts, kg (1 g to 1 kg).
@@ -157,6 +161,8 @@ pub enum ValidateError {
     },
     #[error(transparent)]
     Figure(#[from] FigureError),
+    #[error(transparent)]
+    Sweep(#[from] sweep::SweepError),
 }
 
 /// Something to show while the validation runs (on the calling thread).
@@ -202,6 +208,8 @@ pub struct Outputs {
     pub summary: PathBuf,
     pub svg: PathBuf,
     pub png: PathBuf,
+    /// `sweep.json`, with `--sweep`.
+    pub sweep: Option<PathBuf>,
 }
 
 /// A finished validation.
@@ -211,6 +219,8 @@ pub struct Validation {
     pub outputs: Outputs,
     /// The calibration run first, on a simulated device without `--grid`.
     pub calibration: Option<CalibrationRun>,
+    /// The grid over random reachable points, with `--sweep`.
+    pub sweep: Option<sweep::Sweep>,
     pub stats: TimingStats,
     /// Wall-clock duration of the whole validation (calibration included), s.
     pub wall_time: f64,
@@ -298,6 +308,14 @@ fn check_request(r: &ValidateRequest) -> Result<(), ValidateError> {
     modes.dedup();
     if modes.is_empty() || modes.len() != r.modes.len() {
         return Err(ValidateError::Modes);
+    }
+    if let Some(n) = r.sweep {
+        if !matches!(r.device, DeviceSpec::Sim { .. }) {
+            return Err(sweep::SweepError::NotSimulated.into());
+        }
+        if n < sweep::POINTS_RANGE.0 || n > sweep::POINTS_RANGE.1 {
+            return Err(sweep::SweepError::Points(n).into());
+        }
     }
     Ok(())
 }
@@ -461,11 +479,29 @@ impl Prepared {
             &normal,
             &controller.into_rests(),
         );
-        let outputs = write_outputs(&request.out, &report, started.elapsed().as_secs_f64())?;
+        let mut outputs = write_outputs(&request.out, &report, started.elapsed().as_secs_f64())?;
+        let mut swept = None;
+        if let (Some(n), DeviceSpec::Sim { model }) = (request.sweep, &request.device) {
+            let cube = GravityModel::configured(
+                file.clone(),
+                config.compensation.mode,
+                config.compensation.outside_grid,
+            )
+            .map_err(GridModelError::model(&path))?;
+            let sweep = sweep::Sweep::run(model, &config, &cube, n, config.sim.seed)?;
+            let target = request.out.join("sweep.json");
+            std::fs::write(&target, sweep.json()).map_err(|source| ValidateError::Write {
+                path: target.clone(),
+                source,
+            })?;
+            outputs.sweep = Some(target);
+            swept = Some(sweep);
+        }
         Ok(Validation {
             report,
             outputs,
             calibration,
+            sweep: swept,
             stats: servo_report.stats,
             wall_time: started.elapsed().as_secs_f64(),
         })
@@ -501,6 +537,7 @@ fn write_outputs(out: &Path, report: &Report, wall_time: f64) -> Result<Outputs,
         summary: out.join("summary.json"),
         svg: out.join("penalty.svg"),
         png: out.join("penalty.png"),
+        sweep: None,
     };
     let write = |path: &Path, text: String| {
         std::fs::write(path, text).map_err(|source| ValidateError::Write {
