@@ -536,7 +536,8 @@ pub struct SimConfig {
     pub device_watchdog_ms: f64,
     /// Fault injection: the device stops reporting after this much device time, s.
     pub stop_reporting_after_s: Option<f64>,
-    /// point-mass: a box the handle cannot enter (an obstacle), mm; both corners or neither.
+    /// A box the handle cannot enter (an obstacle, a wall the user did not declare), mm; both
+    /// corners or neither. Every plant honours it.
     pub obstacle_min_mm: Option<[f64; 3]>,
     pub obstacle_max_mm: Option<[f64; 3]>,
 }

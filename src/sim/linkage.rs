@@ -13,10 +13,13 @@ use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::Plant;
+use super::{ContactLog, Plant};
 use crate::config::SimConfig;
 
 pub use crate::profile::kinematics::Point;
+
+/// How far the handle must leave the obstacle for its next touch to count as a new contact, m.
+const RELEASE: f64 = 1e-4;
 
 /// The geometry and masses of a mechanism (kinematics only: no friction, motors or sensors).
 /// Positions are in the device frame, m, with the handle at the origin at q = 0.
@@ -137,6 +140,12 @@ pub struct Linkage<M: Mechanism> {
     lower: Vector3<f64>,
     upper: Vector3<f64>,
     workspace: (Vector3<f64>, Vector3<f64>),
+    /// A box the handle cannot enter (`sim.obstacle_*_mm`), m: a wall the user did not declare.
+    obstacle: Option<(Vector3<f64>, Vector3<f64>)>,
+    /// Whether the handle rests against the obstacle: it ran into it and has not left it by
+    /// more than [`RELEASE`] since (pressed on, it creeps back in from a few µm away).
+    touching: bool,
+    contacts: ContactLog,
     q: Vector3<f64>,
     /// Joint velocities; a component that is exactly zero marks a joint held (stuck by static
     /// friction or resting on a stop) until the torque on it leaves its static band.
@@ -181,6 +190,9 @@ impl<M: Mechanism> Linkage<M> {
             lower,
             upper,
             workspace,
+            obstacle: None,
+            touching: false,
+            contacts: ContactLog::default(),
             q,
             qd: Vector3::zeros(),
         })
@@ -203,12 +215,30 @@ impl<M: Mechanism> Linkage<M> {
             viscous: variation.vary3(nominal.viscous),
             ..nominal
         };
-        Self::new(
+        let mut linkage = Self::new(
             mechanism,
             drives,
             Environment::from_config(sim),
             &sim.start_position(),
-        )
+        )?;
+        linkage.obstacle = sim.obstacle();
+        if linkage.in_obstacle(&linkage.position()) {
+            return Err(Unreachable);
+        }
+        Ok(linkage)
+    }
+
+    /// How far `x` (m) is from the obstacle, m (0 inside or without one).
+    fn obstacle_distance(&self, x: &Vector3<f64>) -> f64 {
+        self.obstacle.map_or(0.0, |(lo, hi)| {
+            ((lo - x).sup(&Vector3::zeros()) + (x - hi).sup(&Vector3::zeros())).norm()
+        })
+    }
+
+    /// Whether `x` (m) lies inside the obstacle.
+    fn in_obstacle(&self, x: &Vector3<f64>) -> bool {
+        self.obstacle
+            .is_some_and(|(lo, hi)| (0..3).all(|a| x[a] > lo[a] && x[a] < hi[a]))
     }
 
     pub fn mechanism(&self) -> &M {
@@ -411,13 +441,33 @@ impl<M: Mechanism> Linkage<M> {
                 before != 0.0 && after * before <= 0.0 && self.drives.coulomb[j] * scale > 0.0;
             self.qd[j] = if stopped { 0.0 } else { after };
         }
+        let speed = (handle.jacobian * self.qd).norm();
+        let before = self.q;
         self.q += self.qd * dt;
-        // Hard stops: the motion into a stop is absorbed (an inelastic contact).
+        self.contacts.tick(dt);
+        // Hard stops: the motion into a stop is absorbed (an inelastic contact). A contact is a
+        // stop the joint was not resting on before.
+        let mut met = false;
         for j in 0..3 {
             if self.q[j] < self.lower[j] || self.q[j] > self.upper[j] {
                 self.q[j] = self.q[j].clamp(self.lower[j], self.upper[j]);
                 self.qd[j] = 0.0;
+                met |= before[j] != self.q[j];
             }
+        }
+        // The obstacle stops the whole arm where it was (a sticky, inelastic wall).
+        if self.obstacle.is_some() {
+            if self.in_obstacle(&self.position()) {
+                self.q = before;
+                self.qd = Vector3::zeros();
+                met |= !self.touching;
+                self.touching = true;
+            } else if self.obstacle_distance(&self.position()) > RELEASE {
+                self.touching = false;
+            }
+        }
+        if met {
+            self.contacts.record(self.position(), speed);
         }
     }
 }
@@ -438,6 +488,10 @@ impl<M: Mechanism> Plant for Linkage<M> {
 
     fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
         self.workspace
+    }
+
+    fn contacts(&self) -> &ContactLog {
+        &self.contacts
     }
 
     fn holding_force(&self) -> Vector3<f64> {

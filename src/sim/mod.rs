@@ -45,6 +45,86 @@ pub trait Plant: Send {
     fn sensed_position(&self, noise: &Vector3<f64>) -> Vector3<f64>;
     /// Unit "up" of the simulated world in the device frame: opposite to gravity.
     fn up(&self) -> Vector3<f64>;
+    /// Every time the handle met a mechanical stop or an obstacle, and how fast (ground truth
+    /// for tests: no contact faster than exploration's bound).
+    fn contacts(&self) -> &ContactLog;
+}
+
+/// One contact: the handle met a mechanical stop or an obstacle it was not touching before.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Contact {
+    /// Plant time since it was built, s.
+    pub time: f64,
+    /// Where the handle stopped, m.
+    pub position: Vector3<f64>,
+    /// The handle's speed just before it met the stop, m/s.
+    pub speed: f64,
+}
+
+/// A plant's contacts, oldest first: room for [`ContactLog::ROOM`] is made when the plant is
+/// built (the plant steps on the servo thread, which must not allocate); later ones are only
+/// counted, with the fastest of them kept.
+#[derive(Clone, Debug)]
+pub struct ContactLog {
+    contacts: Vec<Contact>,
+    /// Contacts beyond the room, and the fastest of them, m/s.
+    missed: u64,
+    fastest_missed: f64,
+    /// Plant time, s.
+    time: f64,
+}
+
+impl Default for ContactLog {
+    fn default() -> Self {
+        Self {
+            contacts: Vec::with_capacity(Self::ROOM),
+            missed: 0,
+            fastest_missed: 0.0,
+            time: 0.0,
+        }
+    }
+}
+
+impl ContactLog {
+    /// Contacts kept in full.
+    pub const ROOM: usize = 4096;
+
+    /// Advance the plant's clock by a step of `dt` s.
+    pub(crate) fn tick(&mut self, dt: f64) {
+        self.time += dt;
+    }
+
+    /// The handle met a stop at `position` (m) at `speed` (m/s).
+    pub(crate) fn record(&mut self, position: Vector3<f64>, speed: f64) {
+        if self.contacts.len() < Self::ROOM {
+            self.contacts.push(Contact {
+                time: self.time,
+                position,
+                speed,
+            });
+        } else {
+            self.missed += 1;
+            self.fastest_missed = self.fastest_missed.max(speed);
+        }
+    }
+
+    /// The contacts kept, oldest first.
+    pub fn contacts(&self) -> &[Contact] {
+        &self.contacts
+    }
+
+    /// How many contacts there were in all.
+    pub fn count(&self) -> u64 {
+        self.contacts.len() as u64 + self.missed
+    }
+
+    /// The fastest contact of all, m/s (0 without any).
+    pub fn fastest(&self) -> f64 {
+        self.contacts
+            .iter()
+            .map(|c| c.speed)
+            .fold(self.fastest_missed, f64::max)
+    }
 }
 
 /// Why a simulated device could not be built from its config.
@@ -69,4 +149,25 @@ pub enum SimError {
         model: &'static str,
         position_mm: [f64; 3],
     },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_contact_log_keeps_its_room_then_counts_and_keeps_the_fastest() {
+        let mut log = ContactLog::default();
+        assert_eq!((log.count(), log.fastest()), (0, 0.0));
+        for n in 0..ContactLog::ROOM {
+            log.tick(1e-3);
+            log.record(Vector3::zeros(), 0.001 * (n % 10) as f64);
+        }
+        log.record(Vector3::x(), 0.5);
+        log.record(Vector3::y(), 0.1);
+        assert_eq!(log.contacts().len(), ContactLog::ROOM);
+        assert_eq!(log.count(), ContactLog::ROOM as u64 + 2);
+        assert_eq!(log.fastest(), 0.5);
+        assert!((log.contacts()[1].time - 2e-3).abs() < 1e-12);
+    }
 }

@@ -544,4 +544,44 @@ mod tests {
         let nominal = arm_at([0.0; 3], env(1.0, 0.0)).holding_force();
         checks::assert_units_differ(from_config, nominal, 0.005..0.5);
     }
+
+    #[test]
+    fn an_obstacle_stops_the_arm_at_its_face_and_the_contact_is_logged_once() {
+        // A wall at x = +20 mm across the whole workspace; the handle starts at home, 20 mm
+        // from it, and is pushed toward it with 0.3 N beyond its holding force for 2 s.
+        let mut sim = crate::config::SimConfig {
+            obstacle_min_mm: Some([20.0, -500.0, -500.0]),
+            obstacle_max_mm: Some([500.0, 500.0, 500.0]),
+            ..Default::default()
+        };
+        let mut arm = from_config(&sim).unwrap();
+        assert_eq!(arm.contacts().count(), 0);
+        let dt = 1e-4;
+        let mut fastest = 0.0f64;
+        for _ in 0..20_000 {
+            fastest = fastest.max(arm.velocity().norm());
+            let push = arm.holding_force() + Vector3::new(0.3, 0.0, 0.0);
+            arm.step(&push, dt);
+            assert!(arm.position().x <= 0.020 + 1e-9, "{:?}", arm.position());
+        }
+        // Held at the face: still, within a step's travel of it.
+        assert!(arm.position().x > 0.019, "{:?}", arm.position());
+        assert!(arm.velocity().norm() < 1e-9);
+        let log = arm.contacts();
+        assert_eq!(log.count(), 1, "{:?}", log.contacts());
+        let contact = log.contacts()[0];
+        // The wall stops the arm where its last step began: within a step's travel of the face.
+        let travel = contact.speed * dt;
+        assert!(contact.position.x <= 0.020 && contact.position.x >= 0.020 - 1.01 * travel);
+        // The speed it met the wall at: the handle's, one step's acceleration after the fastest
+        // seen before the step.
+        assert!(
+            contact.speed >= fastest && contact.speed < 1.01 * fastest,
+            "{contact:?}, {fastest}"
+        );
+        assert!(contact.time > 0.0 && contact.time < 2.0);
+        // A handle cannot start inside the obstacle.
+        sim.start_position_mm = [30.0, 0.0, 0.0];
+        assert!(from_config(&sim).is_err());
+    }
 }

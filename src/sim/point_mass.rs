@@ -2,7 +2,7 @@
 
 use nalgebra::Vector3;
 
-use super::Plant;
+use super::{ContactLog, Plant};
 use crate::config::SimConfig;
 use crate::grid::{GridError, GridFile, MassGrid};
 
@@ -41,6 +41,7 @@ pub struct PointMass {
     hi: Vector3<f64>,
     x: Vector3<f64>,
     v: Vector3<f64>,
+    contacts: ContactLog,
 }
 
 impl PointMass {
@@ -65,6 +66,7 @@ impl PointMass {
             hi,
             x: start.sup(&lo).inf(&hi),
             v: Vector3::zeros(),
+            contacts: ContactLog::default(),
         }
     }
 
@@ -126,7 +128,11 @@ impl Plant for PointMass {
             trial * (1.0 - braking / speed)
         };
         let before = self.x;
+        let speed = self.v.norm();
         self.x += self.v * dt;
+        self.contacts.tick(dt);
+        // A contact: the step ends on a face or a stop the handle was not resting on before.
+        let mut met = false;
         if let Some((lo, hi)) = self.obstacle {
             let inside = (0..3).all(|a| self.x[a] > lo[a] && self.x[a] < hi[a]);
             // Entering the box, the handle stops on the face it crossed: of the axes it was
@@ -140,16 +146,22 @@ impl Plant for PointMass {
             if let (true, Some(a)) = (inside, crossed) {
                 self.x[a] = if before[a] <= lo[a] { lo[a] } else { hi[a] };
                 self.v[a] = 0.0;
+                met |= before[a] != self.x[a];
             }
         }
         for axis in 0..3 {
             if self.x[axis] < self.lo[axis] {
                 self.x[axis] = self.lo[axis];
                 self.v[axis] = self.v[axis].max(0.0);
+                met |= before[axis] != self.lo[axis];
             } else if self.x[axis] > self.hi[axis] {
                 self.x[axis] = self.hi[axis];
                 self.v[axis] = self.v[axis].min(0.0);
+                met |= before[axis] != self.hi[axis];
             }
+        }
+        if met {
+            self.contacts.record(self.x, speed);
         }
     }
     fn position(&self) -> Vector3<f64> {
@@ -160,6 +172,9 @@ impl Plant for PointMass {
     }
     fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
         (self.lo, self.hi)
+    }
+    fn contacts(&self) -> &ContactLog {
+        &self.contacts
     }
     fn holding_force(&self) -> Vector3<f64> {
         self.field.gravity_direction * (self.mass() * self.field.g)
@@ -338,6 +353,9 @@ mod tests {
             p.step(&Vector3::zeros(), 1e-4);
         }
         assert!((p.position() - Vector3::new(0.0, 0.0, -0.02)).norm() < 1e-12);
+        // One contact, logged when it landed (resting on the face is no new one).
+        assert_eq!(p.contacts().count(), 1);
+        assert!(p.contacts().fastest() > 0.1);
         let mut p = frictional(0.12, None, 0.0);
         p.obstacle = Some((
             Vector3::new(0.005, -0.01, -0.01),
@@ -349,5 +367,7 @@ mod tests {
         }
         assert!((p.position() - Vector3::new(0.005, 0.0, 0.0)).norm() < 1e-12);
         assert_eq!(p.velocity().x, 0.0);
+        assert_eq!(p.contacts().count(), 1);
+        assert_eq!(p.contacts().contacts()[0].position, p.position());
     }
 }
