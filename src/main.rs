@@ -55,137 +55,158 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Run the servo loop on a device until Ctrl-C/SIGTERM or for --duration seconds.
-    Run {
-        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
-        #[arg(long, value_name = "SPEC")]
-        device: Option<String>,
-        /// Stop after this many seconds: of device time where the device sets the pace
-        /// (--virtual-time, or a socket device in lock-step), of wall-clock time otherwise.
-        #[arg(long, value_name = "S")]
-        duration: Option<f64>,
-        /// Run a simulated device in virtual time (as fast as possible) instead of real time.
-        #[arg(long)]
-        virtual_time: bool,
-    },
+    Run(RunArgs),
     /// Run the off-line autocalibration (paper Algorithm 1) and save the mass grid.
-    Calibrate {
-        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`);
-        /// with --via-daemon, which daemon (a device id or spec; default: the only one running).
-        #[arg(long, value_name = "SPEC")]
-        device: Option<String>,
-        /// Write the grid to this file instead of <state-dir>/<device-id>.toml.
-        #[arg(long, value_name = "FILE")]
-        output: Option<PathBuf>,
-        /// Run a simulated device in real time (default for simulated devices: virtual time).
-        #[arg(long)]
-        real_time: bool,
-        /// Do not ask for confirmation before starting on a real device.
-        #[arg(long)]
-        yes: bool,
-        /// Ask the running daemon to calibrate its device (it switches to the new grid after).
-        #[arg(long)]
-        via_daemon: bool,
-    },
+    Calibrate(CalibrateArgs),
     /// The paper's validation experiment (Section 5, Fig. 2): a probe mass on a virtual surface
     /// at 27 points, without and with compensation; writes a table, CSV, summary.json and figure.
-    Validate {
-        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
-        #[arg(long, value_name = "SPEC")]
-        device: Option<String>,
-        /// Compensate with this grid (default: the device's stored grid; on a simulated device a
-        /// fresh calibration, written to DIR/grid.toml).
-        #[arg(long, value_name = "FILE")]
-        grid: Option<PathBuf>,
-        /// Directory for the results (created if needed).
-        #[arg(long, value_name = "DIR")]
-        out: PathBuf,
-        /// Probe mass m_p, g (on a simulated device it is added to the plant; on hardware attach it).
-        #[arg(long, value_name = "G", default_value_t = 30.0)]
-        probe_mass_g: f64,
-        /// Stiffness k of the virtual surface, N/mm.
-        #[arg(long, value_name = "K", default_value_t = 1.0)]
-        stiffness_n_per_mm: f64,
-        /// Repetitions per contact point and mode.
-        #[arg(long, value_name = "N", default_value_t = 10)]
-        repetitions: usize,
-        /// Compensation modes to run, in order (comma-separated: none, scalar, vector).
-        #[arg(
-            long,
-            value_name = "MODES",
-            value_delimiter = ',',
-            default_value = "none,scalar,vector"
-        )]
-        modes: Vec<String>,
-        /// Also compare the grid's force with the plant's own at N random points of a simulated
-        /// device's reachable workspace; writes DIR/sweep.json (docs/calibration.md §11).
-        #[arg(long, value_name = "N")]
-        sweep: Option<usize>,
-        /// Run a simulated device in real time (default for simulated devices: virtual time).
-        #[arg(long)]
-        real_time: bool,
-        /// Do not ask for confirmation before starting on a real device.
-        #[arg(long)]
-        yes: bool,
-    },
+    Validate(ValidateArgs),
     /// Log an identification run: compensation on, a PD law tracking slow and fast multisines
     /// and holds inside the calibrated grid (docs/discrepancy.md). Ctrl-C ends it early with a
     /// valid, shorter log.
-    Record {
-        /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
-        #[arg(long, value_name = "SPEC")]
-        device: Option<String>,
-        /// Compensate with this grid (default: the device's stored grid).
-        #[arg(long, value_name = "FILE")]
-        grid: Option<PathBuf>,
-        /// The log to write (CSV, docs/log-format.md).
-        #[arg(long, value_name = "FILE")]
-        out: PathBuf,
-        /// Seconds of device time to record.
-        #[arg(long, value_name = "S", default_value_t = 40.0)]
-        duration: f64,
-        /// Run a simulated device in real time (default for simulated devices: virtual time).
-        #[arg(long)]
-        real_time: bool,
-        /// Do not ask for confirmation before starting on a real device.
-        #[arg(long)]
-        yes: bool,
-    },
+    Record(RecordArgs),
     /// Compare a measured log with a calibrated grid: where they disagree, which physical effect
     /// the model misses (or none), and how much adding it shrinks the gap on held-out data.
-    Analyze {
-        /// The calibrated model (hgcd-grid/1).
-        #[arg(long, value_name = "FILE")]
-        grid: PathBuf,
-        /// The measured log (CSV, docs/log-format.md).
-        #[arg(long, value_name = "FILE")]
-        log: PathBuf,
-        /// Directory for the report (created if needed).
-        #[arg(long, value_name = "DIR")]
-        out: PathBuf,
-    },
+    Analyze(AnalyzeArgs),
     /// Show the running daemons' state: device, grid, mode, clients, loop timing.
-    Status {
-        /// Only the daemon of this device (a device id or spec; default: every daemon running).
-        #[arg(long, value_name = "SPEC")]
-        device: Option<String>,
-    },
+    Status(StatusArgs),
     /// Serve the simulated device (config [sim]) on a Unix socket, for `--device socket:PATH`:
     /// the device side of the socket transport, as an external simulator or bridge would be.
     /// Serves one host after another until Ctrl-C/SIGTERM; each connection is a power-on.
-    SimDevice {
-        /// Socket to listen on.
-        #[arg(long, value_name = "PATH")]
-        listen: PathBuf,
-        /// Wait for the host's output report after each input report (deterministic, as fast as
-        /// both sides allow) instead of reporting in real time.
-        #[arg(long)]
-        lockstep: bool,
-        /// The simulated model, as in `sim:MODEL` (docs/simulated-devices.md).
-        #[arg(long, default_value = "point-mass")]
-        model: String,
-    },
+    SimDevice(SimDeviceArgs),
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
+}
+
+#[derive(clap::Args, Debug)]
+struct RunArgs {
+    /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+    #[arg(long, value_name = "SPEC")]
+    device: Option<String>,
+    /// Stop after this many seconds: of device time where the device sets the pace
+    /// (--virtual-time, or a socket device in lock-step), of wall-clock time otherwise.
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+    /// Run a simulated device in virtual time (as fast as possible) instead of real time.
+    #[arg(long)]
+    virtual_time: bool,
+}
+
+#[derive(clap::Args, Debug)]
+struct CalibrateArgs {
+    /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`);
+    /// with --via-daemon, which daemon (a device id or spec; default: the only one running).
+    #[arg(long, value_name = "SPEC")]
+    device: Option<String>,
+    /// Write the grid to this file instead of <state-dir>/<device-id>.toml.
+    #[arg(long, value_name = "FILE")]
+    output: Option<PathBuf>,
+    /// Run a simulated device in real time (default for simulated devices: virtual time).
+    #[arg(long)]
+    real_time: bool,
+    /// Do not ask for confirmation before starting on a real device.
+    #[arg(long)]
+    yes: bool,
+    /// Ask the running daemon to calibrate its device (it switches to the new grid after).
+    #[arg(long)]
+    via_daemon: bool,
+}
+
+#[derive(clap::Args, Debug)]
+struct ValidateArgs {
+    /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+    #[arg(long, value_name = "SPEC")]
+    device: Option<String>,
+    /// Compensate with this grid (default: the device's stored grid; on a simulated device a
+    /// fresh calibration, written to DIR/grid.toml).
+    #[arg(long, value_name = "FILE")]
+    grid: Option<PathBuf>,
+    /// Directory for the results (created if needed).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Probe mass m_p, g (on a simulated device it is added to the plant; on hardware attach it).
+    #[arg(long, value_name = "G", default_value_t = 30.0)]
+    probe_mass_g: f64,
+    /// Stiffness k of the virtual surface, N/mm.
+    #[arg(long, value_name = "K", default_value_t = 1.0)]
+    stiffness_n_per_mm: f64,
+    /// Repetitions per contact point and mode.
+    #[arg(long, value_name = "N", default_value_t = 10)]
+    repetitions: usize,
+    /// Compensation modes to run, in order (comma-separated: none, scalar, vector).
+    #[arg(
+        long,
+        value_name = "MODES",
+        value_delimiter = ',',
+        default_value = "none,scalar,vector"
+    )]
+    modes: Vec<String>,
+    /// Also compare the grid's force with the plant's own at N random points of a simulated
+    /// device's reachable workspace; writes DIR/sweep.json (docs/calibration.md §11).
+    #[arg(long, value_name = "N")]
+    sweep: Option<usize>,
+    /// Run a simulated device in real time (default for simulated devices: virtual time).
+    #[arg(long)]
+    real_time: bool,
+    /// Do not ask for confirmation before starting on a real device.
+    #[arg(long)]
+    yes: bool,
+}
+
+#[derive(clap::Args, Debug)]
+struct RecordArgs {
+    /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+    #[arg(long, value_name = "SPEC")]
+    device: Option<String>,
+    /// Compensate with this grid (default: the device's stored grid).
+    #[arg(long, value_name = "FILE")]
+    grid: Option<PathBuf>,
+    /// The log to write (CSV, docs/log-format.md).
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+    /// Seconds of device time to record.
+    #[arg(long, value_name = "S", default_value_t = 40.0)]
+    duration: f64,
+    /// Run a simulated device in real time (default for simulated devices: virtual time).
+    #[arg(long)]
+    real_time: bool,
+    /// Do not ask for confirmation before starting on a real device.
+    #[arg(long)]
+    yes: bool,
+}
+
+#[derive(clap::Args, Debug)]
+struct AnalyzeArgs {
+    /// The calibrated model (hgcd-grid/1).
+    #[arg(long, value_name = "FILE")]
+    grid: PathBuf,
+    /// The measured log (CSV, docs/log-format.md).
+    #[arg(long, value_name = "FILE")]
+    log: PathBuf,
+    /// Directory for the report (created if needed).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+struct StatusArgs {
+    /// Only the daemon of this device (a device id or spec; default: every daemon running).
+    #[arg(long, value_name = "SPEC")]
+    device: Option<String>,
+}
+
+#[derive(clap::Args, Debug)]
+struct SimDeviceArgs {
+    /// Socket to listen on.
+    #[arg(long, value_name = "PATH")]
+    listen: PathBuf,
+    /// Wait for the host's output report after each input report (deterministic, as fast as
+    /// both sides allow) instead of reporting in real time.
+    #[arg(long)]
+    lockstep: bool,
+    /// The simulated model, as in `sim:MODEL` (docs/simulated-devices.md).
+    #[arg(long, default_value = "point-mass")]
+    model: String,
 }
 
 /// Global options a subcommand ignores, by subcommand: left out of its help. (They are still
@@ -307,91 +328,72 @@ fn real_main(cli: Cli) -> Result<()> {
         Ok(config)
     };
     match cli.command {
-        Command::Run {
-            device,
-            duration,
-            virtual_time,
-        } => run(&config()?, device.as_deref(), duration, virtual_time),
-        Command::Calibrate {
-            via_daemon: true,
-            device,
-            yes,
-            ..
-        } => {
-            let socket = daemon_socket(&config()?, device.as_deref())?;
-            if !yes {
-                confirm_start()?;
-            }
-            ctl::calibrate_via_daemon(&socket)
+        Command::Run(args) => run(&config()?, &args),
+        Command::Calibrate(args) => calibrate_command(&config()?, args),
+        Command::Validate(args) => validate_command(&config()?, args),
+        Command::Record(args) => record_command(&config()?, args),
+        Command::Analyze(AnalyzeArgs { grid, log, out }) => {
+            analyze_here(&AnalyzeRequest { grid, log, out })
         }
-        Command::Calibrate {
-            device,
-            output,
-            real_time,
-            yes,
-            ..
-        } => calibrate_here(&config()?, device.as_deref(), output, real_time, yes),
-        Command::Validate {
-            device,
-            grid,
-            out,
-            probe_mass_g,
-            stiffness_n_per_mm,
-            repetitions,
-            modes,
-            sweep,
-            real_time,
-            yes,
-        } => {
-            let modes = modes
-                .iter()
-                .map(|m| m.parse::<Mode>())
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|e| anyhow::anyhow!("--modes: {e}"))?;
-            let config = config()?;
-            let device = device_spec(device.as_deref(), &config)?;
-            let request = ValidateRequest {
-                pacing: pacing(&device, real_time),
-                device,
-                grid,
-                out,
-                probe_mass: probe_mass_g * 1e-3,
-                stiffness: stiffness_n_per_mm * 1e3,
-                repetitions,
-                modes,
-                sweep,
-            };
-            validate_here(&config, &request, yes)
-        }
-        Command::Record {
-            device,
-            grid,
-            out,
-            duration,
-            real_time,
-            yes,
-        } => {
-            let config = config()?;
-            let device = device_spec(device.as_deref(), &config)?;
-            let pacing = confirmed_pacing(&device, real_time, yes)?;
-            let request = RecordRequest {
-                device,
-                pacing,
-                grid,
-                out,
-                duration,
-            };
-            record_here(&config, &request)
-        }
-        Command::Analyze { grid, log, out } => analyze_here(&AnalyzeRequest { grid, log, out }),
-        Command::Status { device } => status(&config()?, device.as_deref()),
-        Command::SimDevice {
-            listen,
-            lockstep,
-            model,
-        } => sim_device(&config()?, &listen, lockstep, &model),
+        Command::Status(args) => status(&config()?, args.device.as_deref()),
+        Command::SimDevice(args) => sim_device(&config()?, &args),
         Command::Devices => devices(&config()?),
     }
+}
+
+/// `hgcd calibrate`: through the running daemon with `--via-daemon`, else in this process.
+fn calibrate_command(config: &Config, args: CalibrateArgs) -> Result<()> {
+    if args.via_daemon {
+        let socket = daemon_socket(config, args.device.as_deref())?;
+        if !args.yes {
+            confirm_start()?;
+        }
+        return ctl::calibrate_via_daemon(&socket);
+    }
+    calibrate_here(
+        config,
+        args.device.as_deref(),
+        args.output,
+        args.real_time,
+        args.yes,
+    )
+}
+
+/// `hgcd validate`: the options as a request, run in this process.
+fn validate_command(config: &Config, args: ValidateArgs) -> Result<()> {
+    let modes = args
+        .modes
+        .iter()
+        .map(|m| m.parse::<Mode>())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| anyhow::anyhow!("--modes: {e}"))?;
+    let device = device_spec(args.device.as_deref(), config)?;
+    let request = ValidateRequest {
+        pacing: pacing(&device, args.real_time),
+        device,
+        grid: args.grid,
+        out: args.out,
+        probe_mass: args.probe_mass_g * 1e-3,
+        stiffness: args.stiffness_n_per_mm * 1e3,
+        repetitions: args.repetitions,
+        modes,
+        sweep: args.sweep,
+    };
+    validate_here(config, &request, args.yes)
+}
+
+/// `hgcd record`: the options as a request, confirmed on hardware, run in this process.
+fn record_command(config: &Config, args: RecordArgs) -> Result<()> {
+    let device = device_spec(args.device.as_deref(), config)?;
+    let pacing = confirmed_pacing(&device, args.real_time, args.yes)?;
+    let request = RecordRequest {
+        device,
+        pacing,
+        grid: args.grid,
+        out: args.out,
+        duration: args.duration,
+    };
+    record_here(config, &request)
 }
 
 /// The socket of the daemon a command talks to: `--socket` (or `app.socket`), else that of the
@@ -418,22 +420,17 @@ fn status(config: &Config, device: Option<&str>) -> Result<()> {
 }
 
 /// `hgcd run`: the daemon, until a signal or `--duration`; prints the loop's statistics.
-fn run(
-    config: &Config,
-    device: Option<&str>,
-    duration: Option<f64>,
-    virtual_time: bool,
-) -> Result<()> {
-    if let Some(d) = duration {
+fn run(config: &Config, args: &RunArgs) -> Result<()> {
+    if let Some(d) = args.duration {
         anyhow::ensure!(
             d.is_finite() && d > 0.0,
             "--duration must be a positive number of seconds"
         );
     }
     let request = RunRequest {
-        device: device_spec(device, config)?,
-        duration,
-        pacing: if virtual_time {
+        device: device_spec(args.device.as_deref(), config)?,
+        duration: args.duration,
+        pacing: if args.virtual_time {
             Pacing::Virtual
         } else {
             Pacing::RealTime
@@ -595,7 +592,8 @@ fn confirm_validation(probe_mass: f64) -> Result<()> {
 }
 
 /// `hgcd sim-device`: serve the simulated device on a Unix socket, host after host, until stopped.
-fn sim_device(config: &Config, listen: &Path, lockstep: bool, model: &str) -> Result<()> {
+fn sim_device(config: &Config, args: &SimDeviceArgs) -> Result<()> {
+    let (listen, lockstep, model) = (&args.listen, args.lockstep, args.model.as_str());
     let stop = install_stop_handler()?;
     let power_on = || hgcd::sim::SimDevice::from_config(model, config);
     // A config whose device cannot be built fails now, not at the first host.

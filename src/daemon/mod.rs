@@ -99,7 +99,27 @@ pub enum UnusableGrid {
     Model(#[from] ModelError),
 }
 
-/// `e` and its sources on one line, as `anyhow` prints `{:#}`.
+/// The end of a run: the servo loop has finished (or is told to); stop serving applications,
+/// join the servo thread and log what it said last.
+fn shut_down(
+    server: AppServer,
+    servo: JoinHandle<(Result<ServoReport, ServoError>, DaemonController)>,
+    events: &Receiver<ServoEvent>,
+    log: &mut EventLog,
+) -> Result<ServoReport, RunError> {
+    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+    server.stop();
+    let (result, _) = servo.join().map_err(|_| RunError::ServoPanicked)?;
+    for e in events.try_iter() {
+        log.log(&e);
+    }
+    log.flush();
+    let report = result.map_err(RunError::Servo)?;
+    info!("servo loop ended: {:?}", report.exit);
+    Ok(report)
+}
+
+/// `e` and its sources on one line, each after a colon, outermost first.
 fn chain(e: &dyn std::error::Error) -> String {
     let mut line = e.to_string();
     let mut source = e.source();
@@ -231,6 +251,35 @@ struct Hub {
 }
 
 impl Hub {
+    fn new(
+        config: Config,
+        device: DeviceIdentity,
+        grid_path: PathBuf,
+        mode: Compensating,
+        registry: SharedRegistry,
+        commands: CommandSender,
+    ) -> Self {
+        Hub {
+            status: Status {
+                device: device.spec.to_string(),
+                device_id: device.grid_id(),
+                grid: (mode != Compensating::None).then(|| grid_path.display().to_string()),
+                mode,
+                ..Status::default()
+            },
+            config,
+            device,
+            grid_path,
+            registry,
+            commands,
+            started: Instant::now(),
+            calibration: None,
+            abort_sent: false,
+            log: EventLog::new(),
+            last_housekeeping: Instant::now(),
+        }
+    }
+
     fn reply(&self, client: u64, reply: Reply) {
         let outbound = lock(&self.registry)
             .clients
@@ -588,40 +637,20 @@ impl Daemon {
         );
         ready(&socket);
 
-        let mut hub = Hub {
-            status: Status {
-                device: device.spec.to_string(),
-                device_id: device.grid_id(),
-                grid: (mode != Compensating::None).then(|| grid_path.display().to_string()),
-                mode,
-                ..Status::default()
-            },
-            config: self.config.clone(),
+        let mut hub = Hub::new(
+            self.config.clone(),
             device,
             grid_path,
-            registry: server.registry.clone(),
+            mode,
+            server.registry.clone(),
             commands,
-            started: Instant::now(),
-            calibration: None,
-            abort_sent: false,
-            log: EventLog::new(),
-            last_housekeeping: Instant::now(),
-        };
+        );
         let mut systemd = SystemdWatchdog::new(heartbeat);
         while !servo.is_finished() {
             hub.turn(&mut hub_mailbox, &events, &requests, &signals, &mut systemd);
         }
 
-        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
-        server.stop();
-        let (result, _) = servo.join().map_err(|_| RunError::ServoPanicked)?;
-        for e in events.try_iter() {
-            hub.log.log(&e);
-        }
-        hub.log.flush();
-        let report = result.map_err(RunError::Servo)?;
-        info!("servo loop ended: {:?}", report.exit);
-        Ok(report)
+        shut_down(server, servo, &events, &mut hub.log)
     }
 
     /// Listen on the application socket; client threads reach the servo thread through
