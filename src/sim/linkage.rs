@@ -20,6 +20,10 @@ pub use crate::profile::kinematics::Point;
 
 /// How far the handle must leave the obstacle for its next touch to count as a new contact, m.
 const RELEASE: f64 = 1e-4;
+/// How far a joint must leave its stop for its next touch to count as a new contact, rad: about
+/// [`RELEASE`] at the handle on links of 0.1–0.2 m. A joint held on its stop by the hold chatters
+/// off it by nanoradians at every substep; that is one contact, not thousands.
+const JOINT_RELEASE: f64 = 1e-3;
 
 /// The geometry and masses of a mechanism (kinematics only: no friction, motors or sensors).
 /// Positions are in the device frame, m, with the handle at the origin at q = 0.
@@ -145,6 +149,9 @@ pub struct Linkage<M: Mechanism> {
     /// Whether the handle rests against the obstacle: it ran into it and has not left it by
     /// more than [`RELEASE`] since (pressed on, it creeps back in from a few µm away).
     touching: bool,
+    /// Whether each joint rests on a stop: it ran into it and has not left it by more than
+    /// [`JOINT_RELEASE`] since.
+    on_stop: [bool; 3],
     contacts: ContactLog,
     q: Vector3<f64>,
     /// Joint velocities; a component that is exactly zero marks a joint held (stuck by static
@@ -192,6 +199,7 @@ impl<M: Mechanism> Linkage<M> {
             workspace,
             obstacle: None,
             touching: false,
+            on_stop: [false; 3],
             contacts: ContactLog::default(),
             q,
             qd: Vector3::zeros(),
@@ -452,7 +460,10 @@ impl<M: Mechanism> Linkage<M> {
             if self.q[j] < self.lower[j] || self.q[j] > self.upper[j] {
                 self.q[j] = self.q[j].clamp(self.lower[j], self.upper[j]);
                 self.qd[j] = 0.0;
-                met |= before[j] != self.q[j];
+                met |= before[j] != self.q[j] && !self.on_stop[j];
+                self.on_stop[j] = true;
+            } else if (self.q[j] - self.lower[j]).min(self.upper[j] - self.q[j]) > JOINT_RELEASE {
+                self.on_stop[j] = false;
             }
         }
         // The obstacle stops the whole arm where it was (a sticky, inelastic wall).
