@@ -344,6 +344,30 @@ pub enum CompensationMode {
     Vector,
 }
 
+/// Which workspace calibration covers.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WorkspaceMode {
+    /// The paper's cube of `half_size` and `spacing_mm` around `centre_mm`.
+    #[default]
+    Cube,
+    /// Explore the reachable workspace from X_C first, then calibrate every vertex of the
+    /// lattice inside it (docs/calibration.md §12).
+    Explore,
+}
+
+impl std::str::FromStr for WorkspaceMode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cube" => Ok(Self::Cube),
+            "explore" => Ok(Self::Explore),
+            other => Err(format!("unknown workspace `{other}`: cube or explore")),
+        }
+    }
+}
+
 /// What compensation does outside the calibrated grid.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -608,6 +632,8 @@ pub struct CalibrationConfig {
     pub vertex_timeout_s: f64,
     /// Largest number of mass updates at one vertex.
     pub max_iterations: u32,
+    /// "cube" (the paper's grid) or "explore" (the reachable workspace, found first).
+    pub workspace: WorkspaceMode,
 }
 
 impl Default for CalibrationConfig {
@@ -628,6 +654,7 @@ impl Default for CalibrationConfig {
             move_time_ms: 400.0,
             vertex_timeout_s: 10.0,
             max_iterations: 20,
+            workspace: WorkspaceMode::Cube,
         }
     }
 }

@@ -10,7 +10,7 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 use hgcd::app::endpoint::{self, FindError};
 use hgcd::calibrate::{calibrate, CalibrateError, CalibrateRequest};
-use hgcd::config::{Config, DeviceSpec, DEFAULT_CONFIG_PATH, SIM_MODELS};
+use hgcd::config::{Config, DeviceSpec, WorkspaceMode, DEFAULT_CONFIG_PATH, SIM_MODELS};
 use hgcd::daemon::{self, RunError, RunRequest, Signals};
 use hgcd::discrepancy::{self, AnalyzeRequest, RecordError, RecordRequest};
 
@@ -110,6 +110,10 @@ struct CalibrateArgs {
     /// Ask the running daemon to calibrate its device (it switches to the new grid after).
     #[arg(long)]
     via_daemon: bool,
+    /// `cube`: the paper's grid; `explore`: find the reachable workspace first and calibrate
+    /// the lattice inside it (default: config `calibration.workspace`; docs/calibration.md §12).
+    #[arg(long, value_name = "cube|explore")]
+    workspace: Option<WorkspaceMode>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -329,7 +333,7 @@ fn real_main(cli: Cli) -> Result<()> {
     };
     match cli.command {
         Command::Run(args) => run(&config()?, &args),
-        Command::Calibrate(args) => calibrate_command(&config()?, args),
+        Command::Calibrate(args) => calibrate_command(config()?, args),
         Command::Validate(args) => validate_command(&config()?, args),
         Command::Record(args) => record_command(&config()?, args),
         Command::Analyze(AnalyzeArgs { grid, log, out }) => {
@@ -342,16 +346,24 @@ fn real_main(cli: Cli) -> Result<()> {
 }
 
 /// `hgcd calibrate`: through the running daemon with `--via-daemon`, else in this process.
-fn calibrate_command(config: &Config, args: CalibrateArgs) -> Result<()> {
+fn calibrate_command(mut config: Config, args: CalibrateArgs) -> Result<()> {
     if args.via_daemon {
-        let socket = daemon_socket(config, args.device.as_deref())?;
+        anyhow::ensure!(
+            args.workspace.is_none(),
+            "--workspace cannot be given with --via-daemon: the daemon calibrates with its own \
+             config; set calibration.workspace there"
+        );
+        let socket = daemon_socket(&config, args.device.as_deref())?;
         if !args.yes {
             confirm_start()?;
         }
         return ctl::calibrate_via_daemon(&socket);
     }
+    if let Some(workspace) = args.workspace {
+        config.calibration.workspace = workspace;
+    }
     calibrate_here(
-        config,
+        &config,
         args.device.as_deref(),
         args.output,
         args.real_time,
@@ -549,16 +561,20 @@ fn validate_here(config: &Config, request: &ValidateRequest, yes: bool) -> Resul
         run.wall_time
     ))?;
     if let Some(sweep) = &run.sweep {
-        let r = &sweep.cube.residual_pct;
-        out(&format!(
-            "sweep over {} reachable points (sweep.json): the grid covers {:.1} % of them; \
-             residual p50 {:.1} %, p95 {:.1} %, max {:.1} %\n",
-            sweep.points,
-            100.0 * sweep.cube.covered_fraction,
-            r.p50,
-            r.p95,
-            r.max
-        ))?;
+        let grids = [("cube", &sweep.cube), ("explored grid", &sweep.explored)];
+        for (name, grid) in grids {
+            let Some(g) = grid else { continue };
+            let r = &g.residual_pct;
+            out(&format!(
+                "sweep over {} reachable points (sweep.json), {name}: it covers {:.1} % of them; \
+                 residual p50 {:.1} %, p95 {:.1} %, max {:.1} %\n",
+                sweep.points,
+                100.0 * g.covered_fraction,
+                r.p50,
+                r.p95,
+                r.max
+            ))?;
+        }
     }
     Ok(())
 }

@@ -118,6 +118,43 @@ impl Display {
                     distance * 1e3
                 )
             }
+            CalibrationEvent::Probed {
+                probe,
+                of,
+                direction: d,
+                reach,
+                stopped,
+            } => format!(
+                "exploring {}/{}: along ({:.2}, {:.2}, {:.2}) the handle went {:.1} mm, {}",
+                probe + 1,
+                of,
+                d.x,
+                d.y,
+                d.z,
+                reach * 1e3,
+                if *stopped {
+                    "to a stop"
+                } else {
+                    "to the configured box (device.workspace_*_mm)"
+                }
+            ),
+            CalibrationEvent::Explored {
+                probes,
+                stopped,
+                vertices,
+                extrapolated,
+                dims,
+            } => {
+                if let Some(bar) = &self.bar {
+                    bar.set_length(*vertices as u64);
+                }
+                format!(
+                    "explored: {stopped} of {probes} probes met a stop; the grid is {}×{}×{}: \
+                     {vertices} vertices inside the explored workspace to calibrate, \
+                     {extrapolated} outside it to extrapolate",
+                    dims[0], dims[1], dims[2]
+                )
+            }
             CalibrationEvent::Finished => "calibration finished".to_string(),
             CalibrationEvent::Failed(f) => format!("calibration failed: {f}"),
         };
@@ -328,6 +365,8 @@ pub fn summary(run: &CalibrationRun) -> String {
             vr.final_error * 1e6,
             if vr.reached {
                 ""
+            } else if r.extrapolated.contains(&vr.vertex) {
+                "  outside the explored workspace: extrapolated"
             } else {
                 "  unreachable: filled from neighbours"
             }

@@ -112,6 +112,11 @@ pub struct CalibrationRecord {
     /// Paper indices of the vertices the handle could not reach: their values are filled from
     /// their neighbours (`docs/grid-format.md` §4).
     pub unreachable_vertices: Option<Vec<[i32; 3]>>,
+    /// "cube" (the paper's grid) or "explore" (the lattice over the explored workspace).
+    pub workspace: Option<String>,
+    /// Paper indices of an explored grid's vertices outside the explored workspace: never
+    /// visited, their values extrapolated from the calibrated ones (`docs/grid-format.md` §4).
+    pub extrapolated_vertices: Option<Vec<[i32; 3]>>,
     /// What the initialisation measured at X_C: the load (holding force), N; the friction (half
     /// the stick band) along x, y, z, N; the moving mass along x, y, z, kg; the position noise
     /// (standard deviation), mm; and the hold stiffness built from them, N/mm.
@@ -800,6 +805,8 @@ pub(crate) mod tests {
                 duration_s: Some(longest),
                 left_out_vertices: Some(vec![[i32::MIN; 3]; n]),
                 unreachable_vertices: Some(vec![[i32::MIN; 3]; n]),
+                workspace: Some("explore".into()),
+                extrapolated_vertices: Some(vec![[i32::MIN; 3]; n]),
                 load_n: Some([longest; 3]),
                 friction_n: Some([longest; 3]),
                 inertia_kg: Some([longest; 3]),

@@ -32,7 +32,7 @@ pub use report::{ModeReport, PointStats, Readings, Report, Sample};
 use crate::calibrate::{
     calibrate, device_grid, CalibrateError, CalibrateRequest, CalibrationRun, GridModelError,
 };
-use crate::config::{CompensationMode, Config, ConfigError, DeviceSpec};
+use crate::config::{CompensationMode, Config, ConfigError, DeviceSpec, WorkspaceMode};
 use crate::control::calibration::CalibrationEvent;
 use crate::control::compensation::{Compensation, ForceOffset, GravityModel};
 use crate::grid::GridFile;
@@ -403,12 +403,34 @@ impl Prepared {
             up,
             device_paces,
         } = self;
+        let calibrates = matches!(grid, GridSource::Calibrate(_));
         let (file, path, calibration) = match grid {
             GridSource::File(file, path) => (*file, path, None),
             GridSource::Calibrate(path) => {
                 let run = calibrate_simulated(&config, &request, &path, stop.clone(), progress)?;
                 (run.grid.clone(), path, Some(run))
             }
+        };
+        // The sweep sets the paper's cube and the explored grid side by side: calibrate the
+        // one the config did not ask for as well.
+        let other = match (request.sweep, calibrates) {
+            (Some(_), true) => {
+                let mut config = config.clone();
+                let name = match config.calibration.workspace {
+                    WorkspaceMode::Cube => {
+                        config.calibration.workspace = WorkspaceMode::Explore;
+                        "explored-grid.toml"
+                    }
+                    WorkspaceMode::Explore => {
+                        config.calibration.workspace = WorkspaceMode::Cube;
+                        "cube-grid.toml"
+                    }
+                };
+                let path = request.out.join(name);
+                let run = calibrate_simulated(&config, &request, &path, stop.clone(), progress)?;
+                Some((run.grid, path))
+            }
+            _ => None,
         };
         let Setup {
             plan,
@@ -482,13 +504,36 @@ impl Prepared {
         let mut outputs = write_outputs(&request.out, &report, started.elapsed().as_secs_f64())?;
         let mut swept = None;
         if let (Some(n), DeviceSpec::Sim { model }) = (request.sweep, &request.device) {
-            let cube = GravityModel::configured(
-                file.clone(),
-                config.compensation.mode,
-                config.compensation.outside_grid,
-            )
-            .map_err(GridModelError::model(&path))?;
-            let sweep = sweep::Sweep::run(model, &config, &cube, n, config.sim.seed)?;
+            let sweepable = |file: &GridFile, path: &Path| -> Result<_, ValidateError> {
+                let model = GravityModel::configured(
+                    file.clone(),
+                    config.compensation.mode,
+                    config.compensation.outside_grid,
+                )
+                .map_err(GridModelError::model(path))?;
+                Ok(sweep::SweptGrid::new(model, file))
+            };
+            let mut cube = None;
+            let mut explored = None;
+            for (file, path) in
+                std::iter::once((&file, &path)).chain(other.iter().map(|(f, p)| (f, p)))
+            {
+                let explore = file
+                    .calibration
+                    .as_ref()
+                    .and_then(|c| c.workspace.as_deref())
+                    == Some("explore");
+                let slot = if explore { &mut explored } else { &mut cube };
+                *slot = Some(sweepable(file, path)?);
+            }
+            let sweep = sweep::Sweep::run(
+                model,
+                &config,
+                cube.as_ref(),
+                explored.as_ref(),
+                n,
+                config.sim.seed,
+            )?;
             let target = request.out.join("sweep.json");
             std::fs::write(&target, sweep.json()).map_err(|source| ValidateError::Write {
                 path: target.clone(),

@@ -3,9 +3,11 @@
 //! from the plant's reachable workspace (inside its stops' bounding box, reachable within its
 //! joint limits, outside any obstacle); at each, the compensation force F_G(X) is compared with
 //! the plant's own holding force F_true(X) ([`crate::sim::Plant::holding_force`]): the residual
-//! |F_true − F_G| / |F_true|. A point inside the grid's box is *covered* (measured at a vertex or
-//! interpolated between vertices); outside it the force comes from `compensation.outside_grid`
-//! (the nearest face's values, or zero): extrapolation. docs/calibration.md §11 reads the file.
+//! |F_true − F_G| / |F_true|. A point is *covered* when it lies in a cell of the grid whose
+//! vertices were all measured: its force is interpolated between measurements. Elsewhere it is
+//! extrapolated: in a cell with an extrapolated or unreachable vertex, or outside the grid's box
+//! (`compensation.outside_grid`: the nearest face's values, or zero). The paper's cube and the
+//! explored grid are swept over the same points. docs/calibration.md §11 reads the file.
 
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
@@ -14,6 +16,7 @@ use serde::Serialize;
 
 use crate::config::Config;
 use crate::control::compensation::GravityModel;
+use crate::grid::GridFile;
 use crate::sim::{SimDevice, SimError};
 
 /// Draws per point at most: a workspace that fills less than 1/`MAX_DRAWS` of its bounding box
@@ -41,7 +44,10 @@ pub struct Percentiles {
 /// One grid over the sweep's points.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct GridSweep {
-    /// Share of the points inside the grid's box (measured or interpolated), 0 to 1.
+    /// Vertices of the grid, and how many of them were measured.
+    pub vertices: usize,
+    pub measured_vertices: usize,
+    /// Share of the points in cells whose vertices were all measured, 0 to 1.
     pub covered_fraction: f64,
     /// |F_true − F_G| / |F_true| over all points, %.
     pub residual_pct: Percentiles,
@@ -56,8 +62,49 @@ pub struct Sweep {
     pub device: String,
     pub points: usize,
     pub seed: u64,
-    /// The grid of the paper: the cube the calibration measured.
-    pub cube: GridSweep,
+    /// The grid of the paper: the cube the calibration measured (None: not calibrated).
+    pub cube: Option<GridSweep>,
+    /// The grid over the explored workspace (`calibration.workspace = "explore"`).
+    pub explored: Option<GridSweep>,
+}
+
+/// A grid to sweep: its compensation and which of its vertices were measured.
+#[derive(Clone, Debug)]
+pub struct SweptGrid {
+    pub model: GravityModel,
+    /// Per vertex, grid order: measured (not unreachable, not extrapolated).
+    pub measured: Vec<bool>,
+}
+
+impl SweptGrid {
+    /// The grid of `file` under `model`: the vertices its `[calibration]` record lists as
+    /// unreachable or extrapolated were not measured.
+    pub fn new(model: GravityModel, file: &GridFile) -> Self {
+        let grid = &model.grid;
+        let mut measured = vec![true; grid.masses.len()];
+        if let Some(c) = &file.calibration {
+            let centre = Vector3::from(c.centre_mm.unwrap_or_default()) * 1e-3;
+            let listed = c
+                .unreachable_vertices
+                .iter()
+                .chain(&c.extrapolated_vertices);
+            for k in listed.flatten() {
+                let x = centre + Vector3::new(k[0] as f64, k[1] as f64, k[2] as f64) * grid.spacing;
+                let at = (x - grid.origin) / grid.spacing;
+                let i = at.map(|u| u.round());
+                if (0..3).all(|a| i[a] >= 0.0 && (i[a] as usize) < grid.dims[a]) {
+                    measured[grid.index(i[0] as usize, i[1] as usize, i[2] as usize)] = false;
+                }
+            }
+        }
+        Self { model, measured }
+    }
+
+    /// Whether the force at `x` is interpolated between measured vertices only.
+    fn covers(&self, x: &Vector3<f64>) -> bool {
+        let (idx, w) = self.model.grid.cell_weights(x);
+        self.model.grid.contains(x) && (0..8).all(|n| w[n] == 0.0 || self.measured[idx[n]])
+    }
 }
 
 /// Why the sweep could not run.
@@ -125,8 +172,8 @@ pub fn reachable_truth(
 }
 
 impl GridSweep {
-    /// `model` over `truth` ([`reachable_truth`]).
-    pub fn new(model: &GravityModel, truth: &[TruePoint]) -> Self {
+    /// `grid` over `truth` ([`reachable_truth`]).
+    pub fn new(grid: &SweptGrid, truth: &[TruePoint]) -> Self {
         let mut all = Vec::with_capacity(truth.len());
         let mut covered = Vec::new();
         for TruePoint {
@@ -134,13 +181,15 @@ impl GridSweep {
             holding_force: f_true,
         } in truth
         {
-            let residual = 100.0 * (f_true - model.force(x)).norm() / f_true.norm();
+            let residual = 100.0 * (f_true - grid.model.force(x)).norm() / f_true.norm();
             all.push(residual);
-            if model.grid.contains(x) {
+            if grid.covers(x) {
                 covered.push(residual);
             }
         }
         Self {
+            vertices: grid.measured.len(),
+            measured_vertices: grid.measured.iter().filter(|&&m| m).count(),
             covered_fraction: covered.len() as f64 / truth.len().max(1) as f64,
             residual_pct: Percentiles::of(&mut all),
             covered_residual_pct: (!covered.is_empty()).then(|| Percentiles::of(&mut covered)),
@@ -165,13 +214,15 @@ impl Percentiles {
 }
 
 impl Sweep {
-    /// The sweep of `cube` over `n` points of `sim:model` (seed `seed`).
+    /// The sweep of the paper's `cube` and the `explored` grid over the same `n` points of
+    /// `sim:model` (seed `seed`).
     ///
     /// Errors: as [`reachable_truth`].
     pub fn run(
         model: &str,
         config: &Config,
-        cube: &GravityModel,
+        cube: Option<&SweptGrid>,
+        explored: Option<&SweptGrid>,
         n: usize,
         seed: u64,
     ) -> Result<Self, SweepError> {
@@ -184,7 +235,8 @@ impl Sweep {
             device: format!("sim:{model}"),
             points: n,
             seed,
-            cube: GridSweep::new(cube, &truth),
+            cube: cube.map(|g| GridSweep::new(g, &truth)),
+            explored: explored.map(|g| GridSweep::new(g, &truth)),
         })
     }
 

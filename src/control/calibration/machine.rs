@@ -8,14 +8,16 @@
 use crossbeam_channel::Sender;
 use nalgebra::{Matrix3, Vector3};
 
+use super::explore::{self, Explorer};
 use super::outcome::{
-    carry_to_vertices, fill_from_neighbours, principal_direction, CalibrationFailure,
-    CalibrationResult, InitialMeasurement, VertexResult,
+    carry_to_vertices, extrapolate_from_neighbours, fill_from_neighbours, principal_direction,
+    CalibrationFailure, CalibrationResult, InitialMeasurement, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Strokes};
 use super::steady::{NoiseMeter, SteadyState};
 use super::CalibrationParams;
+use crate::config::WorkspaceMode;
 use crate::control::pd::{AxisGains, PointHold};
 use crate::control::{ControlOutput, Controller, DeviceState};
 use crate::estimate::Foaw;
@@ -65,6 +67,24 @@ pub enum CalibrationEvent {
         of: usize,
         at: Vertex,
         distance: f64,
+    },
+    /// Exploration: probe `probe` of `of` went `reach` m from X_C along `direction`, and met a
+    /// stop (`stopped`) or the configured box.
+    Probed {
+        probe: usize,
+        of: usize,
+        direction: Vector3<f64>,
+        reach: f64,
+        stopped: bool,
+    },
+    /// Exploration is over: `probes` probes, `stopped` of them on a stop; the grid has
+    /// `vertices` vertices to calibrate and `extrapolated` outside the explored workspace.
+    Explored {
+        probes: usize,
+        stopped: usize,
+        vertices: usize,
+        extrapolated: usize,
+        dims: [usize; 3],
     },
     Finished,
     Failed(CalibrationFailure),
@@ -188,16 +208,16 @@ fn minimum_jerk(tau: f64) -> f64 {
 /// the set point to the next vertex; a 40 mm step pulls a 120 g handle with 5.4 N at once, and
 /// longer moves saturate.
 #[derive(Clone, Copy, Debug)]
-struct Glide {
-    from: Vector3<f64>,
-    to: Vector3<f64>,
-    start: f64,
-    duration: f64,
+pub(super) struct Glide {
+    pub(super) from: Vector3<f64>,
+    pub(super) to: Vector3<f64>,
+    pub(super) start: f64,
+    pub(super) duration: f64,
 }
 
 impl Glide {
     /// Progress τ at time `t`; 1 or more once arrived.
-    fn progress(&self, t: f64) -> f64 {
+    pub(super) fn progress(&self, t: f64) -> f64 {
         if self.duration > 0.0 {
             (t - self.start) / self.duration
         } else {
@@ -206,7 +226,7 @@ impl Glide {
     }
 
     /// The point at time `t`.
-    fn at(&self, t: f64) -> Vector3<f64> {
+    pub(super) fn at(&self, t: f64) -> Vector3<f64> {
         self.from + (self.to - self.from) * minimum_jerk(self.progress(t))
     }
 }
@@ -257,6 +277,9 @@ enum Phase {
     /// axis tells a frictional axis from one whose stick band at X_C was only the slip
     /// detection's lag, which the bands alone cannot do near a coarse encoder's step.
     InitStrokes(Strokes),
+    /// The probes of the reachable workspace from X_C (`calibration.workspace = "explore"`),
+    /// run by the calibration's [`Explorer`].
+    Explore,
     /// Strokes through the vertex along three diagonals, one way and back, whose mean force is
     /// the vertex's holding force (friction cancels between the passes); `error` is the distance
     /// from the vertex of the rest the bands were measured at, `late` the failure to report if
@@ -373,6 +396,8 @@ pub struct Calibration {
 
     /// Per vertex of the path, once done (reached or not).
     results: Vec<Option<VertexResult>>,
+    /// The probes of an exploring calibration (built before the run).
+    explorer: Option<Explorer>,
 }
 
 impl Calibration {
@@ -380,8 +405,14 @@ impl Calibration {
         params: CalibrationParams,
         events: Option<Sender<CalibrationEvent>>,
     ) -> Result<Self, PlanError> {
-        let plan = GridPlan::new(&params)?;
+        let mut plan = GridPlan::new(&params)?;
         let count = plan.path.len();
+        let mut results = vec![None; count];
+        let explorer = (params.workspace_mode == WorkspaceMode::Explore).then(|| {
+            plan.reserve_explored();
+            results.reserve(plan.path.capacity());
+            Explorer::new(params.workspace, PUSH_SHARE * params.max_force)
+        });
         let n_init = params.n_init;
         let filter_bound = params.noise_bound;
         let filter = Foaw::new(
@@ -448,7 +479,8 @@ impl Calibration {
             earlier_rounds: (Vector3::zeros(), Vector3::zeros(), 0),
             band_at: [Vector3::zeros(); 3],
             measured_at: Vector3::zeros(),
-            results: vec![None; count],
+            results,
+            explorer,
         })
     }
 
@@ -482,9 +514,23 @@ impl Calibration {
     }
 
     fn result(&self) -> Option<CalibrationResult> {
-        let mut ordered = vec![None; self.results.len()];
+        let mut ordered = vec![None; self.plan.vertex_count()];
         for (k, r) in self.results.iter().enumerate() {
             ordered[self.plan.grid_index[k]] = *r;
+        }
+        for &(vertex, flat) in &self.plan.extrapolated {
+            ordered[flat] = Some(VertexResult {
+                vertex,
+                mass: 0.0,
+                force: Vector3::zeros(),
+                one_sided_force: Vector3::zeros(),
+                friction: Vector3::zeros(),
+                iterations: 0,
+                final_error: 0.0,
+                measured_at: vertex.position,
+                duration: 0.0,
+                reached: false,
+            });
         }
         let mut vertices = ordered.into_iter().collect::<Option<Vec<VertexResult>>>()?;
         let known: Vec<bool> = vertices.iter().map(|v| v.reached).collect();
@@ -508,18 +554,25 @@ impl Calibration {
             &offsets,
             &known,
         );
-        fill_from_neighbours(self.plan.dims, &mut forces, &known);
-        fill_from_neighbours(self.plan.dims, &mut one_sided, &known);
-        fill_from_neighbours(self.plan.dims, &mut friction, &known);
+        if self.explorer.is_some() {
+            extrapolate_from_neighbours(self.plan.dims, &mut forces, &known);
+            extrapolate_from_neighbours(self.plan.dims, &mut one_sided, &known);
+            fill_from_neighbours(self.plan.dims, &mut friction, &known);
+        } else {
+            fill_from_neighbours(self.plan.dims, &mut forces, &known);
+            fill_from_neighbours(self.plan.dims, &mut one_sided, &known);
+            fill_from_neighbours(self.plan.dims, &mut friction, &known);
+        }
         for (n, v) in vertices.iter_mut().enumerate() {
             v.force = forces[n];
             v.one_sided_force = one_sided[n];
             v.friction = friction[n];
             v.mass = v.force.dot(&gravity_direction) / g;
         }
+        let extrapolated: Vec<Vertex> = self.plan.extrapolated.iter().map(|e| e.0).collect();
         let unreachable = vertices
             .iter()
-            .filter(|v| !v.reached)
+            .filter(|v| !v.reached && !extrapolated.contains(&v.vertex))
             .map(|v| v.vertex)
             .collect();
         Some(CalibrationResult {
@@ -532,6 +585,8 @@ impl Calibration {
             dims: self.plan.dims,
             left_out: self.plan.left_out.clone(),
             unreachable,
+            extrapolated,
+            workspace: self.explorer.as_ref().map(|e| e.map().clone()),
             duration: self.end_time - self.start_time,
         })
     }
@@ -895,14 +950,39 @@ impl Calibration {
     /// Set off from `from` toward the current vertex, with a fresh vertex record.
     fn start_move(&mut self, from: Vector3<f64>, t: f64) {
         let to = self.plan.path[self.vertex].position;
+        // An explored grid's path jumps where it skips extrapolated vertices: start from the
+        // force of the closest vertex calibrated so far (Eq. 12), not of the last one.
+        if self.explorer.is_some() {
+            let closest = self
+                .results
+                .iter()
+                .flatten()
+                .filter(|r| r.reached)
+                .min_by(|a, b| {
+                    let d = |r: &VertexResult| (r.vertex.position - to).norm();
+                    d(a).total_cmp(&d(b))
+                });
+            if let Some(r) = closest {
+                self.estimate = r.force;
+            }
+        }
         let cells = (to - from).norm() / self.params.spacing;
+        let duration = self.params.move_time * cells.max(1.0);
+        // An explored workspace may end short of a vertex the map holds: move no faster than
+        // a probe (minimum-jerk peak speed 1.875 d / T), so a stop met on the way is met
+        // slowly. The extra time does not count against the vertex's time limit.
+        let slowed = if self.explorer.is_some() {
+            duration.max(1.875 * (to - from).norm() / explore::PROBE_SPEED)
+        } else {
+            duration
+        };
         self.phase = Phase::Move(Glide {
             from,
             to,
             start: t,
-            duration: self.params.move_time * cells.max(1.0),
+            duration: slowed,
         });
-        self.vertex_start = t;
+        self.vertex_start = t + (slowed - duration);
         self.iteration = 0;
         self.rounds = 0;
         self.previous_offset = None;
@@ -963,6 +1043,11 @@ impl Calibration {
     /// Move (§3.2): the PD (with the force estimate so far) follows the glide to the vertex,
     /// then holds it.
     fn move_to_vertex(&mut self, s: &DeviceState, path: Glide) -> ControlOutput {
+        // In an explored workspace, a handle that stops following the move has met a stop the
+        // map did not know: the vertex is out of reach, and the hold stays where the handle is.
+        if self.explorer.is_some() && (path.at(s.time) - s.position).norm() > explore::CONTACT_LAG {
+            return self.unreachable(s, (path.to - s.position).norm());
+        }
         if path.progress(s.time) >= 1.0 {
             self.settle_from(s.time);
         }
@@ -1436,6 +1521,11 @@ impl Calibration {
             // A stop within a stroke of X_C: the bands' classes stand.
             Step::Blocked { .. } => {}
         }
+        if let Some(explorer) = &mut self.explorer {
+            explorer.begin(strokes.centre(), s.time);
+            self.phase = Phase::Explore;
+            return ControlOutput::force(self.stroke_force(&strokes, s));
+        }
         self.vertex = 0;
         self.start_move(strokes.centre(), s.time);
         ControlOutput::force(force)
@@ -1696,6 +1786,53 @@ impl Calibration {
         ControlOutput::force(self.hold_force(&from, s, &self.estimate))
     }
 
+    /// Exploration (`calibration.workspace = "explore"`): the explorer's probes, then the grid
+    /// replanned on what they found, and its first vertex.
+    fn explore(&mut self, s: &DeviceState) -> ControlOutput {
+        // Without an explorer (never built so) the cube's plan stands and its vertices follow.
+        let (force, probed) = match &mut self.explorer {
+            Some(explorer) => {
+                let before = explorer.map().rays.len();
+                let force = explorer.tick(s, &self.gains, &self.initial.load);
+                let ray = explorer.map().rays.get(before).copied();
+                (force, ray.map(|ray| (before, ray)))
+            }
+            None => (None, None),
+        };
+        if let Some((probe, ray)) = probed {
+            self.emit(CalibrationEvent::Probed {
+                probe,
+                of: explore::PROBES,
+                direction: ray.direction,
+                reach: ray.reach,
+                stopped: ray.stopped,
+            });
+        }
+        if let Some(force) = force {
+            return ControlOutput::force(force);
+        }
+        if let Some(explorer) = &self.explorer {
+            let map = explorer.map();
+            if let Err(failure) = self.plan.explore(map, self.params.spacing) {
+                return self.fail(failure);
+            }
+            let stopped = map.rays.iter().filter(|r| r.stopped).count();
+            let probes = map.rays.len();
+            self.results.clear();
+            self.results.resize(self.plan.path.len(), None);
+            self.emit(CalibrationEvent::Explored {
+                probes,
+                stopped,
+                vertices: self.plan.path.len(),
+                extrapolated: self.plan.extrapolated.len(),
+                dims: self.plan.dims,
+            });
+        }
+        self.vertex = 0;
+        self.start_move(s.position, s.time);
+        ControlOutput::force(self.hold_force(&s.position, s, &self.estimate))
+    }
+
     fn fail(&mut self, failure: CalibrationFailure) -> ControlOutput {
         self.phase = Phase::Failed(failure);
         self.emit(CalibrationEvent::Failed(failure));
@@ -1742,6 +1879,7 @@ impl Controller for Calibration {
             Phase::Push(push) => self.push(s, push),
             Phase::Check { anchor, since } => self.check(s, anchor, since),
             Phase::InitStrokes(strokes) => self.init_strokes(s, strokes),
+            Phase::Explore => self.explore(s),
             Phase::Strokes {
                 strokes,
                 error,

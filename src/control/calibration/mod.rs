@@ -28,6 +28,7 @@
 //! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force).
 //! docs/calibration.md describes the method for users, beside the paper's.
 
+pub mod explore;
 mod machine;
 mod outcome;
 pub mod persist;
@@ -42,7 +43,7 @@ pub use plan::{GridPlan, PlanError, Vertex};
 use nalgebra::Vector3;
 
 use super::pd::LinearisedGains;
-use crate::config::Config;
+use crate::config::{Config, WorkspaceMode};
 use crate::estimate::FoawVariant;
 
 /// Calibration parameters in SI units.
@@ -85,6 +86,8 @@ pub struct CalibrationParams {
     /// m.
     pub noise_bound: f64,
     pub max_window: usize,
+    /// The paper's cube, or the workspace explored first.
+    pub workspace_mode: WorkspaceMode,
 }
 
 impl CalibrationParams {
@@ -112,6 +115,7 @@ impl CalibrationParams {
             foaw_variant: config.estimate.foaw_variant,
             noise_bound: config.estimate.noise_bound(),
             max_window: config.estimate.max_window,
+            workspace_mode: c.workspace,
         }
     }
 }

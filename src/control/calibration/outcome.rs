@@ -69,6 +69,11 @@ pub struct CalibrationResult {
     pub left_out: Vec<Vertex>,
     /// Vertices the handle could not reach (their values are filled, `docs/grid-format.md` §4).
     pub unreachable: Vec<Vertex>,
+    /// Vertices of an explored grid outside the explored workspace: never visited, their values
+    /// extrapolated from the calibrated ones (`docs/grid-format.md` §4).
+    pub extrapolated: Vec<Vertex>,
+    /// What exploration found (`calibration.workspace = "explore"`).
+    pub workspace: Option<super::explore::WorkspaceMap>,
     /// Device time of the whole run, s.
     pub duration: f64,
 }
@@ -104,6 +109,17 @@ pub enum CalibrationFailure {
          device.workspace_*_mm and calibration.centre_mm)"
     )]
     NothingReached { count: usize },
+    #[error(
+        "the explored workspace spans {needed} vertices along {axis} at calibration.spacing_mm; \
+         at most {} fit (raise calibration.spacing_mm)",
+        super::plan::MAX_EXPLORED_SIDE
+    )]
+    ExploredTooLarge { axis: char, needed: usize },
+    #[error(
+        "exploration found no vertex {margin_mm:.0} mm inside the reachable workspace (the \
+         handle met stops close to X_C along every direction: is it free to move?)"
+    )]
+    NothingExplored { margin_mm: f64 },
 }
 
 /// v_G from the measured holding forces: the unit v maximising Σ (F·v)² (the direction a scalar
@@ -183,51 +199,75 @@ pub(super) fn carry_to_vertices(
 /// neighbours: each round gives every unfilled vertex with at least one filled neighbour the mean
 /// of those neighbours' values (from the rounds before), until all are filled. Requires at least
 /// one known vertex.
-pub(super) fn fill_from_neighbours<
-    T: Copy + std::ops::Add<Output = T> + std::ops::Mul<f64, Output = T>,
->(
+pub(super) fn fill_from_neighbours<T: Field>(dims: [usize; 3], values: &mut [T], known: &[bool]) {
+    fill_in_rounds(dims, values, known, false);
+}
+
+/// Like [`fill_from_neighbours`], but along each direction where the neighbour beyond the filled
+/// neighbour is filled too, the candidate is their straight line carried on (2 v₁ − v₂) rather
+/// than v₁: an explored grid's outer vertices continue the field's trend, and the interpolation
+/// between them and the calibrated ones has no step at the edge of what was measured.
+pub(super) fn extrapolate_from_neighbours<T: Field>(
     dims: [usize; 3],
     values: &mut [T],
     known: &[bool],
 ) {
+    fill_in_rounds(dims, values, known, true);
+}
+
+/// What a vertex holds that filling can average: forces, friction, numbers.
+pub(super) trait Field:
+    Copy + std::ops::Add<Output = Self> + std::ops::Mul<f64, Output = Self>
+{
+}
+impl<T: Copy + std::ops::Add<Output = T> + std::ops::Mul<f64, Output = T>> Field for T {}
+
+fn fill_in_rounds<T: Field>(dims: [usize; 3], values: &mut [T], known: &[bool], linear: bool) {
     let mut filled = known.to_vec();
-    let index = |i: usize, j: usize, k: usize| i + dims[0] * (j + dims[1] * k);
+    let index = |c: [usize; 3]| c[0] + dims[0] * (c[1] + dims[1] * c[2]);
+    // The vertex `steps` along axis `a` from `c`, if inside the grid.
+    let along = |c: [usize; 3], a: usize, steps: i64| {
+        let v = c[a] as i64 + steps;
+        (v >= 0 && v < dims[a] as i64).then(|| {
+            let mut m = c;
+            m[a] = v as usize;
+            index(m)
+        })
+    };
     while filled.iter().any(|f| !f) {
         let before = filled.clone();
         let mut any = false;
         for k in 0..dims[2] {
             for j in 0..dims[1] {
                 for i in 0..dims[0] {
-                    let n = index(i, j, k);
+                    let c = [i, j, k];
+                    let n = index(c);
                     if before[n] {
                         continue;
                     }
-                    let mut neighbours = Vec::with_capacity(6);
-                    let c = [i, j, k];
+                    let mut candidates = Vec::with_capacity(6);
                     for a in 0..3 {
                         for step in [-1i64, 1] {
-                            let v = c[a] as i64 + step;
-                            if v < 0 || v >= dims[a] as i64 {
+                            let Some(first) = along(c, a, step).filter(|&m| before[m]) else {
                                 continue;
-                            }
-                            let mut m = c;
-                            m[a] = v as usize;
-                            let neighbour = index(m[0], m[1], m[2]);
-                            if before[neighbour] {
-                                neighbours.push(values[neighbour]);
-                            }
+                            };
+                            let beyond = along(c, a, 2 * step).filter(|&m| before[m] && linear);
+                            candidates.push(match beyond {
+                                Some(second) => values[first] * 2.0 + values[second] * -1.0,
+                                None => values[first],
+                            });
                         }
                     }
-                    if let Some((&first, rest)) = neighbours.split_first() {
+                    if let Some((&first, rest)) = candidates.split_first() {
                         let sum = rest.iter().fold(first, |acc, &v| acc + v);
-                        values[n] = sum * (1.0 / neighbours.len() as f64);
+                        values[n] = sum * (1.0 / candidates.len() as f64);
                         filled[n] = true;
                         any = true;
                     }
                 }
             }
         }
-        assert!(any, "fill_from_neighbours needs at least one known vertex");
+        assert!(any, "filling a grid needs at least one known vertex");
     }
 }
 
@@ -246,6 +286,31 @@ mod tests {
         let v = principal_direction(forces.iter().map(|f| -f)).unwrap();
         assert!((v + up).norm() < 1e-12, "{v}");
         assert_eq!(principal_direction(std::iter::empty()), None);
+    }
+
+    #[test]
+    fn extrapolated_vertices_carry_on_a_linear_field() {
+        // A row known at its first three vertices of a field 1 + 2x: the last two continue it.
+        let mut row = [1.0, 3.0, 5.0, 0.0, 0.0];
+        extrapolate_from_neighbours([5, 1, 1], &mut row, &[true, true, true, false, false]);
+        assert_eq!(row, [1.0, 3.0, 5.0, 7.0, 9.0]);
+        // A 4×4 layer of 1 + x + 3y known only on its inner 2×2: every vertex comes out exact.
+        let f = |i: usize, j: usize| 1.0 + i as f64 + 3.0 * j as f64;
+        let mut layer = [0.0; 16];
+        let mut known = [false; 16];
+        for (i, j) in [(1, 1), (2, 1), (1, 2), (2, 2)] {
+            layer[i + 4 * j] = f(i, j);
+            known[i + 4 * j] = true;
+        }
+        extrapolate_from_neighbours([4, 4, 1], &mut layer, &known);
+        for j in 0..4 {
+            for i in 0..4 {
+                assert!(
+                    (layer[i + 4 * j] - f(i, j)).abs() < 1e-12,
+                    "({i}, {j}): {layer:?}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -22,7 +22,7 @@ fn device_record(device: &DeviceSpec) -> DeviceRecord {
 /// Check that the directory of `path` exists (creating it) and has room for the grid `plan` will
 /// produce on `device` (see [`grid::check_room`]).
 pub fn check_room(path: &Path, plan: &GridPlan, device: &DeviceSpec) -> Result<(), GridError> {
-    let vertices = plan.path.len() + plan.left_out.len();
+    let vertices = plan.most_vertices();
     let bytes = GridFile::size_bound(vertices, device.to_string().len());
     grid::check_room(path, bytes)
 }
@@ -48,7 +48,13 @@ pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpe
         hgcd_version: Some(env!("CARGO_PKG_VERSION").into()),
         spacing_mm: Some(c.spacing_mm),
         half_size: Some(c.half_size),
-        centre_mm: Some(c.centre_mm),
+        // An explored grid's paper indices count from X_C, where exploration started.
+        centre_mm: Some(
+            result
+                .workspace
+                .as_ref()
+                .map_or(c.centre_mm, |w| mm(w.centre)),
+        ),
         k_init_n_per_mm: Some(c.k_init_n_per_mm),
         init_damping_n_s_per_m: Some(c.init_damping_n_s_per_m),
         n_init: Some(c.n_init),
@@ -67,6 +73,14 @@ pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpe
         duration_s: Some(result.duration),
         left_out_vertices: Some(result.left_out.iter().map(|v| v.index).collect()),
         unreachable_vertices: Some(result.unreachable.iter().map(|v| v.index).collect()),
+        workspace: Some(
+            match result.workspace {
+                Some(_) => "explore",
+                None => "cube",
+            }
+            .into(),
+        ),
+        extrapolated_vertices: Some(result.extrapolated.iter().map(|v| v.index).collect()),
         load_n: Some(i.load.into()),
         friction_n: Some(i.friction.into()),
         inertia_kg: Some(i.inertia.into()),

@@ -8,7 +8,15 @@
 
 use nalgebra::Vector3;
 
-use super::CalibrationParams;
+use super::explore::{WorkspaceMap, MARGIN};
+use super::{CalibrationFailure, CalibrationParams};
+
+/// Most vertices along one axis of an explored grid: room for the largest explored grid is made
+/// before the run (replanning happens on the servo thread, which must not allocate).
+pub const MAX_EXPLORED_SIDE: usize = 16;
+const MAX_EXPLORED: usize = MAX_EXPLORED_SIDE * MAX_EXPLORED_SIDE * MAX_EXPLORED_SIDE;
+/// Share of a cell the explored reach may pass a lattice plane by without another layer.
+const LAYER_SLACK: f64 = 0.05;
 
 /// One grid vertex: its paper indices (n, m, p) ∈ [−N, N]³ and its position.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -40,6 +48,9 @@ pub struct GridPlan {
     pub dims: [usize; 3],
     /// Vertices outside the workspace, left out.
     pub left_out: Vec<Vertex>,
+    /// Vertices of an explored grid outside the explored workspace (less its margin), with
+    /// their flat indices: not visited, their values extrapolated from the calibrated ones.
+    pub extrapolated: Vec<(Vertex, usize)>,
 }
 
 /// Why a grid cannot be planned.
@@ -144,7 +155,108 @@ impl GridPlan {
             grid_index,
             dims,
             left_out,
+            extrapolated: Vec::new(),
         })
+    }
+
+    /// Make room for an explored grid ([`GridPlan::explore`]) of up to
+    /// [`MAX_EXPLORED_SIDE`]³ vertices.
+    pub fn reserve_explored(&mut self) {
+        self.path.reserve(MAX_EXPLORED);
+        self.grid_index.reserve(MAX_EXPLORED);
+        self.extrapolated.reserve(MAX_EXPLORED);
+    }
+
+    /// Replan on the lattice X_C + L (n, m, p) over the box of what `map` reached: the vertices
+    /// at least [`MARGIN`] inside the explored workspace are visited in serpentine order, the
+    /// others extrapolated. Allocates nothing after [`GridPlan::reserve_explored`].
+    ///
+    /// Errors: [`CalibrationFailure::ExploredTooLarge`] for more than [`MAX_EXPLORED_SIDE`]
+    /// vertices along an axis, [`CalibrationFailure::NothingExplored`] for none to visit.
+    pub fn explore(&mut self, map: &WorkspaceMap, spacing: f64) -> Result<(), CalibrationFailure> {
+        let centre = map.centre;
+        let (lo, hi) = map.extent();
+        let mut first = [0i32; 3];
+        let mut dims = [0usize; 3];
+        for a in 0..3 {
+            // A reach that ends within a twentieth of a cell beyond a lattice plane (X_C rests a
+            // few µm off the configured centre) adds no layer: the grid's faces hold it.
+            let k_lo = ((lo[a] - centre[a]) / spacing + LAYER_SLACK).floor() as i32;
+            let k_hi = ((hi[a] - centre[a]) / spacing - LAYER_SLACK).ceil() as i32;
+            let needed = (k_hi - k_lo + 1).max(2) as usize;
+            if needed > MAX_EXPLORED_SIDE {
+                return Err(CalibrationFailure::ExploredTooLarge {
+                    axis: ['x', 'y', 'z'][a],
+                    needed,
+                });
+            }
+            first[a] = k_lo;
+            dims[a] = needed;
+        }
+        let at = |k: [i32; 3]| {
+            centre + Vector3::new(f64::from(k[0]), f64::from(k[1]), f64::from(k[2])) * spacing
+        };
+        self.path.clear();
+        self.grid_index.clear();
+        self.extrapolated.clear();
+        self.left_out.clear();
+        let mut row = 0usize;
+        for kz in 0..dims[2] {
+            for jy_step in 0..dims[1] {
+                let jy = if kz % 2 == 0 {
+                    jy_step
+                } else {
+                    dims[1] - 1 - jy_step
+                };
+                for ix_step in 0..dims[0] {
+                    let ix = if row % 2 == 0 {
+                        ix_step
+                    } else {
+                        dims[0] - 1 - ix_step
+                    };
+                    let index = [
+                        first[0] + ix as i32,
+                        first[1] + jy as i32,
+                        first[2] + kz as i32,
+                    ];
+                    let vertex = Vertex {
+                        index,
+                        position: at(index),
+                    };
+                    let flat = ix + dims[0] * (jy + dims[1] * kz);
+                    if map.contains(&vertex.position, MARGIN) {
+                        self.path.push(vertex);
+                        self.grid_index.push(flat);
+                    } else {
+                        self.extrapolated.push((vertex, flat));
+                    }
+                }
+                row += 1;
+            }
+        }
+        if self.path.is_empty() {
+            return Err(CalibrationFailure::NothingExplored {
+                margin_mm: MARGIN * 1e3,
+            });
+        }
+        self.origin = at(first);
+        self.dims = dims;
+        Ok(())
+    }
+
+    /// The most vertices the grid can end with, left-out ones included: the cube's, or the
+    /// largest explored grid's once room is made for one.
+    pub fn most_vertices(&self) -> usize {
+        if self.extrapolated.capacity() >= MAX_EXPLORED {
+            MAX_EXPLORED
+        } else {
+            self.path.len() + self.left_out.len()
+        }
+    }
+
+    /// Vertices in the grid: visited and extrapolated.
+    pub fn vertex_count(&self) -> usize {
+        self.dims.iter().product()
     }
 }
 
