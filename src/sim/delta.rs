@@ -389,4 +389,50 @@ mod tests {
         let nominal = delta_at([0.0; 3], env(1.0, 0.0)).holding_force();
         checks::assert_units_differ(from_config, nominal, 0.002..0.05);
     }
+
+    #[test]
+    fn a_stop_never_throws_the_handle_faster_than_it_came() {
+        // Led by a spring and damper (200 N/m, 5 N s/m) whose set point moves at 15 mm/s from
+        // home, as exploration's probes do, with the holding force fed forward, along the 26
+        // directions of a cube's faces, edges and corners, frictionless and with the published
+        // friction: every step that logs a contact leaves the arm with no more kinetic energy
+        // than it had plus the work of the force, and each contact's speed is at most the
+        // handle's just before.
+        let dt = 1e-4;
+        let mut contacts = 0;
+        for friction in [0.0, 1.0] {
+            for n in (0..27).filter(|&n| n != 13) {
+                let d = Vector3::new((n % 3) as f64, ((n / 3) % 3) as f64, (n / 9) as f64);
+                let direction = (d - Vector3::repeat(1.0)).normalize();
+                let mut plant = delta_at([0.0; 3], env(friction, 0.0));
+                for step in 0..80_000 {
+                    let t = step as f64 * dt;
+                    let (energy, moving, from) =
+                        (plant.kinetic_energy(), plant.velocity(), plant.position());
+                    let set_point = direction * (0.015 * t);
+                    let force = plant.holding_force() + (set_point - from) * 200.0
+                        - (moving - direction * 0.015) * 5.0;
+                    let count = plant.contacts().count();
+                    plant.step(&force, dt);
+                    if plant.contacts().count() == count {
+                        continue;
+                    }
+                    contacts += 1;
+                    let work = (force - plant.holding_force()).dot(&(plant.position() - from));
+                    let after = plant.kinetic_energy();
+                    assert!(
+                        after <= energy + work.max(0.0) + 1e-12,
+                        "{direction:?} at {t} s: {after} J after, {energy} J before"
+                    );
+                    let contact = plant.contacts().contacts().last().unwrap();
+                    let speed = moving.norm();
+                    assert!(
+                        contact.speed <= 1.01 * speed + 1e-9,
+                        "{contact:?}, {speed} m/s"
+                    );
+                }
+            }
+        }
+        assert!(contacts >= 40, "{contacts} contacts");
+    }
 }

@@ -24,6 +24,8 @@ const RELEASE: f64 = 1e-4;
 /// [`RELEASE`] at the handle on links of 0.1–0.2 m. A joint held on its stop by the hold chatters
 /// off it by nanoradians at every substep; that is one contact, not thousands.
 const JOINT_RELEASE: f64 = 1e-3;
+/// Rounds of the joint-by-joint impulse when several joints run into their stops at once.
+const IMPULSE_ROUNDS: usize = 4;
 
 /// The geometry and masses of a mechanism (kinematics only: no friction, motors or sensors).
 /// Positions are in the device frame, m, with the handle at the origin at q = 0.
@@ -403,6 +405,34 @@ impl<M: Mechanism> Linkage<M> {
         self.q + j.lu().solve(noise).unwrap_or(zero)
     }
 
+    /// The inelastic impulse of the stops that the joints marked `into` ran into (see
+    /// [`Linkage::step_with`]): those whose velocity points into their stop end at rest, the
+    /// others move on with the momentum `inertia` (the joint-space inertia) passes them.
+    fn stop_at_limits(&mut self, inertia: &Matrix3<f64>, into: &[bool; 3]) {
+        let pushing = |q: f64, qd: f64, lower: f64, upper: f64| {
+            (q >= upper && qd > 0.0) || (q <= lower && qd < 0.0)
+        };
+        // Projected joint by joint, in rounds (two or three stops at once converge in a few).
+        if let Some(mobility) = inertia.try_inverse() {
+            for _ in 0..IMPULSE_ROUNDS {
+                for j in (0..3).filter(|&j| into[j]) {
+                    let (q, qd) = (self.q[j], self.qd[j]);
+                    let column = mobility.column(j);
+                    if pushing(q, qd, self.lower[j], self.upper[j]) && column[j] > 0.0 {
+                        self.qd -= column * (qd / column[j]);
+                    }
+                }
+            }
+        }
+        for j in (0..3).filter(|&j| into[j]) {
+            if pushing(self.q[j], self.qd[j], self.lower[j], self.upper[j])
+                || self.qd[j].abs() < 1e-12
+            {
+                self.qd[j] = 0.0;
+            }
+        }
+    }
+
     fn step_with(&mut self, handle: &Point, torque: &Vector3<f64>, dt: f64) {
         let actuator = torque.zip_map(&self.peak, |t, peak| t.clamp(-peak, peak));
         let d = self.dynamics(handle);
@@ -449,27 +479,43 @@ impl<M: Mechanism> Linkage<M> {
                 before != 0.0 && after * before <= 0.0 && self.drives.coulomb[j] * scale > 0.0;
             self.qd[j] = if stopped { 0.0 } else { after };
         }
-        let speed = (handle.jacobian * self.qd).norm();
         let before = self.q;
         self.q += self.qd * dt;
         self.contacts.tick(dt);
-        // Hard stops: the motion into a stop is absorbed (an inelastic contact). A contact is a
-        // stop the joint was not resting on before.
+        // Hard stops: an inelastic impulse at each stop a joint runs into. That joint stops, and
+        // the others take the momentum the mechanism's inertia passes them: the new velocity is
+        // the one nearest the old in the kinetic-energy metric with those joints at rest, so a
+        // stop never adds energy (zeroing the joint alone would set the others' velocities
+        // free of the one that balanced them, and a parallel arm's handle would leap off along
+        // the stop). A contact is a stop the joint was not resting on before; its speed is the
+        // handle's speed towards the surface the stop makes in the handle's space (the joint's
+        // rate over the gradient of its angle there), not the speed it slides on along it.
+        let moving = self.qd;
+        let mut approach: f64 = 0.0;
+        let mut into = [false; 3];
         let mut met = false;
         for j in 0..3 {
             if self.q[j] < self.lower[j] || self.q[j] > self.upper[j] {
                 self.q[j] = self.q[j].clamp(self.lower[j], self.upper[j]);
-                self.qd[j] = 0.0;
-                met |= before[j] != self.q[j] && !self.on_stop[j];
+                into[j] = true;
+                if before[j] != self.q[j] && !self.on_stop[j] {
+                    met = true;
+                    approach = approach.max(towards_stop(&handle.jacobian, j, moving[j]));
+                }
                 self.on_stop[j] = true;
             } else if (self.q[j] - self.lower[j]).min(self.upper[j] - self.q[j]) > JOINT_RELEASE {
                 self.on_stop[j] = false;
             }
         }
+        if into.contains(&true) {
+            self.stop_at_limits(&d.inertia, &into);
+        }
         // The obstacle stops the whole arm where it was (a sticky, inelastic wall).
         if self.obstacle.is_some() {
             if self.in_obstacle(&self.position()) {
                 self.q = before;
+                // The whole arm stops, at the speed it had.
+                approach = approach.max((handle.jacobian * moving).norm());
                 self.qd = Vector3::zeros();
                 met |= !self.touching;
                 self.touching = true;
@@ -478,8 +524,19 @@ impl<M: Mechanism> Linkage<M> {
             }
         }
         if met {
-            self.contacts.record(self.position(), speed);
+            self.contacts.record(self.position(), approach);
         }
+    }
+}
+
+/// The handle's speed towards the surface on which joint `j` is at a limit, joint rate `rate`
+/// (rad/s) with handle Jacobian `jacobian`, m/s: the rate over the gradient of the joint's
+/// angle in the handle's space (row j of the inverse Jacobian); the whole speed the joint gives
+/// the handle where the Jacobian is singular.
+fn towards_stop(jacobian: &Matrix3<f64>, j: usize, rate: f64) -> f64 {
+    match jacobian.try_inverse() {
+        Some(inverse) if inverse.row(j).norm() > 0.0 => rate.abs() / inverse.row(j).norm(),
+        _ => (jacobian.column(j) * rate).norm(),
     }
 }
 

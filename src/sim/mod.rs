@@ -57,7 +57,8 @@ pub struct Contact {
     pub time: f64,
     /// Where the handle stopped, m.
     pub position: Vector3<f64>,
-    /// The handle's speed just before it met the stop, m/s.
+    /// The handle's speed into the stop, m/s: the part of its velocity just before that the
+    /// stop absorbed (along a stop it met at an angle, the handle slides on with the rest).
     pub speed: f64,
 }
 

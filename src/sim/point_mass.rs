@@ -128,10 +128,11 @@ impl Plant for PointMass {
             trial * (1.0 - braking / speed)
         };
         let before = self.x;
-        let speed = self.v.norm();
+        let moving = self.v;
         self.x += self.v * dt;
         self.contacts.tick(dt);
-        // A contact: the step ends on a face or a stop the handle was not resting on before.
+        // A contact: the step ends on a face or a stop the handle was not resting on before. Its
+        // speed is the velocity the face absorbs (the handle slides on along it).
         let mut met = false;
         if let Some((lo, hi)) = self.obstacle {
             let inside = (0..3).all(|a| self.x[a] > lo[a] && self.x[a] < hi[a]);
@@ -161,7 +162,7 @@ impl Plant for PointMass {
             }
         }
         if met {
-            self.contacts.record(self.x, speed);
+            self.contacts.record(self.x, (moving - self.v).norm());
         }
     }
     fn position(&self) -> Vector3<f64> {
