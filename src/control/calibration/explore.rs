@@ -224,12 +224,11 @@ impl Explorer {
                         reach,
                         stopped: along < length,
                     });
-                    let distance = (s.position - centre).norm();
                     self.leg = Leg::Back(Glide {
                         from: s.position,
                         to: centre,
                         start: s.time,
-                        duration: (1.875 * distance / RETURN_SPEED).max(MIN_RETURN),
+                        duration: (1.875 * reach / RETURN_SPEED).max(MIN_RETURN),
                     });
                     (s.position, Vector3::zeros())
                 } else {

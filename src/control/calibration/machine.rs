@@ -554,15 +554,15 @@ impl Calibration {
             &offsets,
             &known,
         );
-        if self.explorer.is_some() {
-            extrapolate_from_neighbours(self.plan.dims, &mut forces, &known);
-            extrapolate_from_neighbours(self.plan.dims, &mut one_sided, &known);
-            fill_from_neighbours(self.plan.dims, &mut friction, &known);
+        // An explored grid's outer vertices carry the field's trend on; friction is filled.
+        let fill_forces = if self.explorer.is_some() {
+            extrapolate_from_neighbours::<Vector3<f64>>
         } else {
-            fill_from_neighbours(self.plan.dims, &mut forces, &known);
-            fill_from_neighbours(self.plan.dims, &mut one_sided, &known);
-            fill_from_neighbours(self.plan.dims, &mut friction, &known);
-        }
+            fill_from_neighbours::<Vector3<f64>>
+        };
+        fill_forces(self.plan.dims, &mut forces, &known);
+        fill_forces(self.plan.dims, &mut one_sided, &known);
+        fill_from_neighbours(self.plan.dims, &mut friction, &known);
         for (n, v) in vertices.iter_mut().enumerate() {
             v.force = forces[n];
             v.one_sided_force = one_sided[n];
