@@ -405,21 +405,26 @@ fn linkages_with_joint_friction_are_calibrated_within_2_percent_and_1_degree() {
 /// spans the range, about 0, 0.02, 0.04, 0.06 and 0.1 N (the PHANToM's published
 /// friction gives 0.065 N at its home pose, the delta's nominal 0.154 N). Two units each; every
 /// run must reach every vertex at the first try and come within 2 % of the plant's vertical
-/// holding force at every vertex. The PHANToM stops at 0.08 N (1.23 times its published
-/// friction): at 0.1 N (1.54 times) unit 2 leaves one vertex 3.7 % off vertically
-/// (docs/calibration.md §6.1). The WoodenHaptics arm (its estimated friction gives 0.094 N)
+/// holding force at every vertex. At 0.1 N (1.54 times its published friction) the PHANToM's
+/// bands at X_C are misread on some units and seeds, and the survey strokes must catch it
+/// (docs/calibration.md §6.1): three units there. The WoodenHaptics arm (its estimated friction gives 0.094 N)
 /// is frictionless at 0: its 43–65 µm encoder steps then flicker at rest, which the
 /// initialisation must not take for chatter.
 #[test]
 fn linkages_calibrate_within_2_percent_vertically_with_friction_from_0_to_0_1_n() {
     let levels: [(&str, f64, &[f64]); 3] = [
-        ("phantom", 0.065, &[0.0, 0.02, 0.04, 0.06, 0.08]),
+        ("phantom", 0.065, &[0.0, 0.02, 0.04, 0.06, 0.1]),
         ("delta", 0.154, &[0.0, 0.02, 0.04, 0.06, 0.1]),
         ("woodenhaptics", 0.094, &[0.0, 0.02, 0.04, 0.06, 0.1]),
     ];
     for (model, nominal, bands) in levels {
         for &band in bands {
-            for unit_seed in [1, 2] {
+            let units: &[u64] = if model == "phantom" && band >= 0.1 {
+                &[1, 2, 3]
+            } else {
+                &[1, 2]
+            };
+            for &unit_seed in units {
                 let mut device = if model == "woodenhaptics" {
                     Device::woodenhaptics(unit_seed)
                 } else {
@@ -520,4 +525,41 @@ fn side_by_side() {
             result.duration
         );
     }
+}
+
+/// docs/calibration.md §6.1, the PHANToM at 0.1 N on many seeds: its joint friction scaled to a
+/// 0.1 N band at the handle, units 1 to 3 with noise seeds 1 to 8, every vertex within 2 % of
+/// the plant's vertical holding force. About 90 s; run with
+/// `cargo test --release --test calibration_robust phantom_at_0_1_n_on_many_seeds -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn phantom_at_0_1_n_on_many_seeds() {
+    let mut worst_of_all: f64 = 0.0;
+    for seed in 1..=8 {
+        for unit_seed in 1..=3 {
+            let mut device = Device::phantom(0.0, seed);
+            device.config.sim.unit_seed = unit_seed;
+            device.config.sim.friction_scale = 0.1 / 0.065;
+            let (result, _) = device.calibrate();
+            let case = format!("unit {unit_seed}, noise seed {seed}");
+            assert!(result.unreachable.is_empty(), "{case}");
+            let up = Vector3::from(device.config.sim.gravity_direction).normalize();
+            let worst = result
+                .vertices
+                .iter()
+                .map(|v| {
+                    let truth = device.truth(&v.vertex.position).dot(&up);
+                    ((v.force.dot(&up) - truth) / truth).abs()
+                })
+                .fold(0.0, f64::max);
+            println!("{case}: worst {:.2} % vertically", 100.0 * worst);
+            assert!(
+                worst <= 0.02,
+                "{case}: {:.2} % off vertically",
+                100.0 * worst
+            );
+            worst_of_all = worst_of_all.max(worst);
+        }
+    }
+    println!("worst of all: {:.2} %", 100.0 * worst_of_all);
 }

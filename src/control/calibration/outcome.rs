@@ -36,9 +36,11 @@ pub struct VertexResult {
 /// What the initialisation measured at the rest point X_C.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InitialMeasurement {
-    /// Holding force at X_C (the middle of the stick bands), N.
+    /// Holding force at X_C (the middle of the stick bands), N; where the survey strokes found
+    /// the bands misread, the holding force the strokes measured.
     pub load: Vector3<f64>,
-    /// Half-widths of the stick bands along x, y, z, N.
+    /// Half-widths of the stick bands along x, y, z, N; where the bands were misread, the
+    /// sliding friction the survey strokes measured along each axis.
     pub friction: Vector3<f64>,
     /// Moving mass along x, y, z, kg.
     pub inertia: Vector3<f64>,

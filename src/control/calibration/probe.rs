@@ -557,11 +557,14 @@ impl Stroke {
     /// Strokes that only tell sliding friction from none, slowly enough that viscous damping
     /// up to 1 N·s/m stays under `STROKE_FRICTION` (`machine.rs`): a frictionless handle's passes
     /// differ by under 0.3 mN, a frictional one's by twice its friction. 0.5 mm of window at
-    /// 4 mm/s, entered 0.55 mm into the constant speed. 5.4 s for three.
+    /// 4 mm/s, entered 1.55 mm into the constant speed. ±2 mm of reach, so that a hold whose
+    /// load estimate is off still carries the handle through the window: on the simulated
+    /// PHANToM with a 0.1 N friction band, a band misread by 0.2 N at X_C offset the handle by
+    /// 0.65 mm, and ±1 mm strokes never crossed their window. 9.9 s for three.
     pub const SURVEY: Self = Self {
-        reach: 1e-3,
+        reach: 2e-3,
         window: 5e-4,
-        pass: 0.6,
+        pass: 1.1,
         ramp: 0.1,
     };
 
