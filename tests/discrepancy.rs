@@ -321,6 +321,8 @@ fn bad_logs_get_one_clear_line_and_no_report() {
             foreign.device = Some(hgcd::grid::DeviceRecord {
                 id: "sim-point-mass".into(),
                 spec: None,
+                model: None,
+                serial: None,
             });
         }
         let grid_here = dir.path().join("grid-here.toml");

@@ -234,7 +234,7 @@ fn hgcd_calibrates_each_unit_inside_its_declared_workspace_into_a_grid_named_aft
             .join("state")
             .join(format!("Test_linkage-{}.toml", unit.serial));
         let file = GridFile::load(&grid_path).unwrap();
-        let unit_record = file.unit.clone().unwrap();
+        let unit_record = file.unit().unwrap();
         assert_eq!(
             (unit_record.model.as_str(), unit_record.serial.as_str()),
             (MODEL, unit.serial)

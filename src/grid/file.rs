@@ -21,10 +21,25 @@ pub struct DeviceRecord {
     pub id: String,
     /// The spec the device was opened with (`hid:1234:abcd:SN 7`).
     pub spec: Option<String>,
+    /// The unit the grid was calibrated on, as its device-info report named it
+    /// (`docs/hid-protocol.md` §5a); none for a device that gave no report. `serial` is empty
+    /// (or missing) for a device without one.
+    pub model: Option<String>,
+    pub serial: Option<String>,
 }
 
-/// `[device] model` and `[device] serial`: the unit a grid was calibrated on, as its device-info
-/// report named it (`docs/hid-protocol.md` §5a). `serial` is empty for a device without one.
+impl DeviceRecord {
+    /// The unit, when the device named itself.
+    pub fn unit(&self) -> Option<UnitRecord> {
+        self.model.as_ref().map(|model| UnitRecord {
+            model: model.clone(),
+            serial: self.serial.clone().unwrap_or_default(),
+        })
+    }
+}
+
+/// A unit: the model and serial of a device that named itself. `serial` is empty for a device
+/// without one.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct UnitRecord {
     pub model: String,
@@ -37,42 +52,6 @@ impl std::fmt::Display for UnitRecord {
             write!(f, "{} without a serial number", self.model)
         } else {
             write!(f, "{} serial {}", self.model, self.serial)
-        }
-    }
-}
-
-/// The `[device]` table as it is in the file: the device record and the unit, side by side.
-#[derive(Serialize, Deserialize)]
-struct DeviceTable {
-    id: String,
-    spec: Option<String>,
-    model: Option<String>,
-    serial: Option<String>,
-}
-
-impl DeviceTable {
-    fn new(device: &Option<DeviceRecord>, unit: &Option<UnitRecord>) -> Option<Self> {
-        device.as_ref().map(|d| Self {
-            id: d.id.clone(),
-            spec: d.spec.clone(),
-            model: unit.as_ref().map(|u| u.model.clone()),
-            serial: unit.as_ref().map(|u| u.serial.clone()),
-        })
-    }
-
-    fn split(table: Option<Self>) -> (Option<DeviceRecord>, Option<UnitRecord>) {
-        match table {
-            None => (None, None),
-            Some(t) => (
-                Some(DeviceRecord {
-                    id: t.id,
-                    spec: t.spec,
-                }),
-                t.model.map(|model| UnitRecord {
-                    model,
-                    serial: t.serial.unwrap_or_default(),
-                }),
-            ),
         }
     }
 }
@@ -199,8 +178,6 @@ impl VertexRecords {
 pub struct GridFile {
     pub grid: MassGrid,
     pub device: Option<DeviceRecord>,
-    /// The unit the grid was calibrated on (in the `[device]` table, with `device`).
-    pub unit: Option<UnitRecord>,
     pub calibration: Option<CalibrationRecord>,
     pub vertices: VertexRecords,
     /// Root keys this version does not know: kept as read and written back (format §4).
@@ -213,7 +190,6 @@ impl From<MassGrid> for GridFile {
         Self {
             grid,
             device: None,
-            unit: None,
             calibration: None,
             vertices: VertexRecords::default(),
             extra: toml::Table::new(),
@@ -231,7 +207,7 @@ struct Raw {
     spacing: f64,
     dims: [i64; 3],
     masses: Vec<f64>,
-    device: Option<DeviceTable>,
+    device: Option<DeviceRecord>,
     calibration: Option<CalibrationRecord>,
     #[serde(default)]
     vertices: VertexRecords,
@@ -242,7 +218,7 @@ struct Raw {
 /// Everything after the lattice, as serde writes it.
 #[derive(Serialize)]
 struct Records<'a> {
-    device: Option<DeviceTable>,
+    device: &'a Option<DeviceRecord>,
     calibration: &'a Option<CalibrationRecord>,
     #[serde(skip_serializing_if = "VertexRecords::is_empty")]
     vertices: &'a VertexRecords,
@@ -251,6 +227,11 @@ struct Records<'a> {
 }
 
 impl GridFile {
+    /// The unit the grid was calibrated on (`[device] model` and `serial`), if it named itself.
+    pub fn unit(&self) -> Option<UnitRecord> {
+        self.device.as_ref().and_then(DeviceRecord::unit)
+    }
+
     /// Check every value against the format's rules (`docs/grid-format.md` §3).
     ///
     /// Errors: the first [`Problem`] found, in the order of the format's table.
@@ -272,7 +253,6 @@ impl GridFile {
                 found: format!("{:?}", raw.format),
             }));
         }
-        let (device, unit) = DeviceTable::split(raw.device);
         let mut dims = [0usize; 3];
         for (d, &n) in dims.iter_mut().zip(&raw.dims) {
             if !DIM_RANGE.contains(&n) {
@@ -289,8 +269,7 @@ impl GridFile {
                 dims,
                 masses: raw.masses,
             },
-            device,
-            unit,
+            device: raw.device,
             calibration: raw.calibration,
             vertices: raw.vertices,
             extra: raw.extra,
@@ -313,12 +292,12 @@ impl GridFile {
     /// no device is returned; its `device` is `None`.
     pub fn load_for(path: &Path, device: &DeviceIdentity) -> Result<Self, GridError> {
         let file = Self::load(path)?;
-        if let (Some(made_on), Some(unit)) = (&file.unit, device.unit()) {
+        if let (Some(made_on), Some(unit)) = (file.unit(), device.unit()) {
             let serials = !made_on.serial.is_empty() && !unit.serial.is_empty();
-            if serials && *made_on != unit {
+            if serials && made_on != unit {
                 return Err(GridError::OtherUnit {
                     path: path.to_path_buf(),
-                    made_on: Box::new(made_on.clone()),
+                    made_on: Box::new(made_on),
                     unit: Box::new(unit),
                 });
             }
@@ -356,7 +335,7 @@ impl GridFile {
         }
         out.push_str("]\n");
         let records = Records {
-            device: DeviceTable::new(&self.device, &self.unit),
+            device: &self.device,
             calibration: &self.calibration,
             vertices: &self.vertices,
             extra: &self.extra,
@@ -480,10 +459,8 @@ pub(crate) mod tests {
         file.device = Some(DeviceRecord {
             id: "sim-point-mass".into(),
             spec: Some("sim:point-mass".into()),
-        });
-        file.unit = Some(UnitRecord {
-            model: "sim-point-mass".into(),
-            serial: "SIM-7".into(),
+            model: Some("sim-point-mass".into()),
+            serial: Some("SIM-7".into()),
         });
         file.calibration = Some(CalibrationRecord {
             created: Some("2026-11-21T23:29:02Z".parse().unwrap()),
@@ -720,7 +697,7 @@ pub(crate) mod tests {
         unit("A-1").stamp(&mut file);
         file.save_atomic(&path).unwrap();
         let back = GridFile::load_for(&path, &unit("A-1")).unwrap();
-        assert_eq!(back.unit, unit("A-1").unit());
+        assert_eq!(back.unit(), unit("A-1").unit());
         assert_eq!(back.device.unwrap().id, "PHANToM-like_3-A-1");
         let err = GridFile::load_for(&path, &unit("B-2")).unwrap_err();
         assert!(matches!(err, GridError::OtherUnit { .. }), "{err}");
@@ -776,10 +753,8 @@ pub(crate) mod tests {
             file.device = Some(DeviceRecord {
                 id: spec.clone(),
                 spec: Some(spec.clone()),
-            });
-            file.unit = Some(UnitRecord {
-                model: "\"".repeat(MODEL_LEN),
-                serial: "\\".repeat(SERIAL_LEN),
+                model: Some("\"".repeat(MODEL_LEN)),
+                serial: Some("\\".repeat(SERIAL_LEN)),
             });
             file.calibration = Some(CalibrationRecord {
                 created: Some("2026-11-21T23:29:02.123456789Z".parse().unwrap()),

@@ -61,11 +61,13 @@ impl DeviceIdentity {
 
     /// Record this device in `file` (its `[device]` table), replacing what was there.
     pub fn stamp(&self, file: &mut GridFile) {
+        let unit = self.unit();
         file.device = Some(DeviceRecord {
             id: self.grid_id(),
             spec: Some(self.spec.to_string()),
+            model: unit.as_ref().map(|u| u.model.clone()),
+            serial: unit.map(|u| u.serial),
         });
-        file.unit = self.unit();
     }
 }
 

@@ -73,6 +73,8 @@ pub fn with_device_id(grid: MassGrid, id: &str) -> GridFile {
     file.device = Some(DeviceRecord {
         id: id.into(),
         spec: None,
+        model: None,
+        serial: None,
     });
     file
 }

@@ -16,6 +16,8 @@ fn device_record(device: &DeviceSpec) -> DeviceRecord {
     DeviceRecord {
         id: device.device_id(),
         spec: Some(device.to_string()),
+        model: None,
+        serial: None,
     }
 }
 
