@@ -61,12 +61,11 @@ impl DeviceIdentity {
 
     /// Record this device in `file` (its `[device]` table), replacing what was there.
     pub fn stamp(&self, file: &mut GridFile) {
-        let unit = self.unit();
         file.device = Some(DeviceRecord {
             id: self.grid_id(),
             spec: Some(self.spec.to_string()),
-            model: unit.as_ref().map(|u| u.model.clone()),
-            serial: unit.map(|u| u.serial),
+            model: self.info.as_ref().map(|info| info.model.clone()),
+            serial: self.info.as_ref().map(|info| info.serial.clone()),
         });
     }
 }

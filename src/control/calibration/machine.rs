@@ -740,14 +740,7 @@ impl Calibration {
             // deviations of where the handle stuck has not moved yet.
             self.slip = (MIN_SLIP + 3.0 * self.initial.noise).max(SLIP_STEPS * self.initial.step);
             self.still = 0.5 * self.initial.step + 2.0 * self.initial.noise;
-            self.phase = Phase::InitBand(BandProbe::new(
-                0,
-                axis(0),
-                self.init_ramp(),
-                self.slip,
-                self.still,
-                t,
-            ));
+            self.phase = self.init_band_along(0, t);
         }
         ControlOutput::force(force)
     }
@@ -766,27 +759,38 @@ impl Calibration {
                 self.initial.load[a] = band.middle();
                 self.initial.friction[a] = band.half_width();
                 self.phase = if a < 2 {
-                    Phase::InitBand(BandProbe::new(
-                        a + 1,
-                        axis(a + 1),
-                        self.init_ramp(),
-                        self.slip,
-                        self.still,
-                        t,
-                    ))
+                    self.init_band_along(a + 1, t)
                 } else {
-                    self.catch_force = self.initial.load;
-                    self.detector = self.init_detector();
-                    Phase::Recentre {
-                        axis: 0,
-                        excess: self.pulse_excess(0),
-                        since: t,
-                    }
+                    self.time_moving_mass(t)
                 };
             }
             Step::Blocked { .. } => return self.held(t, a, self.push_limit()),
         }
         ControlOutput::force(force)
+    }
+
+    /// The band along axis `a` at X_C, from `t`.
+    fn init_band_along(&self, a: usize, t: f64) -> Phase {
+        Phase::InitBand(BandProbe::new(
+            a,
+            axis(a),
+            self.init_ramp(),
+            self.slip,
+            self.still,
+            t,
+        ))
+    }
+
+    /// With the load and friction measured: back to X_C with the load as the field's gravity
+    /// term, then the pulses that time the moving mass, from `t`.
+    fn time_moving_mass(&mut self, t: f64) -> Phase {
+        self.catch_force = self.initial.load;
+        self.detector = self.init_detector();
+        Phase::Recentre {
+            axis: 0,
+            excess: self.pulse_excess(0),
+            since: t,
+        }
     }
 
     /// The ramp of a band measurement at X_C, where the band is not known yet: from the rate
@@ -1564,13 +1568,7 @@ impl Calibration {
                 self.init_remeasured += 1;
                 self.initial.load = stroked.force;
                 self.initial.friction = stroked.friction.abs();
-                self.catch_force = self.initial.load;
-                self.detector = self.init_detector();
-                self.phase = Phase::Recentre {
-                    axis: 0,
-                    excess: self.pulse_excess(0),
-                    since: s.time,
-                };
+                self.phase = self.time_moving_mass(s.time);
                 return ControlOutput::force(self.field_force(&self.rest_point, s));
             }
             Step::Done(stroked) => {
@@ -1588,14 +1586,7 @@ impl Calibration {
             // centre is unlikely). Measure the bands again.
             Step::Blocked { .. } if self.init_remeasured < INIT_REMEASURES => {
                 self.init_remeasured += 1;
-                self.phase = Phase::InitBand(BandProbe::new(
-                    0,
-                    axis(0),
-                    self.init_ramp(),
-                    self.slip,
-                    self.still,
-                    s.time,
-                ));
+                self.phase = self.init_band_along(0, s.time);
                 return ControlOutput::force(self.field_force(&self.rest_point, s));
             }
             // A stop within a stroke of X_C: the bands' classes stand.
