@@ -543,15 +543,7 @@ fn phantom_at_0_1_n_on_many_seeds() {
             let (result, _) = device.calibrate();
             let case = format!("unit {unit_seed}, noise seed {seed}");
             assert!(result.unreachable.is_empty(), "{case}");
-            let up = Vector3::from(device.config.sim.gravity_direction).normalize();
-            let worst = result
-                .vertices
-                .iter()
-                .map(|v| {
-                    let truth = device.truth(&v.vertex.position).dot(&up);
-                    ((v.force.dot(&up) - truth) / truth).abs()
-                })
-                .fold(0.0, f64::max);
+            let worst = worst_vertical(&device, &result);
             println!("{case}: worst {:.2} % vertically", 100.0 * worst);
             assert!(
                 worst <= 0.02,
@@ -562,4 +554,71 @@ fn phantom_at_0_1_n_on_many_seeds() {
         }
     }
     println!("worst of all: {:.2} %", 100.0 * worst_of_all);
+}
+
+/// The worst vertical error of `device`'s calibration against its plant's holding force, with
+/// handle-side Coulomb friction `handle` (N) on top of its joint friction scaled by `scale`.
+fn worst_vertical_with_handle_friction(mut device: Device, scale: f64, handle: f64) -> f64 {
+    device.config.sim.friction_scale = scale;
+    device.config.sim.coulomb_friction_n = handle;
+    let (result, _) = device.calibrate();
+    let case = format!(
+        "{} at {scale} × joint friction, {handle} N at the handle",
+        device.model
+    );
+    assert!(result.unreachable.is_empty(), "{case}");
+    let worst = worst_vertical(&device, &result);
+    println!("{case}: worst {:.2} % vertically", 100.0 * worst);
+    worst
+}
+
+/// The largest relative error of a vertex's vertical force against the plant's.
+fn worst_vertical(device: &Device, result: &CalibrationResult) -> f64 {
+    let up = Vector3::from(device.config.sim.gravity_direction).normalize();
+    result
+        .vertices
+        .iter()
+        .map(|v| {
+            let truth = device.truth(&v.vertex.position).dot(&up);
+            ((v.force.dot(&up) - truth) / truth).abs()
+        })
+        .fold(0.0, f64::max)
+}
+
+/// Issue 14 item 3 read literally: Coulomb friction at the handle (`sim.coulomb_friction_n`, a
+/// ball of that radius, not the joints' polytope) on the linkages, their joints frictionless,
+/// and once on top of the PHANToM's published joint friction. Every vertex within 2 %
+/// vertically. The delta is not here: see `delta_with_handle_friction`.
+#[test]
+fn phantom_and_woodenhaptics_calibrate_within_2_percent_with_handle_side_friction() {
+    for (device, scale, handle) in [
+        // Units 1 and 2 (and noise seeds 1 and 2).
+        (Device::phantom(0.0, 1), 0.0, 0.04),
+        (Device::phantom(0.0, 2), 0.0, 0.1),
+        (Device::phantom(0.0, 1), 1.0, 0.02),
+        (Device::woodenhaptics(1), 0.0, 0.06),
+        (Device::woodenhaptics(2), 0.0, 0.1),
+    ] {
+        let mut device = device;
+        if device.model == "phantom" {
+            device.config.sim.unit_seed = device.config.sim.seed;
+        }
+        let worst = worst_vertical_with_handle_friction(device, scale, handle);
+        assert!(worst <= 0.02, "{:.2} % off vertically", 100.0 * worst);
+    }
+}
+
+/// A known failure (issue 14, open): the delta, frictionless joints, 0.02 N at the handle, unit
+/// 1: the calibration completes but reads vertex (−1, −1, −1) 47 % low vertically (its rounds'
+/// band estimates jump by 0.4 N from one round to the next there and at other vertices, and the
+/// last, wrong, round is kept). At 0.06 and 0.1 N it passes (0.35 %, 0.11 %). Run with
+/// `cargo test --release --test calibration_robust delta_with_handle_friction -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn delta_with_handle_friction() {
+    let mut device = Device::phantom(0.0, 1);
+    device.model = "delta";
+    device.config.sim.unit_seed = 1;
+    let worst = worst_vertical_with_handle_friction(device, 0.0, 0.02);
+    assert!(worst <= 0.02, "{:.2} % off vertically", 100.0 * worst);
 }

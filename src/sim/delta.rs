@@ -435,4 +435,9 @@ mod tests {
         }
         assert!(contacts >= 40, "{contacts} contacts");
     }
+
+    #[test]
+    fn handle_friction_holds_below_its_level_and_takes_the_energy_of_a_slide() {
+        checks::assert_handle_friction_sticks_and_slides(delta_at, [20.0, -15.0, 10.0]);
+    }
 }

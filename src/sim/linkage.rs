@@ -7,7 +7,8 @@
 //! rest the same
 //! way for every mechanism: inertia and velocity-product terms from those bodies, gravity from
 //! their potential energy for any gravity vector, motor torque limits, joint friction with
-//! stick-slip, hard joint stops and joint encoders.
+//! stick-slip, Coulomb friction at the handle (a cable, a sleeve, a user's fingertip), hard joint
+//! stops and joint encoders.
 
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -114,17 +115,22 @@ pub struct Environment {
     pub gravity: Vector3<f64>,
     /// Probe mass fixed to the handle, kg.
     pub payload: f64,
-    /// Multiplies every friction coefficient (0: frictionless).
+    /// Multiplies every joint friction coefficient (0: frictionless joints).
     pub friction_scale: f64,
+    /// Coulomb friction at the handle, N: the handle sticks while the Cartesian force friction
+    /// must supply to hold it is at most this, and slides against this much force otherwise.
+    pub handle_friction: f64,
 }
 
 impl Environment {
-    /// Gravity (`sim.g` against `sim.gravity_direction`), payload and friction scale of `[sim]`.
+    /// Gravity (`sim.g` against `sim.gravity_direction`), payload, joint friction scale and
+    /// handle friction (`sim.coulomb_friction_n`) of `[sim]`.
     pub fn from_config(sim: &SimConfig) -> Self {
         Self {
             gravity: -Vector3::from(sim.gravity_direction).normalize() * sim.g,
             payload: sim.probe_mass_kg,
             friction_scale: sim.friction_scale,
+            handle_friction: sim.coulomb_friction_n,
         }
     }
 }
@@ -433,6 +439,91 @@ impl<M: Mechanism> Linkage<M> {
         }
     }
 
+    /// Coulomb friction at the handle over one step of `dt`, implicit as the point mass's: with
+    /// A = J M⁻¹ Jᵀ the handle's mobility (through the joints that are not held) and v' the
+    /// handle's velocity the other forces give, the new velocity v minimises
+    /// ½ (v − v')ᵀ A⁺ (v − v') + f_c dt |v|. The handle stops when friction can hold it,
+    /// |A⁺ v'| ≤ f_c dt (the least impulse that stops it; from rest, the net force within f_c);
+    /// otherwise it slides with v = (I + r A)⁻¹ v', r the root of r |v| = f_c dt, and friction
+    /// takes f_c dt of momentum against v. Held joints' own friction is left to hold what the
+    /// handle's impulse adds to them.
+    fn brake_at_handle(&mut self, inertia: &Matrix3<f64>, jacobian: &Matrix3<f64>, dt: f64) {
+        let velocity = jacobian * self.qd;
+        if velocity == Vector3::zeros() {
+            return;
+        }
+        let held = [0, 1, 2].map(|j| self.qd[j] == 0.0);
+        let jt = jacobian.transpose();
+        let through = |impulse: &Vector3<f64>| solve_held(inertia, &(jt * impulse), &held);
+        let mobility = Matrix3::from_columns(&[0, 1, 2].map(|i| {
+            let unit = Vector3::ith(i, 1.0);
+            jacobian * through(&unit)
+        }));
+        let modes = (mobility + mobility.transpose())
+            .scale(0.5)
+            .symmetric_eigen();
+        let largest = modes.eigenvalues.max();
+        if largest.is_nan() || largest <= 0.0 {
+            return;
+        }
+        // Each mode of A: (mobility, the velocity's component); modes A cannot move along
+        // (held joints) carry none of the velocity.
+        let along = modes.eigenvectors.transpose() * velocity;
+        let mode = |i: usize| {
+            let l = modes.eigenvalues[i];
+            if l > 1e-9 * largest {
+                (l, along[i])
+            } else {
+                (f64::INFINITY, 0.0)
+            }
+        };
+        let limit = self.env.handle_friction * dt;
+        let holding = (0..3)
+            .map(|i| {
+                let (l, w) = mode(i);
+                (w / l).powi(2)
+            })
+            .sum::<f64>()
+            .sqrt();
+        if holding <= limit {
+            self.qd = Vector3::zeros();
+            return;
+        }
+        let speed = |r: f64| {
+            (0..3)
+                .map(|i| {
+                    let (l, w) = mode(i);
+                    (w / (1.0 + r * l)).powi(2)
+                })
+                .sum::<f64>()
+                .sqrt()
+        };
+        // r |v(r)| rises from 0 towards |A⁺ v'| > f_c dt: bracket the root, then bisect.
+        let (mut lo, mut hi) = (0.0, 1.0 / largest);
+        for _ in 0..1100 {
+            if hi * speed(hi) > limit {
+                break;
+            }
+            lo = hi;
+            hi *= 2.0;
+        }
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            if mid * speed(mid) > limit {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        let r = 0.5 * (lo + hi);
+        let slide = modes.eigenvectors
+            * Vector3::from_fn(|i, _| {
+                let (l, w) = mode(i);
+                w / (1.0 + r * l)
+            });
+        self.qd += through(&(slide * (-limit / slide.norm())));
+    }
+
     fn step_with(&mut self, handle: &Point, torque: &Vector3<f64>, dt: f64) {
         let actuator = torque.zip_map(&self.peak, |t, peak| t.clamp(-peak, peak));
         let d = self.dynamics(handle);
@@ -478,6 +569,9 @@ impl<M: Mechanism> Linkage<M> {
             let stopped =
                 before != 0.0 && after * before <= 0.0 && self.drives.coulomb[j] * scale > 0.0;
             self.qd[j] = if stopped { 0.0 } else { after };
+        }
+        if self.env.handle_friction > 0.0 {
+            self.brake_at_handle(&d.inertia, &handle.jacobian, dt);
         }
         let before = self.q;
         self.q += self.qd * dt;
@@ -603,6 +697,7 @@ pub(crate) mod checks {
             gravity: Vector3::new(0.0, 0.0, -G),
             payload,
             friction_scale,
+            handle_friction: 0.0,
         }
     }
 
@@ -622,6 +717,7 @@ pub(crate) mod checks {
             gravity: -Vector3::new(0.17, -0.05, 1.0).normalize() * G,
             payload: 0.03,
             friction_scale: 1.0,
+            handle_friction: 0.0,
         }
     }
 
@@ -730,6 +826,63 @@ pub(crate) mod checks {
             (plant.position() - start).norm() < 1e-6,
             "from {start:?} drifted to {:?}",
             plant.position()
+        );
+    }
+
+    /// Weightless, frictionless joints, handle friction 0.1 N: the handle from `x_mm` stays put
+    /// pushed with 0.9 f_c along each axis and a diagonal, moves pushed with 1.1 f_c, and
+    /// thrown at 20 mm/s it stops having turned its kinetic energy into friction's work, f_c
+    /// times the path (within 2 %).
+    pub(crate) fn assert_handle_friction_sticks_and_slides<M: Mechanism>(
+        plant_at: impl Fn([f64; 3], Environment) -> Linkage<M>,
+        x_mm: [f64; 3],
+    ) {
+        let f_c = 0.1;
+        let env = Environment {
+            gravity: Vector3::zeros(),
+            payload: 0.0,
+            friction_scale: 0.0,
+            handle_friction: f_c,
+        };
+        let dt = 1e-4;
+        for direction in [
+            Vector3::x(),
+            -Vector3::y(),
+            Vector3::z(),
+            Vector3::new(1.0, -1.0, 1.0).normalize(),
+        ] {
+            let pushed = |share: f64| {
+                let mut plant = plant_at(x_mm, env);
+                let start = plant.position();
+                for _ in 0..5_000 {
+                    plant.step(&(direction * (share * f_c)), dt);
+                }
+                plant.position() - start
+            };
+            assert_eq!(pushed(0.9), Vector3::zeros(), "{direction:?}");
+            let moved = pushed(1.1);
+            assert!(moved.dot(&direction) > 1e-5, "{direction:?}: {moved:?}");
+        }
+        let mut plant = plant_at(x_mm, env);
+        let q = plant.joints();
+        let handle = plant.mechanism().handle(&q, &Vector3::zeros());
+        let thrown = handle
+            .jacobian
+            .lu()
+            .solve(&Vector3::new(0.012, 0.0, -0.016));
+        plant.set_state(q, thrown.unwrap());
+        let energy = plant.kinetic_energy();
+        let mut path = 0.0;
+        for _ in 0..20_000 {
+            let before = plant.position();
+            plant.step(&Vector3::zeros(), dt);
+            path += (plant.position() - before).norm();
+        }
+        assert_eq!(plant.joint_velocities(), Vector3::zeros());
+        let work = f_c * path;
+        assert!(
+            (work - energy).abs() < 0.02 * energy,
+            "{work} J vs {energy} J"
         );
     }
 

@@ -437,6 +437,7 @@ mod tests {
             gravity: Vector3::zeros(),
             payload: 0.0,
             friction_scale: 0.0,
+            handle_friction: 0.0,
         };
         let pushed = |fx: f64| {
             let mut plant = arm_at([0.0; 3], zero_g);
@@ -583,5 +584,10 @@ mod tests {
         // A handle cannot start inside the obstacle.
         sim.start_position_mm = [30.0, 0.0, 0.0];
         assert!(from_config(&sim).is_err());
+    }
+
+    #[test]
+    fn handle_friction_holds_below_its_level_and_takes_the_energy_of_a_slide() {
+        checks::assert_handle_friction_sticks_and_slides(arm_at, [20.0, -15.0, 10.0]);
     }
 }

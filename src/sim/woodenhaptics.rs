@@ -323,4 +323,9 @@ mod tests {
         // A report of another length is refused.
         assert!(fw.receive_output(&out[..13]).is_err());
     }
+
+    #[test]
+    fn handle_friction_holds_below_its_level_and_takes_the_energy_of_a_slide() {
+        checks::assert_handle_friction_sticks_and_slides(arm_at, [20.0, -15.0, 10.0]);
+    }
 }
