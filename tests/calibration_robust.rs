@@ -57,6 +57,14 @@ impl Device {
         }
     }
 
+    /// The linkage `model` (`phantom` or `delta`), unit `unit` with noise seed `unit`.
+    fn linkage(model: &'static str, unit: u64) -> Self {
+        let mut device = Self::phantom(0.0, unit);
+        device.model = model;
+        device.config.sim.unit_seed = unit;
+        device
+    }
+
     /// The WoodenHaptics arm behind its joint-space protocol, unit `unit`, with the validation
     /// config that ships for it (its encoders' step sets the velocity filter's bound).
     fn woodenhaptics(unit: u64) -> Self {
@@ -428,10 +436,7 @@ fn linkages_calibrate_within_2_percent_vertically_with_friction_from_0_to_0_1_n(
                 let mut device = if model == "woodenhaptics" {
                     Device::woodenhaptics(unit_seed)
                 } else {
-                    let mut device = Device::phantom(0.0, unit_seed);
-                    device.model = model;
-                    device.config.sim.unit_seed = unit_seed;
-                    device
+                    Device::linkage(model, unit_seed)
                 };
                 device.config.sim.friction_scale = band / nominal;
                 let (result, _) = device.calibrate();
@@ -592,17 +597,12 @@ fn worst_vertical(device: &Device, result: &CalibrationResult) -> f64 {
 #[test]
 fn phantom_and_woodenhaptics_calibrate_within_2_percent_with_handle_side_friction() {
     for (device, scale, handle) in [
-        // Units 1 and 2 (and noise seeds 1 and 2).
-        (Device::phantom(0.0, 1), 0.0, 0.04),
-        (Device::phantom(0.0, 2), 0.0, 0.1),
-        (Device::phantom(0.0, 1), 1.0, 0.02),
+        (Device::linkage("phantom", 1), 0.0, 0.04),
+        (Device::linkage("phantom", 2), 0.0, 0.1),
+        (Device::linkage("phantom", 1), 1.0, 0.02),
         (Device::woodenhaptics(1), 0.0, 0.06),
         (Device::woodenhaptics(2), 0.0, 0.1),
     ] {
-        let mut device = device;
-        if device.model == "phantom" {
-            device.config.sim.unit_seed = device.config.sim.seed;
-        }
         let worst = worst_vertical_with_handle_friction(device, scale, handle);
         assert!(worst <= 0.02, "{:.2} % off vertically", 100.0 * worst);
     }
@@ -616,9 +616,7 @@ fn phantom_and_woodenhaptics_calibrate_within_2_percent_with_handle_side_frictio
 #[test]
 #[ignore]
 fn delta_with_handle_friction() {
-    let mut device = Device::phantom(0.0, 1);
-    device.model = "delta";
-    device.config.sim.unit_seed = 1;
+    let device = Device::linkage("delta", 1);
     let worst = worst_vertical_with_handle_friction(device, 0.0, 0.02);
     assert!(worst <= 0.02, "{:.2} % off vertically", 100.0 * worst);
 }

@@ -469,39 +469,26 @@ impl<M: Mechanism> Linkage<M> {
         // Each mode of A: (mobility, the velocity's component); modes A cannot move along
         // (held joints) carry none of the velocity.
         let along = modes.eigenvectors.transpose() * velocity;
-        let mode = |i: usize| {
+        let mode = [0, 1, 2].map(|i| {
             let l = modes.eigenvalues[i];
             if l > 1e-9 * largest {
                 (l, along[i])
             } else {
                 (f64::INFINITY, 0.0)
             }
-        };
+        });
         let limit = self.env.handle_friction * dt;
-        let holding = (0..3)
-            .map(|i| {
-                let (l, w) = mode(i);
-                (w / l).powi(2)
-            })
-            .sum::<f64>()
-            .sqrt();
+        let holding = Vector3::from_fn(|i, _| mode[i].1 / mode[i].0).norm();
         if holding <= limit {
             self.qd = Vector3::zeros();
             return;
         }
-        let speed = |r: f64| {
-            (0..3)
-                .map(|i| {
-                    let (l, w) = mode(i);
-                    (w / (1.0 + r * l)).powi(2)
-                })
-                .sum::<f64>()
-                .sqrt()
-        };
+        // The sliding velocity (I + r A)⁻¹ v' in A's modes.
+        let slide_at = |r: f64| Vector3::from_fn(|i, _| mode[i].1 / (1.0 + r * mode[i].0));
         // r |v(r)| rises from 0 towards |A⁺ v'| > f_c dt: bracket the root, then bisect.
         let (mut lo, mut hi) = (0.0, 1.0 / largest);
         for _ in 0..1100 {
-            if hi * speed(hi) > limit {
+            if hi * slide_at(hi).norm() > limit {
                 break;
             }
             lo = hi;
@@ -509,18 +496,13 @@ impl<M: Mechanism> Linkage<M> {
         }
         for _ in 0..60 {
             let mid = 0.5 * (lo + hi);
-            if mid * speed(mid) > limit {
+            if mid * slide_at(mid).norm() > limit {
                 hi = mid;
             } else {
                 lo = mid;
             }
         }
-        let r = 0.5 * (lo + hi);
-        let slide = modes.eigenvectors
-            * Vector3::from_fn(|i, _| {
-                let (l, w) = mode(i);
-                w / (1.0 + r * l)
-            });
+        let slide = modes.eigenvectors * slide_at(0.5 * (lo + hi));
         self.qd += through(&(slide * (-limit / slide.norm())));
     }
 
