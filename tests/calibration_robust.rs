@@ -593,7 +593,7 @@ fn worst_vertical(device: &Device, result: &CalibrationResult) -> f64 {
 /// Issue 14 item 3 read literally: Coulomb friction at the handle (`sim.coulomb_friction_n`, a
 /// ball of that radius, not the joints' polytope) on the linkages, their joints frictionless,
 /// and once on top of the PHANToM's published joint friction. Every vertex within 2 %
-/// vertically. The delta is not here: see `delta_with_handle_friction`.
+/// vertically. The delta: `delta_calibrates_within_2_percent_with_handle_side_friction`.
 #[test]
 fn phantom_and_woodenhaptics_calibrate_within_2_percent_with_handle_side_friction() {
     for (device, scale, handle) in [
@@ -602,21 +602,71 @@ fn phantom_and_woodenhaptics_calibrate_within_2_percent_with_handle_side_frictio
         (Device::linkage("phantom", 1), 1.0, 0.02),
         (Device::woodenhaptics(1), 0.0, 0.06),
         (Device::woodenhaptics(2), 0.0, 0.1),
+        (woodenhaptics_seed_13(), 0.0, 0.02),
     ] {
         let worst = worst_vertical_with_handle_friction(device, scale, handle);
         assert!(worst <= 0.02, "{:.2} % off vertically", 100.0 * worst);
     }
 }
 
-/// A known failure (issue 14, open): the delta, frictionless joints, 0.02 N at the handle, unit
-/// 1: the calibration completes but reads vertex (−1, −1, −1) 47 % low vertically (its rounds'
-/// band estimates jump by 0.4 N from one round to the next there and at other vertices, and the
-/// last, wrong, round is kept). At 0.06 and 0.1 N it passes (0.35 %, 0.11 %). Run with
-/// `cargo test --release --test calibration_robust delta_with_handle_friction -- --ignored --nocapture`.
+/// WoodenHaptics unit 2 with noise seed 13: at 0.02 N at the handle its band along x at X_C
+/// reads 0.17 N, the hold along x is stiff (about 150 rad/s), and an undamped still hold on the
+/// smoothed position once rang up from a slip to a 0.3 m excursion onto a joint stop, twice,
+/// and the calibration timed out (docs/calibration.md §6.1).
+fn woodenhaptics_seed_13() -> Device {
+    let mut device = Device::woodenhaptics(2);
+    device.config.sim.seed = 13;
+    device
+}
+
+/// The delta with Coulomb friction at the handle on frictionless joints, every vertex within
+/// 2 % vertically. At 0.02 N on unit 1 its bands' rounds, which read a ball of friction as
+/// joints' faces (its mobility sends slips far off the push), once left vertex (−1, −1, −1)
+/// 0.5 N off; the hold then kept the handle 3.5 mm off the strokes' windows, the strokes were
+/// blocked and the rounds' force was kept, 47 % low. Blocked strokes now run again from the force
+/// that holds the handle where it rests. Three cases here (about 40 s);
+/// `handle_friction_on_every_linkage_and_seed` runs every level on every linkage.
+#[test]
+fn delta_calibrates_within_2_percent_with_handle_side_friction() {
+    for (unit, handle) in [(1, 0.02), (2, 0.04), (2, 0.1)] {
+        let worst =
+            worst_vertical_with_handle_friction(Device::linkage("delta", unit), 0.0, handle);
+        assert!(
+            worst <= 0.02,
+            "unit {unit}, {handle} N: {:.2} % off vertically",
+            100.0 * worst
+        );
+    }
+}
+
+/// Issue 14's levels of Coulomb friction at the handle (0.02, 0.04, 0.06 and 0.1 N; 0 is in
+/// `linkages_calibrate_within_2_percent_vertically_with_friction_from_0_to_0_1_n`), on
+/// frictionless joints, on every linkage: the PHANToM and the delta units 1–3, the WoodenHaptics
+/// arm units 1, 2 and 2 again, with noise seeds 11–13. Every run calibrates at the first try
+/// with every vertex within 2 % vertically. 0.45 % at worst, about 7 minutes; run with
+/// `cargo test --release --test calibration_robust handle_friction_on_every_linkage -- --ignored --nocapture`.
 #[test]
 #[ignore]
-fn delta_with_handle_friction() {
-    let device = Device::linkage("delta", 1);
-    let worst = worst_vertical_with_handle_friction(device, 0.0, 0.02);
-    assert!(worst <= 0.02, "{:.2} % off vertically", 100.0 * worst);
+fn handle_friction_on_every_linkage_and_seed() {
+    let mut worst_of_all: f64 = 0.0;
+    for model in ["phantom", "delta", "woodenhaptics"] {
+        for handle in [0.02, 0.04, 0.06, 0.1] {
+            for unit in 1..=3 {
+                let mut device = if model == "woodenhaptics" {
+                    Device::woodenhaptics(unit.min(2))
+                } else {
+                    Device::linkage(model, unit)
+                };
+                device.config.sim.seed = unit + 10;
+                let worst = worst_vertical_with_handle_friction(device, 0.0, handle);
+                assert!(
+                    worst <= 0.02,
+                    "{model} unit {unit}, {handle} N: {:.2} % off vertically",
+                    100.0 * worst
+                );
+                worst_of_all = worst_of_all.max(worst);
+            }
+        }
+    }
+    println!("worst of all: {:.2} %", 100.0 * worst_of_all);
 }

@@ -190,6 +190,15 @@ const MISREAD_SHARE: f64 = 0.5;
 /// 1 %; none at all leaves the handle ringing along the strokes (2–3 %).
 const STROKE_DAMPING: f64 = 0.25;
 
+/// Speed above which a still hold damps and pulls on the raw position, m/s. The still hold's
+/// spring on a smoothed position, undamped, lags the handle by some 4 ms: at 150 rad/s that is
+/// a negative damping only the friction absorbs, and it absorbs less than the lag feeds in
+/// once the handle rings by more than about 0.1 mm. On the simulated WoodenHaptics arm (unit
+/// 2, 0.02 N at the handle, a band at X_C read 0.17 N wide, so ω ≈ 150 rad/s along x) a slip
+/// set the hold ringing and the ring grew to a 0.3 m excursion onto a joint stop. A handle at
+/// rest reads well under this speed (the chatter limit at X_C is 2 mm/s); a slip passes it.
+const RINGING_SPEED: f64 = 0.01;
+
 /// How long a hold may go without a steady state (after the settle time) before the gains are
 /// halved, s.
 const GAIN_BACKOFF_AFTER: f64 = 1.0;
@@ -1054,7 +1063,9 @@ impl Calibration {
     }
 
     /// The hold at rest: like [`Self::hold_force`], without velocity feedback along axes whose
-    /// friction dissipates more than the feedback would (its noise would shake a stuck handle).
+    /// friction dissipates more than the feedback would (its noise would shake a stuck handle),
+    /// and pulling on the smoothed position there, while the handle is at rest; once it moves
+    /// faster than `RINGING_SPEED`, the full hold, so that it cannot ring up.
     fn still_force(
         &self,
         target: &Vector3<f64>,
@@ -1064,7 +1075,7 @@ impl Calibration {
         let mut gains = self.gains.scaled(self.gain_scale);
         let mut still = *s;
         for a in 0..3 {
-            if self.friction_kind[a] == Friction::Dominant {
+            if self.friction_kind[a] == Friction::Dominant && s.velocity.norm() < RINGING_SPEED {
                 gains.damping[a] = 0.0;
                 still.position[a] = self.smoothed[a];
             }
@@ -1536,6 +1547,18 @@ impl Calibration {
         gains.pd_force(&target, &relative, &self.estimate)
     }
 
+    /// Whether the hold on `target` keeps the handle resting off it with more force on its
+    /// spring than strokes tolerate in their feedforward (`STROKE_REPEAT`), but no more than
+    /// the push limit: friction yields to that much, so a handle held off by more is on
+    /// something else (a stop), and the force there says nothing about the load.
+    fn held_off(&self, target: &Vector3<f64>) -> bool {
+        let spring = self
+            .gains
+            .stiffness
+            .component_mul(&(target - self.smoothed));
+        (STROKE_REPEAT..=self.push_limit()).contains(&spring.norm())
+    }
+
     /// Whether the bands at X_C read some axis's friction under `MISREAD_SHARE` of what the
     /// survey strokes slid against there (beyond `STROKE_FRICTION`, which a frictionless
     /// handle's passes stay under).
@@ -1640,6 +1663,18 @@ impl Calibration {
                     error,
                 });
                 self.vertex_done(s, vertex, error)
+            }
+            // The hold kept the handle off the windows: where it rests now, the force that holds
+            // it there is the holding force to within the friction, whatever F̂ was. An F̂ that
+            // far off (rounds whose bands misread a ball of friction at the handle as a joint's
+            // faces) is replaced by that force and the strokes run once more; a stop stays a
+            // stop, and blocks them again.
+            Step::Blocked { .. } if again && self.held_off(&vertex.position) => {
+                self.estimate += self
+                    .gains
+                    .stiffness
+                    .component_mul(&(vertex.position - self.smoothed));
+                self.stroke(s, vertex, error, late, false)
             }
             // Something within a stroke's reach of the vertex stops the handle: the bands'
             // measurement stands, if they finished.
