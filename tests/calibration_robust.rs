@@ -643,7 +643,7 @@ fn delta_calibrates_within_2_percent_with_handle_side_friction() {
 /// `linkages_calibrate_within_2_percent_vertically_with_friction_from_0_to_0_1_n`), on
 /// frictionless joints, on every linkage: the PHANToM and the delta units 1–3, the WoodenHaptics
 /// arm units 1, 2 and 2 again, with noise seeds 11–13. Every run calibrates at the first try
-/// with every vertex within 2 % vertically. 0.45 % at worst, about 7 minutes; run with
+/// with every vertex within 2 % vertically. 0.54 % at worst, about 3 minutes; run with
 /// `cargo test --release --test calibration_robust handle_friction_on_every_linkage -- --ignored --nocapture`.
 #[test]
 #[ignore]
