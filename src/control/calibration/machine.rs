@@ -303,18 +303,38 @@ enum Phase {
     /// run by the calibration's [`Explorer`].
     Explore,
     /// Strokes through the vertex along three diagonals, one way and back, whose mean force is
-    /// the vertex's holding force (friction cancels between the passes); `error` is the distance
-    /// from the vertex of the rest the bands were measured at, `late` the failure to report if
-    /// the strokes are blocked after the vertex ran out of time, `again` whether they may be
-    /// repeated once.
+    /// the vertex's holding force (friction cancels between the passes).
     Strokes {
         strokes: Strokes,
-        error: f64,
-        late: Option<CalibrationFailure>,
-        again: bool,
+        run: StrokeRun,
     },
     Finished,
     Failed(CalibrationFailure),
+}
+
+/// What a vertex's strokes carry from one attempt to the next.
+#[derive(Clone, Copy, Debug)]
+struct StrokeRun {
+    /// Distance from the vertex of the rest the bands were measured at, m.
+    error: f64,
+    /// The failure to report if the strokes are blocked after the vertex ran out of time.
+    late: Option<CalibrationFailure>,
+    /// Whether a result that moves F̂ by more than `STROKE_REPEAT` is measured once more.
+    repeat: bool,
+    /// The bands' F̂ while blocked strokes run again from the force that holds the handle where
+    /// it rests: a second block puts it back (that force may be a stop's reaction).
+    bands_force: Option<Vector3<f64>>,
+}
+
+impl StrokeRun {
+    fn first(error: f64, late: Option<CalibrationFailure>) -> Self {
+        Self {
+            error,
+            late,
+            repeat: true,
+            bands_force: None,
+        }
+    }
 }
 
 /// The calibration controller. Build it, run it in the servo loop until it is done, then take
@@ -1074,8 +1094,9 @@ impl Calibration {
     ) -> Vector3<f64> {
         let mut gains = self.gains.scaled(self.gain_scale);
         let mut still = *s;
+        let at_rest = s.velocity.norm() < RINGING_SPEED;
         for a in 0..3 {
-            if self.friction_kind[a] == Friction::Dominant && s.velocity.norm() < RINGING_SPEED {
+            if self.friction_kind[a] == Friction::Dominant && at_rest {
                 gains.damping[a] = 0.0;
                 still.position[a] = self.smoothed[a];
             }
@@ -1121,7 +1142,7 @@ impl Calibration {
         // load leaves the handle outside the strokes' windows: start from the last vertex's.
         self.estimate = self.last_good;
         self.gain_scale = 1.0;
-        self.stroke(s, vertex, error, Some(failure), true)
+        self.stroke(s, vertex, StrokeRun::first(error, Some(failure)))
     }
 
     fn vertex_timed_out(&self, t: f64) -> Option<CalibrationFailure> {
@@ -1440,7 +1461,7 @@ impl Calibration {
                 (sum / f64::from(count), at / f64::from(count))
             };
             if !self.friction_kind.contains(&Friction::Slight) {
-                return self.stroke(s, vertex, error, None, true);
+                return self.stroke(s, vertex, StrokeRun::first(error, None));
             }
             self.detector.reset();
             self.phase = Phase::Check {
@@ -1508,26 +1529,18 @@ impl Calibration {
             }
         }
         let vertex = self.plan.path[self.vertex];
-        self.stroke(s, vertex, (vertex.position - rest).norm(), None, true)
+        self.stroke(
+            s,
+            vertex,
+            StrokeRun::first((vertex.position - rest).norm(), None),
+        )
     }
 
     /// With friction at the vertex, the bands have brought F̂ within a few millinewtons; strokes
     /// through the vertex measure it to one ([`Strokes`]), following [`Phase::Strokes`].
-    fn stroke(
-        &mut self,
-        s: &DeviceState,
-        vertex: Vertex,
-        error: f64,
-        late: Option<CalibrationFailure>,
-        again: bool,
-    ) -> ControlOutput {
+    fn stroke(&mut self, s: &DeviceState, vertex: Vertex, run: StrokeRun) -> ControlOutput {
         let strokes = Strokes::through_every_joint(Stroke::MEASURE, vertex.position, s.time);
-        self.phase = Phase::Strokes {
-            strokes,
-            error,
-            late,
-            again,
-        };
+        self.phase = Phase::Strokes { strokes, run };
         ControlOutput::force(self.hold_force(&vertex.position, s, &self.estimate))
     }
 
@@ -1547,16 +1560,20 @@ impl Calibration {
         gains.pd_force(&target, &relative, &self.estimate)
     }
 
-    /// Whether the hold on `target` keeps the handle resting off it with more force on its
-    /// spring than strokes tolerate in their feedforward (`STROKE_REPEAT`), but no more than
-    /// the push limit: friction yields to that much, so a handle held off by more is on
-    /// something else (a stop), and the force there says nothing about the load.
-    fn held_off(&self, target: &Vector3<f64>) -> bool {
+    /// The force on the hold's spring when it keeps the handle (its smoothed position) off
+    /// `target` with more than strokes tolerate in their feedforward (`STROKE_REPEAT`), but no
+    /// more than the push limit: friction yields to that much, so a handle held off by more is
+    /// on something else (a stop), and the force there says nothing about the load. It is read
+    /// as the strokes' home leg ends, without waiting for the handle to come to rest (requiring
+    /// rest there skipped the retry the delta at 0.02 N at the handle needs).
+    fn held_off(&self, target: &Vector3<f64>) -> Option<Vector3<f64>> {
         let spring = self
             .gains
             .stiffness
             .component_mul(&(target - self.smoothed));
-        (STROKE_REPEAT..=self.push_limit()).contains(&spring.norm())
+        (STROKE_REPEAT..=self.push_limit())
+            .contains(&spring.norm())
+            .then_some(spring)
     }
 
     /// Whether the bands at X_C read some axis's friction under `MISREAD_SHARE` of what the
@@ -1626,24 +1643,12 @@ impl Calibration {
         ControlOutput::force(force)
     }
 
-    fn strokes(
-        &mut self,
-        s: &DeviceState,
-        mut strokes: Strokes,
-        error: f64,
-        late: Option<CalibrationFailure>,
-        again: bool,
-    ) -> ControlOutput {
+    fn strokes(&mut self, s: &DeviceState, mut strokes: Strokes, run: StrokeRun) -> ControlOutput {
         let force = self.stroke_force(&strokes, s);
         let vertex = self.plan.path[self.vertex];
         match strokes.observe(s, &force) {
             Step::Running => {
-                self.phase = Phase::Strokes {
-                    strokes,
-                    error,
-                    late,
-                    again,
-                };
+                self.phase = Phase::Strokes { strokes, run };
                 ControlOutput::force(force)
             }
             Step::Done(stroked) => {
@@ -1651,37 +1656,55 @@ impl Calibration {
                 self.estimate = stroked.force;
                 self.measured_at = strokes.centre();
                 self.iteration += 1;
-                if change > STROKE_REPEAT && again {
+                if change > STROKE_REPEAT && run.repeat {
                     // A hold that far off the load kept the handle off the middle of the
                     // windows: measure again from what the strokes found.
-                    return self.stroke(s, vertex, error, late, false);
+                    let again = StrokeRun {
+                        repeat: false,
+                        bands_force: None,
+                        ..run
+                    };
+                    return self.stroke(s, vertex, again);
                 }
                 self.emit(CalibrationEvent::Iteration {
                     vertex: self.vertex,
                     iteration: self.iteration,
                     force: self.estimate,
-                    error,
+                    error: run.error,
                 });
-                self.vertex_done(s, vertex, error)
+                self.vertex_done(s, vertex, run.error)
             }
             // The hold kept the handle off the windows: where it rests now, the force that holds
             // it there is the holding force to within the friction, whatever F̂ was. An F̂ that
             // far off (rounds whose bands misread a ball of friction at the handle as a joint's
-            // faces) is replaced by that force and the strokes run once more; a stop stays a
-            // stop, and blocks them again.
-            Step::Blocked { .. } if again && self.held_off(&vertex.position) => {
-                self.estimate += self
-                    .gains
-                    .stiffness
-                    .component_mul(&(vertex.position - self.smoothed));
-                self.stroke(s, vertex, error, late, false)
+            // faces) is replaced by that force and the strokes run once more, keeping the bands'
+            // F̂; a stop stays a stop, and blocks them again.
+            Step::Blocked { .. } if run.repeat && run.bands_force.is_none() => {
+                match self.held_off(&vertex.position) {
+                    Some(spring) => {
+                        let retry = StrokeRun {
+                            bands_force: Some(self.estimate),
+                            ..run
+                        };
+                        self.estimate += spring;
+                        self.stroke(s, vertex, retry)
+                    }
+                    None => self.blocked(s, vertex, run),
+                }
             }
-            // Something within a stroke's reach of the vertex stops the handle: the bands'
-            // measurement stands, if they finished.
-            Step::Blocked { .. } => match late {
-                Some(failure) => self.fail(failure),
-                None => self.vertex_done(s, vertex, error),
-            },
+            Step::Blocked { .. } => self.blocked(s, vertex, run),
+        }
+    }
+
+    /// Something within a stroke's reach of the vertex stops the handle: the bands'
+    /// measurement stands, if they finished.
+    fn blocked(&mut self, s: &DeviceState, vertex: Vertex, run: StrokeRun) -> ControlOutput {
+        if let Some(bands_force) = run.bands_force {
+            self.estimate = bands_force;
+        }
+        match run.late {
+            Some(failure) => self.fail(failure),
+            None => self.vertex_done(s, vertex, run.error),
         }
     }
 
@@ -1987,12 +2010,7 @@ impl Controller for Calibration {
             Phase::Check { anchor, since } => self.check(s, anchor, since),
             Phase::InitStrokes(strokes) => self.init_strokes(s, strokes),
             Phase::Explore => self.explore(s),
-            Phase::Strokes {
-                strokes,
-                error,
-                late,
-                again,
-            } => self.strokes(s, strokes, error, late, again),
+            Phase::Strokes { strokes, run } => self.strokes(s, strokes, run),
             Phase::Finished | Phase::Failed(_) => ControlOutput::done(Vector3::zeros()),
         }
     }
