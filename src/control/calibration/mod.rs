@@ -37,6 +37,7 @@ mod probe;
 pub(crate) mod steady;
 
 pub use machine::{Calibration, CalibrationEvent};
+pub(crate) use outcome::extrapolate_from_neighbours;
 pub use outcome::{CalibrationFailure, CalibrationResult, InitialMeasurement, VertexResult};
 pub use plan::{GridPlan, PlanError, Vertex};
 

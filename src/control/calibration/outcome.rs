@@ -209,7 +209,7 @@ pub(super) fn fill_from_neighbours<T: Field>(dims: [usize; 3], values: &mut [T],
 /// neighbour is filled too, the candidate is their straight line carried on (2 v₁ − v₂) rather
 /// than v₁: an explored grid's outer vertices continue the field's trend, and the interpolation
 /// between them and the calibrated ones has no step at the edge of what was measured.
-pub(super) fn extrapolate_from_neighbours<T: Field>(
+pub(crate) fn extrapolate_from_neighbours<T: Field>(
     dims: [usize; 3],
     values: &mut [T],
     known: &[bool],
@@ -218,7 +218,7 @@ pub(super) fn extrapolate_from_neighbours<T: Field>(
 }
 
 /// What a vertex holds that filling can average: forces, friction, numbers.
-pub(super) trait Field:
+pub(crate) trait Field:
     Copy + std::ops::Add<Output = Self> + std::ops::Mul<f64, Output = Self>
 {
 }
