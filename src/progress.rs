@@ -120,27 +120,34 @@ impl Display {
             }
             CalibrationEvent::Probed {
                 probe,
-                of,
+                from,
                 direction: d,
-                reach,
+                run,
                 stopped,
-            } => format!(
-                "exploring {}/{}: along ({:.2}, {:.2}, {:.2}) the handle went {:.1} mm, {}",
-                probe + 1,
-                of,
-                d.x,
-                d.y,
-                d.z,
-                reach * 1e3,
-                if *stopped {
-                    "to a stop"
-                } else {
-                    "to the configured box (device.workspace_*_mm)"
-                }
-            ),
+            } => {
+                let f = from * 1e3;
+                format!(
+                    "exploring, move {}: from ({:.0}, {:.0}, {:.0}) mm along ({:.0}, {:.0}, {:.0}) \
+                     the handle {} after {:.1} mm",
+                    probe + 1,
+                    f.x,
+                    f.y,
+                    f.z,
+                    d.x,
+                    d.y,
+                    d.z,
+                    if *stopped {
+                        "met a stop"
+                    } else {
+                        "reached the next vertex"
+                    },
+                    run * 1e3
+                )
+            }
             CalibrationEvent::Explored {
                 probes,
                 stopped,
+                reached,
                 vertices,
                 extrapolated,
                 dims,
@@ -149,9 +156,10 @@ impl Display {
                     bar.set_length(*vertices as u64);
                 }
                 format!(
-                    "explored: {stopped} of {probes} probes met a stop; the grid is {}×{}×{}: \
-                     {vertices} vertices inside the explored workspace to calibrate, \
-                     {extrapolated} outside it to extrapolate",
+                    "explored: {reached} vertices reached in {probes} moves, {stopped} of them \
+                     ended by a stop; the grid is {}×{}×{}: {vertices} vertices to calibrate, \
+                     {extrapolated} outside the explored workspace or too near a stop to \
+                     extrapolate",
                     dims[0], dims[1], dims[2]
                 )
             }

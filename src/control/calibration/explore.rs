@@ -1,178 +1,320 @@
 //! Exploration of a workspace of unknown shape (`calibration.workspace = "explore"`): after the
-//! initialisation, the hold drives the handle from X_C outward along 26 directions (the faces,
-//! edges and corners of a cube) at [`PROBE_SPEED`] until it meets a mechanical stop or an
-//! obstacle, then glides back to X_C. The contacts make a star-shaped [`WorkspaceMap`] around
-//! X_C, and the grid is planned on the vertices it holds with a margin
-//! ([`GridPlan::explored`](super::GridPlan::explored)).
+//! initialisation, the hold walks the handle over the lattice X_C + L (n, m, p) the grid will
+//! use, one edge at a time, depth first: from the vertex it is at, it tries each face
+//! neighbour it has not reached yet, at [`PROBE_SPEED`]. A move that arrives adds the
+//! neighbour to the map and goes on from there; a move the handle stops following has met a
+//! mechanical stop, a joint limit or an obstacle, and the hold glides back to where it came
+//! from along the line it just travelled. When every neighbour of a vertex has been tried, the
+//! hold returns along the edge it came by. The map that grows so follows any shape the lattice
+//! can resolve: a bowl, a shell, a box with a wall in it.
 //!
 //! A stop is met when the handle stops following the reference while the hold's force grows:
-//! the reference runs ahead of the handle along the probe by more than [`CONTACT_LAG`] (or by
-//! what half the push limit stretches the hold by, if that is less). The probe's speed is the
-//! handle's speed when it meets the stop, so no stop is struck faster than
-//! [`CONTACT_SPEED`]. A probe that reaches the configured box (`device.workspace_*_mm`) ends
-//! there without contact: exploration never leaves the box the user allowed.
+//! the reference runs ahead of the handle by more than [`CONTACT_LAG`] (or by what half the
+//! push limit stretches the hold by, if that is less). The reference's speed is the handle's
+//! speed when it meets the stop, so no stop is struck faster than [`CONTACT_SPEED`]. Returns
+//! run along lines the handle has just travelled, so they are faster. A vertex outside the
+//! configured box (`device.workspace_*_mm`) is never tried: exploration never leaves the box
+//! the user allowed.
+//!
+//! Each reached vertex keeps its *clearance*: the shortest distance a move from it ran before
+//! a stop, or to the configured box along an axis; [`GridPlan::explore`](super::GridPlan::explore)
+//! calibrates the vertices whose clearance is at least [`MARGIN`] and extrapolates the others.
 
 use nalgebra::Vector3;
 
 use super::machine::Glide;
+use super::plan::MAX_EXPLORED_SIDE;
 use crate::control::pd::AxisGains;
 use crate::control::DeviceState;
 
-/// Probes run: one per direction of [`directions`].
-pub const PROBES: usize = 26;
-/// Speed of the reference along a probe, m/s: the speed the handle meets a stop at.
+/// Speed of the reference along a move to a vertex not reached yet, m/s: the speed the handle
+/// meets a stop at.
 pub const PROBE_SPEED: f64 = 0.015;
 /// The bound on the handle's speed at any contact during exploration, m/s (documented; the
 /// tests read the plant's contact log against it).
 pub const CONTACT_SPEED: f64 = 0.020;
-/// Time constant of the probe's speed ramp from rest, s.
+/// Time constant of a move's speed ramp from rest, s.
 const PROBE_RAMP: f64 = 0.2;
-/// How far the reference may run ahead of the handle along a probe before it counts as a stop,
-/// m.
+/// How far the reference may run ahead of the handle before it counts as a stop, m.
 pub const CONTACT_LAG: f64 = 0.003;
+/// A move arrives when the handle comes this close to the vertex after the reference has, m...
+const ARRIVAL: f64 = 0.001;
+/// ... within this long, s; otherwise something short of the vertex holds the handle (a stop
+/// nearer than the lag that counts as one).
+const ARRIVAL_TIME: f64 = 1.5;
 /// Share of the push limit the hold may push a stop with before it counts as met.
 const CONTACT_PUSH_SHARE: f64 = 0.5;
-/// Peak speed of the glide back to X_C, m/s: no faster than a probe, as the straight line back
-/// may cross a stop the probe slid along on its way out.
-const RETURN_SPEED: f64 = PROBE_SPEED;
-/// Shortest glide back, s, and the hold at X_C before the next probe, s.
-const MIN_RETURN: f64 = 0.5;
-const HOLD_AT_CENTRE: f64 = 0.3;
+/// Peak speed of a return along an edge the handle has travelled from end to end, m/s: nothing
+/// is in the way there. After a stop, the return to the vertex the move set off from is no
+/// faster than a move ([`PROBE_SPEED`]): the hold lets go of the stop slowly.
+const RETURN_SPEED: f64 = 0.045;
+/// Shortest return, s.
+const MIN_RETURN: f64 = 0.3;
 /// Integral time of the hold's integral term, s: it takes up the change of the holding force
-/// along the probe (the hold's gravity term is the load at X_C).
+/// over the workspace (the hold's gravity term is the load at X_C).
 const INTEGRAL_TIME: f64 = 1.0;
-/// Distance kept from the explored boundary by every vertex calibrated, m: a vertex's strokes
-/// reach 4 mm from it and its band pushes a millimetre or two.
+/// Distance kept from every stop a move met and from the configured box by every vertex
+/// calibrated, m: a vertex's strokes reach 4 mm from it and its band pushes a millimetre or two.
 pub const MARGIN: f64 = 0.012;
-/// A probe informs the reach within this angle of it (cos 45°).
-const WINDOW_COS: f64 = std::f64::consts::FRAC_1_SQRT_2;
+/// Lattice indices the map can hold along an axis, around X_C: −(SIDE − 1) / 2 … (SIDE − 1) / 2.
+const SIDE: usize = 2 * MAX_EXPLORED_SIDE - 1;
+/// Most vertices reached along an axis: the grid adds a layer on each side for the stops
+/// beyond them and holds at most [`MAX_EXPLORED_SIDE`].
+const MAX_REACHED_SIDE: i32 = MAX_EXPLORED_SIDE as i32 - 2;
+/// The six face neighbours, in the order they are tried.
+const NEIGHBOURS: [[i32; 3]; 6] = [
+    [1, 0, 0],
+    [-1, 0, 0],
+    [0, 1, 0],
+    [0, -1, 0],
+    [0, 0, 1],
+    [0, 0, -1],
+];
 
-/// One probe's end: the direction from X_C to where the handle came to a stop (off the probe's
-/// line if it slid along a stop oblique to it), how far from X_C that is, and whether it met a
-/// stop (false: it reached the configured box).
+/// What exploration knows of one lattice vertex.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Ray {
-    pub direction: Vector3<f64>,
-    /// m.
-    pub reach: f64,
-    pub stopped: bool,
+enum Cell {
+    Unknown,
+    /// The handle stopped on the way to it from every vertex that tried it.
+    Blocked,
+    /// The handle reached it; the shortest free run from it, m, and the neighbours it has
+    /// tried (a bit per entry of [`NEIGHBOURS`]).
+    Reached {
+        clearance: f64,
+        tried: u8,
+    },
 }
 
-/// The reachable workspace as exploration found it: star-shaped around X_C, its reach along any
-/// direction interpolated between the probes within 45° of it, inside the configured box.
+/// The reachable workspace as exploration found it: the lattice vertices the handle reached,
+/// each with its clearance, inside the configured box.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WorkspaceMap {
+    /// X_C, where the handle rested after the initialisation, m: vertex (0, 0, 0).
     pub centre: Vector3<f64>,
-    pub rays: Vec<Ray>,
+    /// L, m.
+    pub spacing: f64,
     /// The configured box (`device.workspace_*_mm`), m.
     pub bounds: (Vector3<f64>, Vector3<f64>),
+    cells: Vec<Cell>,
+    /// Lowest and highest index reached along each axis.
+    reached_span: ([i32; 3], [i32; 3]),
+    /// The box of the vertices reached and the points where a stop ended a move, m.
+    extent: (Vector3<f64>, Vector3<f64>),
 }
 
 impl WorkspaceMap {
-    /// The reach along unit `u`, m: the shortest reach of the probes within 45° of it. It never
-    /// lies beyond a flat stop or wall any of them met (a probe at an angle to a wall meets it
-    /// farther out than the wall's nearest point, never nearer), at the cost of the corners of
-    /// a workspace that bulges between probes.
-    pub fn reach(&self, u: &Vector3<f64>) -> f64 {
-        self.rays
-            .iter()
-            .filter(|ray| u.dot(&ray.direction) > WINDOW_COS)
-            .map(|ray| ray.reach)
-            .reduce(f64::min)
-            .unwrap_or(0.0)
+    /// An empty map of the lattice of `spacing` (m) inside `bounds` (m); allocates all it will
+    /// hold.
+    pub fn new(bounds: (Vector3<f64>, Vector3<f64>), spacing: f64) -> Self {
+        Self {
+            centre: Vector3::zeros(),
+            spacing,
+            bounds,
+            cells: vec![Cell::Unknown; SIDE * SIDE * SIDE],
+            reached_span: ([0; 3], [0; 3]),
+            extent: (Vector3::zeros(), Vector3::zeros()),
+        }
     }
 
-    /// Whether `x` lies at least `margin` (m) inside the explored workspace and the box.
-    pub fn contains(&self, x: &Vector3<f64>, margin: f64) -> bool {
+    /// Forget everything; the handle is at `centre`, vertex (0, 0, 0).
+    fn reset(&mut self, centre: Vector3<f64>) {
+        self.centre = centre;
+        self.cells.fill(Cell::Unknown);
+        self.reached_span = ([0; 3], [0; 3]);
+        self.extent = (centre, centre);
+        let origin = self.slot([0; 3]).expect("the centre is on the map");
+        self.cells[origin] = Cell::Reached {
+            clearance: f64::INFINITY,
+            tried: 0,
+        };
+    }
+
+    fn slot(&self, k: [i32; 3]) -> Option<usize> {
+        let half = (SIDE as i32 - 1) / 2;
+        if k.iter().any(|c| c.abs() > half) {
+            return None;
+        }
+        let u = k.map(|c| (c + half) as usize);
+        Some(u[0] + SIDE * (u[1] + SIDE * u[2]))
+    }
+
+    fn cell(&self, k: [i32; 3]) -> Option<Cell> {
+        self.slot(k).map(|n| self.cells[n])
+    }
+
+    /// Where vertex `k` is, m.
+    pub fn position(&self, k: [i32; 3]) -> Vector3<f64> {
+        self.centre + Vector3::new(f64::from(k[0]), f64::from(k[1]), f64::from(k[2])) * self.spacing
+    }
+
+    fn inside_bounds(&self, x: &Vector3<f64>) -> bool {
         let (lo, hi) = self.bounds;
-        if (0..3).any(|a| x[a] < lo[a] + margin || x[a] > hi[a] - margin) {
+        (0..3).all(|a| x[a] >= lo[a] && x[a] <= hi[a])
+    }
+
+    fn reach(&mut self, k: [i32; 3]) {
+        if let Some(n) = self.slot(k) {
+            if !matches!(self.cells[n], Cell::Reached { .. }) {
+                self.cells[n] = Cell::Reached {
+                    clearance: f64::INFINITY,
+                    tried: 0,
+                };
+            }
+        }
+        let (lo, hi) = &mut self.reached_span;
+        for a in 0..3 {
+            lo[a] = lo[a].min(k[a]);
+            hi[a] = hi[a].max(k[a]);
+        }
+        self.widen(&self.position(k));
+    }
+
+    fn block(&mut self, k: [i32; 3]) {
+        if let Some(n) = self.slot(k) {
+            if self.cells[n] == Cell::Unknown {
+                self.cells[n] = Cell::Blocked;
+            }
+        }
+    }
+
+    /// The clearance of vertex `k` is at most `free` m.
+    fn clear(&mut self, k: [i32; 3], free: f64) {
+        if let Some(n) = self.slot(k) {
+            if let Cell::Reached { clearance, .. } = &mut self.cells[n] {
+                *clearance = clearance.min(free);
+            }
+        }
+    }
+
+    /// Whether vertex `k` has tried its neighbour `step` (an index into [`NEIGHBOURS`]); marks
+    /// it tried.
+    fn try_once(&mut self, k: [i32; 3], step: usize) -> bool {
+        match self.slot(k).map(|n| &mut self.cells[n]) {
+            Some(Cell::Reached { tried, .. }) => {
+                let before = *tried & (1 << step) != 0;
+                *tried |= 1 << step;
+                before
+            }
+            _ => true,
+        }
+    }
+
+    fn widen(&mut self, x: &Vector3<f64>) {
+        let (lo, hi) = self.extent;
+        self.extent = (lo.inf(x), hi.sup(x));
+    }
+
+    /// Whether `x` is a vertex the handle reached with at least `margin` (m) of clearance.
+    pub fn contains(&self, x: &Vector3<f64>, margin: f64) -> bool {
+        let u = (x - self.centre) / self.spacing;
+        let k = [0, 1, 2].map(|a| u[a].round() as i32);
+        if (self.position(k) - x).norm() > 1e-6 * self.spacing {
             return false;
         }
-        let d = x - self.centre;
-        let r = d.norm();
-        r < 1e-9 || r <= self.reach(&(d / r)) - margin
+        matches!(self.cell(k), Some(Cell::Reached { clearance, .. }) if clearance >= margin)
     }
 
-    /// The box around every point the probes reached, m.
+    /// The box of the vertices reached and of the points where a stop ended a move, m.
     pub fn extent(&self) -> (Vector3<f64>, Vector3<f64>) {
-        self.rays
+        self.extent
+    }
+
+    /// How many vertices the handle reached.
+    pub fn reached(&self) -> usize {
+        self.cells
             .iter()
-            .fold((self.centre, self.centre), |(lo, hi), ray| {
-                let x = self.centre + ray.direction * ray.reach;
-                (lo.inf(&x), hi.sup(&x))
-            })
+            .filter(|c| matches!(c, Cell::Reached { .. }))
+            .count()
     }
 }
 
-/// The 26 probe directions: (i, j, k) ∈ {−1, 0, 1}³ without the origin, normalised.
-pub fn directions() -> impl Iterator<Item = Vector3<f64>> {
-    (0..27).filter(|&n| n != 13).map(|n| {
-        Vector3::new(
-            (n % 3) as f64 - 1.0,
-            ((n / 3) % 3) as f64 - 1.0,
-            (n / 9) as f64 - 1.0,
-        )
-        .normalize()
-    })
+/// One move of the exploration: from a reached vertex toward a neighbour along `direction`
+/// (a unit axis), the `run` m the handle went, and whether a stop ended it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Probe {
+    pub from: Vector3<f64>,
+    pub direction: Vector3<f64>,
+    pub run: f64,
+    pub stopped: bool,
 }
 
-/// The leg of the probe in progress.
+/// The leg in progress.
 #[derive(Clone, Copy, Debug)]
 enum Leg {
-    /// Outward from X_C since `start`, at most `length` m (to the box).
-    Out { start: f64, length: f64 },
-    /// The glide back to X_C, then a short hold there.
-    Back(Glide),
+    /// From vertex `from` toward its neighbour `to`, since `start`.
+    Out {
+        from: [i32; 3],
+        to: [i32; 3],
+        start: f64,
+    },
+    /// Back to vertex `to` along a line just travelled.
+    Back { to: [i32; 3], glide: Glide },
 }
 
-/// Runs the probes (module docs). Built off the servo thread; [`Explorer::tick`] does not
+/// Runs the walk (module docs). Built off the servo thread; [`Explorer::tick`] does not
 /// allocate.
 #[derive(Clone, Debug)]
 pub struct Explorer {
     map: WorkspaceMap,
-    /// Probes still to run, in order.
-    directions: [Vector3<f64>; PROBES],
+    /// The vertices the walk came by, X_C first: where it returns once the current vertex has
+    /// tried every neighbour.
+    trail: Vec<[i32; 3]>,
     leg: Leg,
+    /// The last move finished, until taken.
+    probed: Option<Probe>,
+    probes: usize,
+    stopped: usize,
     /// The hold's integral term, N, and the time of the last tick, s.
     integral: Vector3<f64>,
     last_time: f64,
-    /// The most the integral term and the probe's push may add to the load, N.
+    /// The most the integral term and a move's push may add to the load, N.
     push_limit: f64,
 }
 
 impl Explorer {
-    /// Probes inside `bounds` (m); `push_limit` is the most calibration pushes beyond the forces
-    /// it holds, N. [`Explorer::begin`] starts them.
-    pub fn new(bounds: (Vector3<f64>, Vector3<f64>), push_limit: f64) -> Self {
-        let mut probes = [Vector3::zeros(); PROBES];
-        for (slot, d) in probes.iter_mut().zip(directions()) {
-            *slot = d;
-        }
+    /// A walk over the lattice of `spacing` (m) inside `bounds` (m); `push_limit` is the most
+    /// calibration pushes beyond the forces it holds, N. [`Explorer::begin`] starts it.
+    pub fn new(bounds: (Vector3<f64>, Vector3<f64>), spacing: f64, push_limit: f64) -> Self {
         Self {
-            map: WorkspaceMap {
-                centre: Vector3::zeros(),
-                rays: Vec::with_capacity(probes.len()),
-                bounds,
+            map: WorkspaceMap::new(bounds, spacing),
+            trail: Vec::with_capacity(SIDE * SIDE * SIDE),
+            leg: Leg::Back {
+                to: [0; 3],
+                glide: Glide {
+                    from: Vector3::zeros(),
+                    to: Vector3::zeros(),
+                    start: 0.0,
+                    duration: 0.0,
+                },
             },
-            directions: probes,
-            leg: Leg::Out {
-                start: 0.0,
-                length: 0.0,
-            },
+            probed: None,
+            probes: 0,
+            stopped: 0,
             integral: Vector3::zeros(),
             last_time: 0.0,
             push_limit,
         }
     }
 
-    /// Start the probes from `centre` (m, the handle at rest there) at time `t`, forgetting any
-    /// earlier ones.
+    /// Start the walk from `centre` (m, the handle at rest there) at time `t`, forgetting any
+    /// earlier one.
     pub fn begin(&mut self, centre: Vector3<f64>, t: f64) {
-        self.map.centre = centre;
-        self.map.rays.clear();
+        self.map.reset(centre);
+        self.trail.clear();
+        self.probed = None;
+        self.probes = 0;
+        self.stopped = 0;
         self.integral = Vector3::zeros();
         self.last_time = t;
-        self.start_probe(t);
+        self.leg = Leg::Back {
+            to: [0; 3],
+            glide: Glide {
+                from: centre,
+                to: centre,
+                start: t,
+                duration: 0.0,
+            },
+        };
     }
 
     /// The map so far (complete once [`Explorer::tick`] has returned `None`).
@@ -180,17 +322,75 @@ impl Explorer {
         &self.map
     }
 
-    /// Set off along the next direction at time `t`.
-    fn start_probe(&mut self, t: f64) {
-        let d = self.directions[self.map.rays.len()];
-        self.leg = Leg::Out {
-            start: t,
-            length: box_exit(&self.map.centre, &d, &self.map.bounds),
-        };
+    /// Moves tried, and how many of them met a stop.
+    pub fn probes(&self) -> (usize, usize) {
+        (self.probes, self.stopped)
     }
 
-    /// The hold's force this tick with the hold's `gains` and the load at X_C `load`; `None` once
-    /// every probe is done (the handle is back at X_C).
+    /// The move that ended at the last tick, once.
+    pub fn take_probe(&mut self) -> Option<Probe> {
+        self.probed.take()
+    }
+
+    /// From vertex `k` at time `t`: the next neighbour to try, or the return along the trail;
+    /// false once the walk is back at X_C with nothing left to try.
+    fn next_leg(&mut self, k: [i32; 3], t: f64) -> bool {
+        let (lo, hi) = self.map.reached_span;
+        for (s, step) in NEIGHBOURS.into_iter().enumerate() {
+            let n = [0, 1, 2].map(|a| k[a] + step[a]);
+            let Some(cell) = self.map.cell(n) else {
+                continue;
+            };
+            if matches!(cell, Cell::Reached { .. }) || self.map.try_once(k, s) {
+                continue;
+            }
+            // The grid holds so many vertices along an axis: the workspace beyond is left to the
+            // grid's faces, and is no stop.
+            if (0..3).any(|a| n[a].max(hi[a]) - n[a].min(lo[a]) + 1 > MAX_REACHED_SIDE) {
+                continue;
+            }
+            let to = self.map.position(n);
+            if !self.map.inside_bounds(&to) {
+                // The configured box ends the workspace between the two: as near as a stop.
+                let a = (0..3).find(|&a| step[a] != 0).expect("a face neighbour");
+                let (b_lo, b_hi) = self.map.bounds;
+                let wall = if step[a] > 0 { b_hi[a] } else { b_lo[a] };
+                let free = (wall - self.map.position(k)[a]).abs();
+                self.map.clear(k, free);
+                continue;
+            }
+            self.leg = Leg::Out {
+                from: k,
+                to: n,
+                start: t,
+            };
+            return true;
+        }
+        match self.trail.pop() {
+            Some(back) => {
+                self.leg = Leg::Back {
+                    to: back,
+                    glide: self.glide(self.map.position(k), back, t, RETURN_SPEED),
+                };
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// A glide from `from` to vertex `to` at time `t`, peaking at `speed` (m/s).
+    fn glide(&self, from: Vector3<f64>, to: [i32; 3], t: f64, speed: f64) -> Glide {
+        let to = self.map.position(to);
+        Glide {
+            from,
+            to,
+            start: t,
+            duration: (1.875 * (to - from).norm() / speed).max(MIN_RETURN),
+        }
+    }
+
+    /// The hold's force this tick with the hold's `gains` and the load at X_C `load`; `None`
+    /// once the walk is over (the handle is back at X_C).
     pub fn tick(
         &mut self,
         s: &DeviceState,
@@ -199,48 +399,55 @@ impl Explorer {
     ) -> Option<Vector3<f64>> {
         let dt = (s.time - self.last_time).max(0.0);
         self.last_time = s.time;
-        let centre = self.map.centre;
         let (target, velocity) = match self.leg {
-            Leg::Out { start, length } => {
-                let d = self.directions[self.map.rays.len()];
+            Leg::Out { from, to, start } => {
+                let origin = self.map.position(from);
+                let d = self.map.position(to) - origin;
+                let length = d.norm();
+                let d = d / length;
                 let tau = (s.time - start).max(0.0);
                 let ramp = 1.0 - (-tau / PROBE_RAMP).exp();
                 let along = PROBE_SPEED * (tau - PROBE_RAMP * ramp);
-                let target = centre + d * along.min(length);
-                // The whole tracking error, not only its part along the probe: a handle turned
-                // aside by a stop oblique to the probe is held there too, and is not pulled
-                // along the stop towards a reference that runs on.
+                let target = origin + d * along.min(length);
+                // The whole tracking error, not only its part along the move: a handle turned
+                // aside by a stop oblique to the move is held there too.
                 let lag = (target - s.position).norm();
                 let stiffest = gains.stiffness.max();
                 let lag_limit = CONTACT_LAG.min(CONTACT_PUSH_SHARE * self.push_limit / stiffest);
-                if lag > lag_limit || along >= length {
-                    // Where the handle is, not its projection on the probe: it may have slid
-                    // along a stop oblique to the probe before the lag grew, and the point it
-                    // rests at is the one known to be on the workspace's boundary.
-                    let reached = s.position - centre;
-                    let reach = reached.norm();
-                    self.map.rays.push(Ray {
-                        direction: if reach > 1e-9 { reached / reach } else { d },
-                        reach,
-                        stopped: along < length,
-                    });
-                    self.leg = Leg::Back(Glide {
-                        from: s.position,
-                        to: centre,
-                        start: s.time,
-                        duration: (1.875 * reach / RETURN_SPEED).max(MIN_RETURN),
-                    });
-                    (s.position, Vector3::zeros())
+                // The reference is there: the handle must follow it to the vertex, or it is held
+                // short of it by a stop nearer than the lag limit.
+                let arrival = start + PROBE_RAMP + length / PROBE_SPEED;
+                let late = along >= length && s.time > arrival + ARRIVAL_TIME;
+                if lag > lag_limit || late {
+                    // Where the handle rests is on the workspace's boundary.
+                    let run = (s.position - origin).norm();
+                    self.map.block(to);
+                    self.map.clear(from, run);
+                    self.map.widen(&s.position);
+                    self.finish_probe(origin, d, run, true);
+                    // Back from the reference, not the handle: the hold lets go of the stop as
+                    // smoothly as it pressed on it (a set point moved onto the handle at once
+                    // lets the stop throw the handle off and the load bring it back hard).
+                    self.leg = Leg::Back {
+                        to: from,
+                        glide: self.glide(target, from, s.time, PROBE_SPEED),
+                    };
+                    (target, Vector3::zeros())
+                } else if along >= length && lag < ARRIVAL {
+                    self.map.reach(to);
+                    self.trail.push(from);
+                    self.finish_probe(origin, d, length, false);
+                    self.next_leg(to, s.time);
+                    (target, Vector3::zeros())
+                } else if along >= length {
+                    (target, Vector3::zeros())
                 } else {
                     (target, d * PROBE_SPEED * ramp)
                 }
             }
-            Leg::Back(glide) => {
-                if glide.progress(s.time) >= 1.0 + HOLD_AT_CENTRE / glide.duration {
-                    if self.map.rays.len() == self.directions.len() {
-                        return None;
-                    }
-                    self.start_probe(s.time);
+            Leg::Back { to, glide } => {
+                if glide.progress(s.time) >= 1.0 && !self.next_leg(to, s.time) {
+                    return None;
                 }
                 (glide.at(s.time), Vector3::zeros())
             }
@@ -254,91 +461,68 @@ impl Explorer {
         relative.velocity -= velocity;
         Some(gains.pd_force(&target, &relative, &(load + self.integral)))
     }
-}
 
-/// How far from `centre` along unit `d` the box `bounds` ends, m.
-fn box_exit(centre: &Vector3<f64>, d: &Vector3<f64>, bounds: &(Vector3<f64>, Vector3<f64>)) -> f64 {
-    let (lo, hi) = bounds;
-    (0..3)
-        .filter(|&a| d[a].abs() > 1e-12)
-        .map(|a| {
-            let wall = if d[a] > 0.0 { hi[a] } else { lo[a] };
-            ((wall - centre[a]) / d[a]).max(0.0)
-        })
-        .fold(f64::INFINITY, f64::min)
+    fn finish_probe(&mut self, from: Vector3<f64>, direction: Vector3<f64>, run: f64, stop: bool) {
+        self.probes += 1;
+        self.stopped += usize::from(stop);
+        self.probed = Some(Probe {
+            from,
+            direction,
+            run,
+            stopped: stop,
+        });
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn sphere(radius: f64) -> WorkspaceMap {
-        WorkspaceMap {
-            centre: Vector3::zeros(),
-            rays: directions()
-                .map(|direction| Ray {
-                    direction,
-                    reach: radius,
-                    stopped: true,
-                })
-                .collect(),
-            bounds: (Vector3::repeat(-1.0), Vector3::repeat(1.0)),
-        }
+    fn map() -> WorkspaceMap {
+        let mut map = WorkspaceMap::new((Vector3::repeat(-0.1), Vector3::repeat(0.1)), 0.02);
+        map.reset(Vector3::new(0.001, 0.0, 0.0));
+        map
     }
 
     #[test]
-    fn twenty_six_unit_directions_cover_every_direction_within_45_degrees() {
-        let d: Vec<_> = directions().collect();
-        assert_eq!(d.len(), 26);
-        assert!(d.iter().all(|u| (u.norm() - 1.0).abs() < 1e-12));
-        // Every direction has a probe closer than 45° (the worst lies between a face, an edge
-        // and a corner direction).
-        for i in 0..20 {
-            for j in 0..40 {
-                let (th, ph) = (
-                    std::f64::consts::PI * (i as f64 + 0.5) / 20.0,
-                    0.157 * j as f64,
-                );
-                let u = Vector3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos());
-                let best = d.iter().map(|v| v.dot(&u)).fold(f64::MIN, f64::max);
-                assert!(best > WINDOW_COS + 0.1, "{u:?}: {best}");
-            }
-        }
+    fn a_reached_vertex_is_in_the_map_with_its_clearance() {
+        let mut map = map();
+        map.reach([1, 0, 0]);
+        map.reach([2, 0, 0]);
+        map.clear([2, 0, 0], 0.005);
+        let at = |k| map.position(k);
+        assert!(map.contains(&at([0, 0, 0]), MARGIN));
+        assert!(map.contains(&at([1, 0, 0]), MARGIN));
+        // A stop 5 mm beyond it: reached, not calibrated.
+        assert!(!map.contains(&at([2, 0, 0]), MARGIN));
+        assert!(map.contains(&at([2, 0, 0]), 0.004));
+        // Never reached, or off the lattice.
+        assert!(!map.contains(&at([0, 1, 0]), 0.0));
+        assert!(!map.contains(&(at([1, 0, 0]) + Vector3::x() * 0.005), 0.0));
+        assert_eq!(map.reached(), 3);
+        let (lo, hi) = map.extent();
+        assert_eq!((lo, hi), (at([0, 0, 0]), at([2, 0, 0])));
     }
 
     #[test]
-    fn a_map_of_equal_reaches_is_a_ball_less_its_margin() {
-        let map = sphere(0.1);
-        let u = Vector3::new(0.3, -0.5, 0.8).normalize();
-        assert!((map.reach(&u) - 0.1).abs() < 1e-12);
-        assert!(map.contains(&(u * 0.087), 0.012));
-        assert!(!map.contains(&(u * 0.089), 0.012));
-        assert!(map.contains(&Vector3::zeros(), 0.012));
+    fn a_blocked_vertex_reached_later_from_elsewhere_counts_as_reached() {
+        let mut map = map();
+        map.block([0, 1, 0]);
+        assert!(!map.contains(&map.position([0, 1, 0]), 0.0));
+        map.reach([0, 1, 0]);
+        assert!(map.contains(&map.position([0, 1, 0]), MARGIN));
+        // Reaching it again keeps the clearance found.
+        map.clear([0, 1, 0], 0.003);
+        map.reach([0, 1, 0]);
+        assert!(!map.contains(&map.position([0, 1, 0]), MARGIN));
     }
 
     #[test]
-    fn a_short_probe_shrinks_the_map_around_it_only() {
-        let mut map = sphere(0.1);
-        let up = Vector3::z();
-        for ray in &mut map.rays {
-            if ray.direction == up {
-                ray.reach = 0.03;
-            }
-        }
-        assert!(map.reach(&up) < 0.031);
-        assert!(!map.contains(&Vector3::new(0.0, 0.0, 0.05), 0.012));
-        assert!(map.contains(&Vector3::new(0.0, 0.0, -0.08), 0.012));
-        assert!(map.contains(&Vector3::new(0.08, 0.0, 0.0), 0.012));
-    }
-
-    #[test]
-    fn the_box_bounds_the_map_and_ends_a_probe() {
-        let mut map = sphere(0.5);
-        map.bounds = (Vector3::repeat(-0.05), Vector3::repeat(0.05));
-        assert!(!map.contains(&Vector3::new(0.045, 0.0, 0.0), 0.012));
-        assert!(map.contains(&Vector3::new(0.035, 0.0, 0.0), 0.012));
-        let d = Vector3::new(1.0, 1.0, 0.0).normalize();
-        let exit = box_exit(&Vector3::zeros(), &d, &map.bounds);
-        assert!((exit - 0.05 * 2f64.sqrt()).abs() < 1e-12);
+    fn the_map_ends_where_its_lattice_does() {
+        let map = map();
+        let half = (SIDE as i32 - 1) / 2;
+        assert!(map.slot([half, -half, half]).is_some());
+        assert!(map.slot([half + 1, 0, 0]).is_none());
+        assert!(map.slot([0, 0, -half - 1]).is_none());
     }
 }

@@ -68,20 +68,22 @@ pub enum CalibrationEvent {
         at: Vertex,
         distance: f64,
     },
-    /// Exploration: probe `probe` of `of` went `reach` m from X_C along `direction`, and met a
-    /// stop (`stopped`) or the configured box.
+    /// Exploration: move `probe` (counted from 0) went `run` m from the vertex at `from` along
+    /// the axis `direction` toward its neighbour, and met a stop (`stopped`) or arrived.
     Probed {
         probe: usize,
-        of: usize,
+        from: Vector3<f64>,
         direction: Vector3<f64>,
-        reach: f64,
+        run: f64,
         stopped: bool,
     },
-    /// Exploration is over: `probes` probes, `stopped` of them on a stop; the grid has
-    /// `vertices` vertices to calibrate and `extrapolated` outside the explored workspace.
+    /// Exploration is over: `probes` moves, `stopped` of them on a stop, `reached` vertices
+    /// reached; the grid has `vertices` vertices to calibrate and `extrapolated` outside the
+    /// explored workspace or too near its stops.
     Explored {
         probes: usize,
         stopped: usize,
+        reached: usize,
         vertices: usize,
         extrapolated: usize,
         dims: [usize; 3],
@@ -456,7 +458,11 @@ impl Calibration {
         let explorer = (params.workspace_mode == WorkspaceMode::Explore).then(|| {
             plan.reserve_explored();
             results.reserve(plan.path.capacity());
-            Explorer::new(params.workspace, PUSH_SHARE * params.max_force)
+            Explorer::new(
+                params.workspace,
+                params.spacing,
+                PUSH_SHARE * params.max_force,
+            )
         });
         let n_init = params.n_init;
         let filter_bound = params.noise_bound;
@@ -1922,20 +1928,19 @@ impl Calibration {
         // Without an explorer (never built so) the cube's plan stands and its vertices follow.
         let (force, probed) = match &mut self.explorer {
             Some(explorer) => {
-                let before = explorer.map().rays.len();
                 let force = explorer.tick(s, &self.gains, &self.initial.load);
-                let ray = explorer.map().rays.get(before).copied();
-                (force, ray.map(|ray| (before, ray)))
+                let probed = explorer.take_probe().map(|p| (explorer.probes().0 - 1, p));
+                (force, probed)
             }
             None => (None, None),
         };
-        if let Some((probe, ray)) = probed {
+        if let Some((probe, p)) = probed {
             self.emit(CalibrationEvent::Probed {
                 probe,
-                of: explore::PROBES,
-                direction: ray.direction,
-                reach: ray.reach,
-                stopped: ray.stopped,
+                from: p.from,
+                direction: p.direction,
+                run: p.run,
+                stopped: p.stopped,
             });
         }
         if let Some(force) = force {
@@ -1946,13 +1951,14 @@ impl Calibration {
             if let Err(failure) = self.plan.explore(map, self.params.spacing) {
                 return self.fail(failure);
             }
-            let stopped = map.rays.iter().filter(|r| r.stopped).count();
-            let probes = map.rays.len();
+            let (probes, stopped) = explorer.probes();
+            let reached = map.reached();
             self.results.clear();
             self.results.resize(self.plan.path.len(), None);
             self.emit(CalibrationEvent::Explored {
                 probes,
                 stopped,
+                reached,
                 vertices: self.plan.path.len(),
                 extrapolated: self.plan.extrapolated.len(),
                 dims: self.plan.dims,

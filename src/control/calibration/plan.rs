@@ -13,7 +13,7 @@ use super::{CalibrationFailure, CalibrationParams};
 
 /// Most vertices along one axis of an explored grid: room for the largest explored grid is made
 /// before the run (replanning happens on the servo thread, which must not allocate).
-pub const MAX_EXPLORED_SIDE: usize = 16;
+pub const MAX_EXPLORED_SIDE: usize = 20;
 const MAX_EXPLORED: usize = MAX_EXPLORED_SIDE * MAX_EXPLORED_SIDE * MAX_EXPLORED_SIDE;
 /// Share of a cell the explored reach may pass a lattice plane by without another layer.
 const LAYER_SLACK: f64 = 0.05;
