@@ -45,9 +45,9 @@ const ARRIVAL_TIME: f64 = 1.5;
 /// Share of the push limit the hold may push a stop with before it counts as met.
 const CONTACT_PUSH_SHARE: f64 = 0.5;
 /// Peak speed of a return along an edge the handle has travelled from end to end, m/s: nothing
-/// is in the way there. After a stop, the return to the vertex the move set off from is no
+/// is in the way there. The calibration's moves along such an edge run as fast. After a stop, the return to the vertex the move set off from is no
 /// faster than a move ([`PROBE_SPEED`]): the hold lets go of the stop slowly.
-const RETURN_SPEED: f64 = 0.045;
+pub const RETURN_SPEED: f64 = 0.045;
 /// Shortest return, s.
 const MIN_RETURN: f64 = 0.3;
 /// Integral time of the hold's integral term, s: it takes up the change of the holding force
@@ -77,11 +77,12 @@ enum Cell {
     Unknown,
     /// The handle stopped on the way to it from every vertex that tried it.
     Blocked,
-    /// The handle reached it; the shortest free run from it, m, and the neighbours it has
-    /// tried (a bit per entry of [`NEIGHBOURS`]).
+    /// The handle reached it; the shortest free run from it, m, the neighbours it has tried
+    /// and those the handle has travelled to or from it (a bit per entry of [`NEIGHBOURS`]).
     Reached {
         clearance: f64,
         tried: u8,
+        walked: u8,
     },
 }
 
@@ -126,6 +127,7 @@ impl WorkspaceMap {
         self.cells[origin] = Cell::Reached {
             clearance: f64::INFINITY,
             tried: 0,
+            walked: 0,
         };
     }
 
@@ -158,6 +160,7 @@ impl WorkspaceMap {
                 self.cells[n] = Cell::Reached {
                     clearance: f64::INFINITY,
                     tried: 0,
+                    walked: 0,
                 };
             }
         }
@@ -204,13 +207,48 @@ impl WorkspaceMap {
         self.extent = (lo.inf(x), hi.sup(x));
     }
 
-    /// Whether `x` is a vertex the handle reached with at least `margin` (m) of clearance.
-    pub fn contains(&self, x: &Vector3<f64>, margin: f64) -> bool {
+    /// The handle travelled the edge from vertex `k` along `step` (an index into
+    /// [`NEIGHBOURS`]) from end to end.
+    fn walk(&mut self, k: [i32; 3], step: usize) {
+        let n = NEIGHBOURS[step];
+        let other = [0, 1, 2].map(|a| k[a] + n[a]);
+        // NEIGHBOURS pairs each direction with its opposite: 0–1, 2–3, 4–5.
+        for (end, bit) in [(k, step), (other, step ^ 1)] {
+            if let Some(Cell::Reached { walked, .. }) = self.slot(end).map(|s| &mut self.cells[s]) {
+                *walked |= 1 << bit;
+            }
+        }
+    }
+
+    /// The lattice vertex within `tolerance` (m) of `x`, if any.
+    fn vertex_at(&self, x: &Vector3<f64>, tolerance: f64) -> Option<[i32; 3]> {
         let u = (x - self.centre) / self.spacing;
         let k = [0, 1, 2].map(|a| u[a].round() as i32);
-        if (self.position(k) - x).norm() > 1e-6 * self.spacing {
+        ((self.position(k) - x).norm() <= tolerance).then_some(k)
+    }
+
+    /// Whether the handle has travelled the straight line from `a` to `b` (m) end to end: they
+    /// are neighbouring vertices (`a` within 2 mm of one) joined by an edge a move of the walk
+    /// arrived along.
+    pub fn walked(&self, a: &Vector3<f64>, b: &Vector3<f64>) -> bool {
+        let (Some(ka), Some(kb)) = (
+            self.vertex_at(a, 2.0 * ARRIVAL),
+            self.vertex_at(b, 1e-6 * self.spacing),
+        ) else {
             return false;
-        }
+        };
+        let step = [0, 1, 2].map(|c| kb[c] - ka[c]);
+        let Some(s) = NEIGHBOURS.iter().position(|&n| n == step) else {
+            return false;
+        };
+        matches!(self.cell(ka), Some(Cell::Reached { walked, .. }) if walked & (1 << s) != 0)
+    }
+
+    /// Whether `x` is a vertex the handle reached with at least `margin` (m) of clearance.
+    pub fn contains(&self, x: &Vector3<f64>, margin: f64) -> bool {
+        let Some(k) = self.vertex_at(x, 1e-6 * self.spacing) else {
+            return false;
+        };
         matches!(self.cell(k), Some(Cell::Reached { clearance, .. }) if clearance >= margin)
     }
 
@@ -245,6 +283,7 @@ enum Leg {
     Out {
         from: [i32; 3],
         to: [i32; 3],
+        step: usize,
         start: f64,
     },
     /// Back to vertex `to` along a line just travelled.
@@ -362,6 +401,7 @@ impl Explorer {
             self.leg = Leg::Out {
                 from: k,
                 to: n,
+                step: s,
                 start: t,
             };
             return true;
@@ -400,7 +440,12 @@ impl Explorer {
         let dt = (s.time - self.last_time).max(0.0);
         self.last_time = s.time;
         let (target, velocity) = match self.leg {
-            Leg::Out { from, to, start } => {
+            Leg::Out {
+                from,
+                to,
+                step,
+                start,
+            } => {
                 let origin = self.map.position(from);
                 let d = self.map.position(to) - origin;
                 let length = d.norm();
@@ -435,6 +480,7 @@ impl Explorer {
                     (target, Vector3::zeros())
                 } else if along >= length && lag < ARRIVAL {
                     self.map.reach(to);
+                    self.map.walk(from, step);
                     self.trail.push(from);
                     self.finish_probe(origin, d, length, false);
                     self.next_leg(to, s.time);
@@ -515,6 +561,23 @@ mod tests {
         map.clear([0, 1, 0], 0.003);
         map.reach([0, 1, 0]);
         assert!(!map.contains(&map.position([0, 1, 0]), MARGIN));
+    }
+
+    #[test]
+    fn an_edge_travelled_end_to_end_is_walked_both_ways_and_no_other() {
+        let mut map = map();
+        map.reach([1, 0, 0]);
+        map.walk([0, 0, 0], 0);
+        map.reach([0, 1, 0]);
+        let at = |k| map.position(k);
+        assert!(map.walked(&at([0, 0, 0]), &at([1, 0, 0])));
+        assert!(map.walked(&at([1, 0, 0]), &at([0, 0, 0])));
+        // From a handle resting 1 mm off the vertex.
+        assert!(map.walked(&(at([1, 0, 0]) + Vector3::y() * 0.001), &at([0, 0, 0])));
+        // Reached, but never travelled between; not neighbours; off the vertex.
+        assert!(!map.walked(&at([0, 0, 0]), &at([0, 1, 0])));
+        assert!(!map.walked(&at([0, 1, 0]), &at([1, 0, 0])));
+        assert!(!map.walked(&(at([0, 0, 0]) + Vector3::y() * 0.005), &at([1, 0, 0])));
     }
 
     #[test]

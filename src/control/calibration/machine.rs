@@ -1036,12 +1036,19 @@ impl Calibration {
         let cells = (to - from).norm() / self.params.spacing;
         let duration = self.params.move_time * cells.max(1.0);
         // An explored workspace may end short of a vertex the map holds: move no faster than
-        // a probe (minimum-jerk peak speed 1.875 d / T), so a stop met on the way is met
-        // slowly. The extra time does not count against the vertex's time limit.
-        let slowed = if self.explorer.is_some() {
-            duration.max(1.875 * (to - from).norm() / explore::PROBE_SPEED)
-        } else {
-            duration
+        // the walk's moves (minimum-jerk peak speed 1.875 d / T), so a stop met on the way is
+        // met slowly; along an edge the walk travelled, as fast as its returns. The extra time
+        // does not count against the vertex's time limit.
+        let slowed = match &self.explorer {
+            Some(explorer) => {
+                let speed = if explorer.map().walked(&from, &to) {
+                    explore::RETURN_SPEED
+                } else {
+                    explore::PROBE_SPEED
+                };
+                duration.max(1.875 * (to - from).norm() / speed)
+            }
+            None => duration,
         };
         self.phase = Phase::Move(Glide {
             from,
@@ -1115,8 +1122,12 @@ impl Calibration {
     fn move_to_vertex(&mut self, s: &DeviceState, path: Glide) -> ControlOutput {
         // In an explored workspace, a handle that stops following the move has met a stop the
         // map did not know: the vertex is out of reach, and the hold stays where the handle is.
-        if self.explorer.is_some() && (path.at(s.time) - s.position).norm() > explore::CONTACT_LAG {
-            return self.unreachable(s, (path.to - s.position).norm());
+        // Along an edge the walk travelled nothing is in the way, and the faster move lags more.
+        if let Some(explorer) = &self.explorer {
+            let lag = (path.at(s.time) - s.position).norm();
+            if lag > explore::CONTACT_LAG && !explorer.map().walked(&path.from, &path.to) {
+                return self.unreachable(s, (path.to - s.position).norm());
+            }
         }
         if path.progress(s.time) >= 1.0 {
             self.settle_from(s.time);
