@@ -990,4 +990,44 @@ mod tests {
             }
         }
     }
+
+    /// The handle brake's quick stick test (no joint held: the stopping impulse is J⁻ᵀ M q̇)
+    /// and its test in A's modes decide alike: on the PHANToM and the delta, thrown in ten
+    /// directions, the handle sticks when friction's impulse is 1 % above |A⁻¹ v|, computed
+    /// here from A = J M⁻¹ Jᵀ inverted outright, and slides, slower, when it is 1 % below (the
+    /// quick test passes that case on to the modes).
+    #[test]
+    fn the_quick_stick_test_and_the_modes_agree_on_the_stopping_impulse() {
+        let sim = SimConfig::default();
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let phantom = crate::sim::phantom::from_config(&sim).unwrap();
+        let delta = crate::sim::delta::from_config(&sim).unwrap();
+        fn check<M: Mechanism + Clone>(plant: &Linkage<M>, rng: &mut ChaCha8Rng) {
+            for _ in 0..10 {
+                let mut plant = plant.clone();
+                let q = plant.joints();
+                let qd = Vector3::from_fn(|_, _| rng.gen_range(-0.5..0.5));
+                plant.set_state(q, qd);
+                let handle = plant.mechanism().handle(&q, &qd);
+                let d = plant.dynamics(&handle);
+                let j = handle.jacobian;
+                let a = j * d.inertia.try_inverse().unwrap() * j.transpose();
+                let stopping = (a.try_inverse().unwrap() * (j * qd)).norm();
+                let dt = 1e-3;
+                for (share, sticks) in [(1.01, true), (0.99, false)] {
+                    let mut braked = plant.clone();
+                    braked.env.handle_friction = share * stopping / dt;
+                    braked.brake_at_handle(&d.inertia, &j, dt);
+                    let speed = (j * braked.qd).norm();
+                    if sticks {
+                        assert_eq!(braked.qd, Vector3::zeros(), "{qd:?}");
+                    } else {
+                        assert!(speed > 0.0 && speed < (j * qd).norm(), "{qd:?}: {speed}");
+                    }
+                }
+            }
+        }
+        check(&phantom, &mut rng);
+        check(&delta, &mut rng);
+    }
 }
