@@ -8,7 +8,7 @@ use std::time::Instant;
 use thiserror::Error;
 use tracing::{info, warn};
 
-use crate::config::{Config, ConfigError, DeviceSpec};
+use crate::config::{Config, ConfigError, DeviceSpec, WorkspaceMode};
 use crate::control::calibration::persist::{check_room, grid_file};
 use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
@@ -186,17 +186,24 @@ pub fn calibrate_on(
         );
     }
     let c = &config.calibration;
-    info!(
-        "calibrating {} vertices ({}×{}×{}, {} mm apart around ({}, {}, {}) mm) on {device}",
-        plan.path.len(),
-        plan.dims[0],
-        plan.dims[1],
-        plan.dims[2],
-        c.spacing_mm,
-        c.centre_mm[0],
-        c.centre_mm[1],
-        c.centre_mm[2],
-    );
+    match c.workspace {
+        WorkspaceMode::Cube => info!(
+            "calibrating {} vertices ({}×{}×{}, {} mm apart around ({}, {}, {}) mm) on {device}",
+            plan.path.len(),
+            plan.dims[0],
+            plan.dims[1],
+            plan.dims[2],
+            c.spacing_mm,
+            c.centre_mm[0],
+            c.centre_mm[1],
+            c.centre_mm[2],
+        ),
+        WorkspaceMode::Explore => info!(
+            "exploring the workspace of {device} on a {} mm lattice from ({}, {}, {}) mm, then \
+             calibrating the vertices the handle reaches (docs/calibration.md §12)",
+            c.spacing_mm, c.centre_mm[0], c.centre_mm[1], c.centre_mm[2],
+        ),
+    }
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
     options.silence_limit = SILENCE_LIMIT_WATCHDOGS * options.watchdog;
