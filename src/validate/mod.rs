@@ -222,7 +222,8 @@ pub struct Validation {
     /// The grid over random reachable points, with `--sweep`.
     pub sweep: Option<sweep::Sweep>,
     pub stats: TimingStats,
-    /// Wall-clock duration of the whole validation (calibration included), s.
+    /// Wall-clock duration of the whole validation (calibration and sweep included), s;
+    /// `summary.json`'s `wall_time_s` leaves the sweep out.
     pub wall_time: f64,
 }
 
