@@ -97,6 +97,8 @@ pub struct WorkspaceMap {
     /// The configured box (`device.workspace_*_mm`), m.
     pub bounds: (Vector3<f64>, Vector3<f64>),
     cells: Vec<Cell>,
+    /// How many vertices the handle reached.
+    reached: usize,
     /// Lowest and highest index reached along each axis.
     reached_span: ([i32; 3], [i32; 3]),
     /// The box of the vertices reached and the points where a stop ended a move, m.
@@ -112,6 +114,7 @@ impl WorkspaceMap {
             spacing,
             bounds,
             cells: vec![Cell::Unknown; SIDE * SIDE * SIDE],
+            reached: 0,
             reached_span: ([0; 3], [0; 3]),
             extent: (Vector3::zeros(), Vector3::zeros()),
         }
@@ -121,14 +124,10 @@ impl WorkspaceMap {
     fn reset(&mut self, centre: Vector3<f64>) {
         self.centre = centre;
         self.cells.fill(Cell::Unknown);
+        self.reached = 0;
         self.reached_span = ([0; 3], [0; 3]);
         self.extent = (centre, centre);
-        let origin = self.slot([0; 3]).expect("the centre is on the map");
-        self.cells[origin] = Cell::Reached {
-            clearance: f64::INFINITY,
-            tried: 0,
-            walked: 0,
-        };
+        self.reach([0; 3]);
     }
 
     fn slot(&self, k: [i32; 3]) -> Option<usize> {
@@ -162,6 +161,7 @@ impl WorkspaceMap {
                     tried: 0,
                     walked: 0,
                 };
+                self.reached += 1;
             }
         }
         let (lo, hi) = &mut self.reached_span;
@@ -259,10 +259,7 @@ impl WorkspaceMap {
 
     /// How many vertices the handle reached.
     pub fn reached(&self) -> usize {
-        self.cells
-            .iter()
-            .filter(|c| matches!(c, Cell::Reached { .. }))
-            .count()
+        self.reached
     }
 }
 

@@ -273,8 +273,12 @@ enum Phase {
         since: f64,
     },
     Pulse(Pulse),
-    /// The PD's set point glides to the current vertex.
-    Move(Glide),
+    /// The PD's set point glides to the current vertex; `walked`: along an edge the
+    /// exploration's walk travelled end to end (nothing in the way).
+    Move {
+        path: Glide,
+        walked: bool,
+    },
     /// The PD holds the current vertex; samples count from `since` plus the settle time.
     Settle {
         since: f64,
@@ -1039,23 +1043,24 @@ impl Calibration {
         // the walk's moves (minimum-jerk peak speed 1.875 d / T), so a stop met on the way is
         // met slowly; along an edge the walk travelled, as fast as its returns. The extra time
         // does not count against the vertex's time limit.
-        let slowed = match &self.explorer {
-            Some(explorer) => {
-                let speed = if explorer.map().walked(&from, &to) {
-                    explore::RETURN_SPEED
-                } else {
-                    explore::PROBE_SPEED
-                };
-                duration.max(1.875 * (to - from).norm() / speed)
-            }
-            None => duration,
+        let walked = self
+            .explorer
+            .as_ref()
+            .is_some_and(|e| e.map().walked(&from, &to));
+        let slowed = match (&self.explorer, walked) {
+            (Some(_), true) => duration.max(1.875 * (to - from).norm() / explore::RETURN_SPEED),
+            (Some(_), false) => duration.max(1.875 * (to - from).norm() / explore::PROBE_SPEED),
+            (None, _) => duration,
         };
-        self.phase = Phase::Move(Glide {
-            from,
-            to,
-            start: t,
-            duration: slowed,
-        });
+        self.phase = Phase::Move {
+            path: Glide {
+                from,
+                to,
+                start: t,
+                duration: slowed,
+            },
+            walked,
+        };
         self.vertex_start = t + (slowed - duration);
         self.iteration = 0;
         self.rounds = 0;
@@ -1119,15 +1124,15 @@ impl Calibration {
 
     /// Move (§3.2): the PD (with the force estimate so far) follows the glide to the vertex,
     /// then holds it.
-    fn move_to_vertex(&mut self, s: &DeviceState, path: Glide) -> ControlOutput {
+    fn move_to_vertex(&mut self, s: &DeviceState, path: Glide, walked: bool) -> ControlOutput {
         // In an explored workspace, a handle that stops following the move has met a stop the
         // map did not know: the vertex is out of reach, and the hold stays where the handle is.
         // Along an edge the walk travelled nothing is in the way, and the faster move lags more.
-        if let Some(explorer) = &self.explorer {
-            let lag = (path.at(s.time) - s.position).norm();
-            if lag > explore::CONTACT_LAG && !explorer.map().walked(&path.from, &path.to) {
-                return self.unreachable(s, (path.to - s.position).norm());
-            }
+        if self.explorer.is_some()
+            && !walked
+            && (path.at(s.time) - s.position).norm() > explore::CONTACT_LAG
+        {
+            return self.unreachable(s, (path.to - s.position).norm());
         }
         if path.progress(s.time) >= 1.0 {
             self.settle_from(s.time);
@@ -2016,7 +2021,7 @@ impl Controller for Calibration {
                 since,
             } => self.recentre(s, axis, excess, since),
             Phase::Pulse(pulse) => self.pulse(s, pulse),
-            Phase::Move(path) => self.move_to_vertex(s, path),
+            Phase::Move { path, walked } => self.move_to_vertex(s, path, walked),
             Phase::Settle { since } => self.settle(s, since),
             Phase::Band {
                 probe,
