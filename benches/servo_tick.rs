@@ -4,7 +4,8 @@
 //! simulated point mass, so positions and velocities are realistic); `core` times only what the
 //! servo thread does per report with a PD hold, `daemon_controller` the same with the daemon's
 //! compensation controller (mailbox: commands, newest offset, Eq. 15, state publishing),
-//! `with_mock_device` adds the simulated firmware and plant.
+//! `with_mock_device` adds the simulated firmware and plant. `gravity_model/*` times one
+//! evaluation of each gravity model: the lattices and a PHANToM's arm models.
 
 use std::hint::black_box;
 use std::time::Duration;
@@ -122,6 +123,99 @@ fn bench_tick(c: &mut Criterion) {
         })
     });
     group.finish();
+
+    // The gravity model alone, as compensation evaluates it once a tick, at positions across
+    // the cube and beyond it: the lattices, and the arm models of a PHANToM (inverse kinematics,
+    // J⁻ᵀ τ, and for arm + residual the residual lattice).
+    let mut group = c.benchmark_group("gravity_model");
+    group.measurement_time(Duration::from_secs(3));
+    let positions: Vec<Vector3<f64>> = (0..1000)
+        .map(|n| {
+            let t = n as f64 * 0.0123;
+            Vector3::new(
+                0.06 * t.sin(),
+                0.06 * (1.3 * t).cos(),
+                0.05 * (0.7 * t).sin(),
+            )
+        })
+        .collect();
+    let arm_model = phantom_arm_model();
+    let mut models = vec![(
+        "scalar",
+        GravityModel::new(
+            hold().field.into(),
+            CompensationMode::Scalar,
+            OutsideGrid::HoldNearest,
+        )
+        .unwrap(),
+    )];
+    for (name, mode) in [
+        ("vector", CompensationMode::Vector),
+        ("arm", CompensationMode::Arm),
+        ("arm_residual", CompensationMode::ArmResidual),
+    ] {
+        models.push((name, arm_model.with_mode(mode)));
+    }
+    for (name, model) in &models {
+        let mut k = 0usize;
+        group.bench_function(*name, |b| {
+            b.iter(|| {
+                k += 1;
+                black_box(model.force(black_box(&positions[k % positions.len()])))
+            })
+        });
+    }
+    group.finish();
+}
+
+/// A grid file of `sim:phantom` over the paper's cube with an arm model: the published arm's
+/// parameters and a residual of a few millinewtons at each vertex.
+struct ArmFile(hgcd::grid::GridFile);
+
+impl ArmFile {
+    fn with_mode(&self, mode: CompensationMode) -> GravityModel {
+        GravityModel::new(self.0.clone(), mode, OutsideGrid::HoldNearest).unwrap()
+    }
+}
+
+fn phantom_arm_model() -> ArmFile {
+    use hgcd::arm::{ArmGravity, ArmTable};
+    use hgcd::grid::{ArmRecord, GridFile};
+    let arm = hgcd::profile::Profile::built_in("phantom_1_5")
+        .unwrap()
+        .gravity_arm()
+        .unwrap();
+    let parameters = [-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0, 0.0];
+    let gravity = ArmGravity {
+        arm,
+        parameters,
+        up: Vector3::z(),
+        g: 9.81,
+    };
+    let grid = hold().field;
+    let forces = (0..grid.vertex_count())
+        .map(|n| {
+            let (i, j, k) = grid.coordinates(n);
+            let f = gravity.force(&grid.vertex_position(i, j, k));
+            (f + Vector3::new(0.002, -0.001, 0.003)).into()
+        })
+        .collect();
+    let mut file = GridFile::from(grid);
+    file.vertices.force_vectors = forces;
+    file.arm = Some(ArmRecord {
+        profile: "phantom_1_5".into(),
+        parameters: parameters[..6].to_vec(),
+        gravity_direction: [0.0, 0.0, 1.0],
+        g: 9.81,
+        rank: 6,
+        unidentified: Vec::new(),
+        condition: 4.0,
+        rms_residual_mn: 0.1,
+        normalised_residual: 0.1,
+        tilt_deg: 0.0,
+        geometry: ArmTable::of(&arm),
+    });
+    ArmFile(file)
 }
 
 criterion_group!(benches, bench_tick);

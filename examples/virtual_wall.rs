@@ -167,7 +167,10 @@ fn explain(mode: Compensating, k: f64) -> String {
              it carries. Calibrate (`hgcd calibrate`) and run this again: the handle then floats \
              and only loads the grid does not know sink in (a 30 g probe: {probe:.2} mm)."
         ),
-        Compensating::Scalar | Compensating::Vector => format!(
+        Compensating::Scalar
+        | Compensating::Vector
+        | Compensating::Arm
+        | Compensating::ArmResidual => format!(
             "Gravity compensation cancels the handle's weight: the wall carries only what the grid \
              does not know, such as a probe or your hand (the paper's 30 g probe: {probe:.2} mm; \
              on the simulated device set sim.probe_mass_kg = 0.03). A handle alone floats: 0 mm."

@@ -167,7 +167,7 @@ pub fn calibrate_on(
         Some(path) => path.clone(),
         None => grid_path(&request.state_dir, &device.grid_id()),
     };
-    let params = CalibrationParams::from_config(config);
+    let params = CalibrationParams::for_device(config, &request.device);
     let (tx, rx) = crossbeam_channel::bounded(4096);
     let calibration = Calibration::new(params, Some(tx))?;
     let plan = calibration.plan();

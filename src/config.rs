@@ -342,6 +342,21 @@ pub enum CompensationMode {
     Scalar,
     /// F_G interpolated from the calibrated per-vertex force vectors.
     Vector,
+    /// F_G = J⁻ᵀ τ_g of the arm model fitted at calibration (a profile with an arm).
+    Arm,
+    /// The arm model plus the vector lattice of what it left over at the vertices.
+    ArmResidual,
+}
+
+impl std::fmt::Display for CompensationMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Scalar => "scalar",
+            Self::Vector => "vector",
+            Self::Arm => "arm",
+            Self::ArmResidual => "arm-residual",
+        })
+    }
 }
 
 /// Which workspace calibration covers.
@@ -366,6 +381,20 @@ impl std::str::FromStr for WorkspaceMode {
             other => Err(format!("unknown workspace `{other}`: cube or explore")),
         }
     }
+}
+
+/// Which vertices of the cube a calibration holds the handle at.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum HoldPlan {
+    /// `sparse` for a device whose profile has an arm, `all` otherwise.
+    #[default]
+    Auto,
+    /// Every vertex (the paper).
+    All,
+    /// The cube's eight corners, farthest apart in joint angles: enough for the
+    /// arm model's few parameters; the other vertices are filled from them.
+    Sparse,
 }
 
 /// What compensation does outside the calibrated grid.
@@ -634,6 +663,8 @@ pub struct CalibrationConfig {
     pub max_iterations: u32,
     /// "cube" (the paper's grid) or "explore" (the reachable workspace, found first).
     pub workspace: WorkspaceMode,
+    /// "auto", "all" or "sparse": which of the cube's vertices are held.
+    pub holds: HoldPlan,
 }
 
 impl Default for CalibrationConfig {
@@ -655,6 +686,7 @@ impl Default for CalibrationConfig {
             vertex_timeout_s: 10.0,
             max_iterations: 20,
             workspace: WorkspaceMode::Cube,
+            holds: HoldPlan::Auto,
         }
     }
 }
@@ -662,8 +694,10 @@ impl Default for CalibrationConfig {
 #[derive(Clone, Debug, Default, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct CompensationConfig {
-    /// "scalar" (paper: M(X) g v_G) or "vector" (interpolated calibrated force vectors); unset:
-    /// vector when the grid has force vectors (every grid calibration writes does), else scalar.
+    /// "scalar" (paper: M(X) g v_G), "vector" (interpolated calibrated force vectors), "arm"
+    /// (the arm model fitted at calibration) or "arm-residual" (arm plus the lattice of what it
+    /// left); unset: the model the calibration chose by its held-out score, else vector when the
+    /// grid has force vectors (every grid calibration writes does), else scalar.
     pub mode: Option<CompensationMode>,
     /// Outside the grid: "hold-nearest" (nearest cell's face values) or "zero".
     pub outside_grid: OutsideGrid,

@@ -28,7 +28,7 @@ fn one_status(socket: &Path) -> Result<()> {
     out(&format!(
         "device        {} ({})\n\
          socket        {}\n\
-         compensation  {}{}: {}\n\
+         compensation  {}{}{}: {}\n\
          calibrating   {}\n\
          clients       {} (force owned by {})\n\
          servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog \
@@ -40,6 +40,9 @@ fn one_status(socket: &Path) -> Result<()> {
         socket.display(),
         s.mode,
         s.grid.map(|g| format!(" from {g}")).unwrap_or_default(),
+        s.held_out_pct
+            .map(|p| format!(" (held-out score {p:.2} %)"))
+            .unwrap_or_default(),
         s.mode.meaning(),
         if s.calibrating { "yes" } else { "no" },
         s.clients,

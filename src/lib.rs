@@ -3,6 +3,7 @@
 //! transports in [`transport`], simulated devices in [`sim`].
 
 pub mod app; //        application socket: wire protocol, server, client library
+pub mod arm; //        arms the host knows: kinematics and the gravity of their links
 pub mod calibrate; //  `hgcd calibrate`: run Algorithm 1 on a device and persist the grid
 pub mod config; //     typed configuration, defaults, validation
 pub mod control; //    controllers: PD hold, calibration, compensation
@@ -10,6 +11,7 @@ pub mod daemon; //     `hgcd run`: compensation, application server, calibration
 pub mod discrepancy; // `hgcd record` and `hgcd analyze`: where model and measurement disagree
 pub mod estimate; //   FOAW velocity estimation
 pub mod figure; //     SVG and PNG figures without system libraries
+pub mod fit; //        gravity models fitted from holds, chosen by held-out score
 pub mod grid; //       apparent-mass grid, trilinear interpolation, hgcd-grid/1 files
 pub mod mailbox; //    what the daemon hands the servo thread and gets back, lock-free
 pub mod newest; //     a slot where the newest value wins, wait-free on both sides

@@ -137,13 +137,9 @@ struct ValidateArgs {
     /// Repetitions per contact point and mode.
     #[arg(long, value_name = "N", default_value_t = 10)]
     repetitions: usize,
-    /// Compensation modes to run, in order (comma-separated: none, scalar, vector).
-    #[arg(
-        long,
-        value_name = "MODES",
-        value_delimiter = ',',
-        default_value = "none,scalar,vector"
-    )]
+    /// Compensation modes to run, in order (comma-separated: none, scalar, vector, arm);
+    /// default: none, scalar, vector, and arm for a device whose profile has an arm.
+    #[arg(long, value_name = "MODES", value_delimiter = ',')]
     modes: Vec<String>,
     /// Also compare the grid's force with the plant's own at N random points of a simulated
     /// device's reachable workspace; writes DIR/sweep.json (docs/calibration.md §11).
@@ -470,7 +466,7 @@ fn calibrate_here(
         state_dir: config.state_dir(),
     };
     let stop = install_stop_handler()?;
-    let mut display = progress::Display::new(progress::vertex_count(config));
+    let mut display = progress::Display::new(progress::vertex_count(config, &request.device));
     let run = calibrate(config, &request, stop, &mut |e| display.show(e));
     display.finish();
     let run = run?;
@@ -546,7 +542,7 @@ fn validate_here(config: &Config, request: &ValidateRequest, yes: bool) -> Resul
         ))?;
     }
     let stop = install_stop_handler()?;
-    let mut display = progress::ValidationDisplay::new(config);
+    let mut display = progress::ValidationDisplay::new(config, prepared.device());
     let run = prepared.run(stop, &mut |e| display.show(e));
     display.finish();
     let run = run?;
@@ -564,15 +560,18 @@ fn validate_here(config: &Config, request: &ValidateRequest, yes: bool) -> Resul
         let grids = [("cube", &sweep.cube), ("explored grid", &sweep.explored)];
         for (name, grid) in grids {
             let Some(g) = grid else { continue };
-            let r = &g.residual_pct;
+            let (r, a) = (&g.residual_pct, &g.residual_mn);
             out(&format!(
-                "sweep over {} reachable points (sweep.json), {name}: it covers {:.1} % of them; \
-                 residual p50 {:.1} %, p95 {:.1} %, max {:.1} %\n",
+                "sweep over {} reachable points (sweep.json), {name} ({} model): its measured \
+                 cells cover {:.1} % of them; residual p50 {:.1} %, p95 {:.1} %, max {:.1} % \
+                 (p95 {:.1} mN)\n",
                 sweep.points,
+                g.model,
                 100.0 * g.covered_fraction,
                 r.p50,
                 r.p95,
-                r.max
+                r.max,
+                a.p95
             ))?;
         }
         if let Some(lattice) = &sweep.exact_lattice {

@@ -7,7 +7,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use tracing::info;
 
 use hgcd::calibrate::CalibrationRun;
-use hgcd::config::Config;
+use hgcd::config::{Config, DeviceSpec};
 use hgcd::control::calibration::{CalibrationEvent, CalibrationParams, GridPlan};
 use hgcd::validate::ValidateEvent;
 
@@ -195,10 +195,10 @@ pub struct ValidationDisplay {
 }
 
 impl ValidationDisplay {
-    pub fn new(config: &Config) -> Self {
+    pub fn new(config: &Config, device: &DeviceSpec) -> Self {
         Self {
             calibration: None,
-            vertices: vertex_count(config),
+            vertices: vertex_count(config, device),
             bar: None,
             terminal: std::io::stderr().is_terminal(),
         }
@@ -305,9 +305,9 @@ impl RecordDisplay {
     }
 }
 
-/// Vertices a calibration with `config` visits (for the bar's length).
-pub fn vertex_count(config: &Config) -> usize {
-    GridPlan::new(&CalibrationParams::from_config(config))
+/// Vertices a calibration with `config` visits on `device` (for the bar's length).
+pub fn vertex_count(config: &Config, device: &DeviceSpec) -> usize {
+    GridPlan::new(&CalibrationParams::for_device(config, device))
         .map(|p| p.path.len())
         .unwrap_or(0)
 }
@@ -373,8 +373,10 @@ pub fn summary(run: &CalibrationRun) -> String {
             vr.final_error * 1e6,
             if vr.reached {
                 ""
-            } else if r.extrapolated.contains(&vr.vertex) {
+            } else if r.extrapolated.contains(&vr.vertex) && r.workspace.is_some() {
                 "  outside the explored workspace: extrapolated"
+            } else if r.extrapolated.contains(&vr.vertex) {
+                "  not held (sparse holds): filled from the held ones"
             } else {
                 "  unreachable: filled from neighbours"
             }
@@ -382,6 +384,63 @@ pub fn summary(run: &CalibrationRun) -> String {
     }
     for lo in &r.left_out {
         out.push_str(&format!("  left out (outside the workspace): {lo}\n"));
+    }
+    out.push_str(&model_summary(run));
+    out
+}
+
+/// The holds and the gravity model chosen from them (docs/calibration.md §13), for a grid with
+/// an arm model; nothing otherwise.
+fn model_summary(run: &CalibrationRun) -> String {
+    let Some(model) = &run.grid.model else {
+        return String::new();
+    };
+    let r = &run.result;
+    let held = r.vertices.iter().filter(|v| v.reached).count();
+    let mut out = if r.extrapolated.is_empty() || r.workspace.is_some() {
+        format!("holds: {held} vertices\n")
+    } else {
+        format!(
+            "holds: {held} of the {} vertices, the cube's corners: the farthest apart \
+             in joint angles the cube offers, for the arm model's few parameters \
+             (calibration.holds = \"all\" holds every vertex)\n",
+            r.vertices.len()
+        )
+    };
+    let s = &model.held_out_pct;
+    let pct = |v: Option<f64>| v.map_or("not fitted".to_string(), |v| format!("{v:.2} %"));
+    out.push_str(&format!(
+        "model: {} (held-out holds: {}; scores: arm {}, arm + residual {}, vector lattice {}, \
+         scalar lattice {})\n",
+        model.chosen,
+        model.held_out_holds,
+        pct(s.arm),
+        pct(s.arm_residual),
+        pct(s.vector),
+        pct(s.scalar)
+    ));
+    if let Some(arm) = &run.grid.arm {
+        out.push_str(&format!(
+            "arm ({}): v_G ({:.4}, {:.4}, {:.4}), {:.2}° from the arm's up; {} of {} parameters \
+             identified{}; fit residual {:.2} mN RMS, {:.2} × the holds' noise\n",
+            arm.profile,
+            arm.gravity_direction[0],
+            arm.gravity_direction[1],
+            arm.gravity_direction[2],
+            arm.tilt_deg,
+            arm.rank,
+            arm.parameters.len(),
+            if arm.unidentified.is_empty() {
+                String::new()
+            } else {
+                format!(" (left unconstrained: {})", arm.unidentified.join(", "))
+            },
+            arm.rms_residual_mn,
+            arm.normalised_residual
+        ));
+    }
+    if let Some(warning) = &model.warning {
+        out.push_str(&format!("warning: {warning}\n"));
     }
     out
 }

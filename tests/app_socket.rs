@@ -145,6 +145,7 @@ fn masked(line: &str, reply: &Reply) -> String {
                     | "device_id"
                     | "grid"
                     | "mode"
+                    | "held_out_pct"
                     | "calibrating"
                     | "clients"
                     | "owner"

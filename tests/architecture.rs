@@ -5,9 +5,10 @@ use std::path::{Path, PathBuf};
 
 /// Layers, lowest first. A module may use modules of lower layers only.
 const LAYERS: &[&[&str]] = &[
-    &["protocol", "newest", "estimate", "sys", "figure"],
+    &["protocol", "newest", "estimate", "sys", "figure", "arm"],
     &["config"],
     &["grid", "profile"],
+    &["fit"],
     &["sim", "control"],
     &["transport", "mailbox"],
     &["servo"],

@@ -190,7 +190,10 @@ struct Explored {
 /// contact of the exploring run faster than the bound (read from the plant's own log), some
 /// moves ending on a stop, and every vertex the calibration measured within 4 % of the plant's
 /// own holding force there, as a vector (the PHANToM's is light: 3 % of its smallest is 2 mN).
-fn explored_beside_the_cube(model: &str, config: Config) -> Explored {
+fn explored_beside_the_cube(model: &str, mut config: Config) -> Explored {
+    // The lattices side by side: the arm model, which holds the whole workspace from the cube
+    // alone, is tested in tests/arm_model.rs and tests/validate.rs.
+    config.compensation.mode = Some(hgcd::config::CompensationMode::Vector);
     let cube = calibrate(model, &config);
     let config = exploring(config);
     let explored = calibrate(model, &config);

@@ -32,7 +32,7 @@ use hgcd::validate::probe::{ContactPlan, Probe, ProbeParams};
 mod common;
 use common::daemon::TestDaemon;
 use common::tap::Tap;
-use common::{pd_hold, serve_one_host, truth_field_27, with_device_id, Ticks};
+use common::{pd_hold, phantom_arm_grid, serve_one_host, truth_field_27, with_device_id, Ticks};
 
 struct Counting;
 
@@ -185,6 +185,21 @@ fn the_delta_in_virtual_time_with_a_pd_hold() {
 fn the_woodenhaptics_arm_through_its_joint_space_protocol_with_a_pd_hold() {
     // Counts to position and force to currents through the profile's kinematics, every tick.
     quiet_pd_hold_on("woodenhaptics", None);
+}
+
+#[test]
+fn compensation_with_the_arm_and_residual_model_on_the_phantom() {
+    use hgcd::control::compensation::{Compensation, ForceOffset, GravityModel};
+    // Inverse kinematics, the Jacobian's solve and the residual lattice, every tick; a handle
+    // released under compensation drifts through the cube and beyond it.
+    let config = config();
+    let model = GravityModel::configured(phantom_arm_grid(), None, Default::default()).unwrap();
+    let mut compensation = Compensation::new(Some(Box::new(model)), ForceOffset::new(0.05, 0.05));
+    let (mut tap, seen) = counting_sim("phantom", &config);
+    let mut options = ServoOptions::from_config(&config);
+    options.duration = Some(2.0);
+    run(&mut tap, &mut compensation, &options, None);
+    assert_quiet("arm + residual compensation", &seen, 2000);
 }
 
 /// A whole calibration on `sim:MODEL` of `config` allocates nothing per tick.

@@ -40,7 +40,7 @@ fn validate_swept(dir: &Path, model: &str, mut config: Config, sweep: Option<usi
         probe_mass: PROBE,
         stiffness: STIFFNESS,
         repetitions: REPETITIONS,
-        modes: Mode::ALL.to_vec(),
+        modes: Vec::new(),
         sweep,
     };
     let prepared = validate::prepare(&config, &request).unwrap();
@@ -214,14 +214,14 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
     assert!(!dir.path().join("state").exists());
 }
 
-/// The issue's Must show on the linkages, two units each: with (vector, the default)
-/// compensation the probe alone presses on the surface; without it the penalty follows the
-/// plant's own gravity force from point to point; friction makes the paper's one-sided reading
-/// miss what the two-sided one finds; and the whole run takes well under a minute. The sweep
-/// (issue 11) over 1000 random points of each arm's reachable workspace shows the limit the paper
-/// names: inside the calibrated cube every point is within 10 % of the plant's own force, but
-/// the cube covers a small part of what the handle can reach (the PHANToM's about 2 %, the
-/// delta's 20 mm cells about 20 %), and beyond it the force is off by far more.
+/// The Must show on the linkages, two units each, after a default calibration (their profiles
+/// have arms: the cube's corners and centre are held and the arm model is chosen): with it the
+/// probe alone presses on the surface; without compensation the penalty follows the plant's own
+/// gravity force from point to point; friction makes the paper's one-sided reading miss what the
+/// two-sided one finds; and the run takes well under a minute. The sweep over 1000 random points
+/// of each arm's whole reachable workspace (the cube covers about 2 % of the PHANToM's): the arm
+/// model holds the plant's force within 5 % at 95 % of them, where no 40 mm lattice holding the
+/// plant's own force at every vertex does better than 14 % (docs/calibration.md §11, §13).
 #[test]
 fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surface() {
     for (model, seed) in [("phantom", 1), ("phantom", 2), ("delta", 1), ("delta", 2)] {
@@ -229,13 +229,6 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         let dir = tempfile::tempdir().unwrap();
         let mut config = Config::default();
         config.sim.unit_seed = seed;
-        if model == "delta" {
-            // The delta's gravity force bends too sharply near the top of its workspace for
-            // trilinear interpolation over 40 mm cells (up to 0.08 N off between vertices):
-            // calibrate it on 20 mm cells, as config/validate-delta-unit-*.toml do.
-            config.calibration.half_size = 2;
-            config.calibration.spacing_mm = 20.0;
-        }
         let run = validate_swept(dir.path(), model, config.clone(), Some(1000));
         let report = &run.report;
         // The calibration and the experiment, as summary.json records them: the sweep after them
@@ -244,31 +237,35 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
             serde_json::from_str(&std::fs::read_to_string(&run.outputs.summary).unwrap()).unwrap();
         let wall = summary["wall_time_s"].as_f64().unwrap();
         assert!(wall < 60.0, "{case}: {wall} s");
-        assert_sweep_shows_the_cubes_limit(&case, &run, config.calibration.spacing_mm);
+        let calibration = run.calibration.as_ref().expect("calibrated first");
+        assert!(
+            calibration.result.duration <= 180.0,
+            "{case}: {} s of device time",
+            calibration.result.duration
+        );
+        assert_sweep_shows_the_arm_holds_the_workspace(&case, &run);
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
 
-        let vector = mode(Mode::Vector);
-        // Every point within 10 %; on the delta within 11 %: at its top corner (point 27,
-        // between the top vertices) trilinear interpolation over 20 mm cells alone leaves about
-        // 9 %, and the vertices' own noise (±0.5 %) moves the point by ±2 % from one
-        // calibration to the next (docs/validation.md §5).
-        let point = if model == "delta" { 0.11 } else { 0.10 };
-        let worst = assert_ideal(&case, report, vector, Reading::TwoSided, point);
+        let arm = mode(Mode::Arm);
+        // Every point within 10 %: the experiment reads through the joints' friction, which on
+        // the delta is about half the probe's weight at the handle (docs/validation.md §5).
+        let worst = assert_ideal(&case, report, arm, Reading::TwoSided, 0.10);
         // The paper's reading from above stops short by the friction over k, several percent.
         assert!(
-            vector.above.mean < 0.95 * report.ideal,
+            arm.above.mean < 0.95 * report.ideal,
             "{case}: from above {:.4} mm",
-            vector.above.mean * 1e3
+            arm.above.mean * 1e3
         );
 
         let none = mode(Mode::None);
         assert_uncompensated_follows_the_plant(&case, report, none, model, &config);
         println!(
-            "{case}: vector two-sided mean {:+.1} %, worst point {:.1} %; from above {:+.1} %; \
-             scalar {:+.1} %; none {:.3}–{:.3} mm",
-            (vector.two_sided.mean / report.ideal - 1.0) * 1e2,
+            "{case}: arm two-sided mean {:+.1} %, worst point {:.1} %; from above {:+.1} %; \
+             vector {:+.1} %, scalar {:+.1} %; none {:.3}–{:.3} mm",
+            (arm.two_sided.mean / report.ideal - 1.0) * 1e2,
             worst * 1e2,
-            (vector.above.mean / report.ideal - 1.0) * 1e2,
+            (arm.above.mean / report.ideal - 1.0) * 1e2,
+            (mode(Mode::Vector).two_sided.mean / report.ideal - 1.0) * 1e2,
             (mode(Mode::Scalar).two_sided.mean / report.ideal - 1.0) * 1e2,
             none.two_sided
                 .points
@@ -286,8 +283,10 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
     }
 }
 
-/// `sweep.json` as written, and what it shows for the paper's cube on a linkage (see the test).
-fn assert_sweep_shows_the_cubes_limit(case: &str, run: &Validation, spacing_mm: f64) {
+/// `sweep.json` as written, and what it shows on a linkage calibrated with its arm profile:
+/// the arm model, fitted to the cube's nine holds, holds the whole workspace; a 40 mm lattice
+/// holding the plant's own force at every vertex it can reach does not.
+fn assert_sweep_shows_the_arm_holds_the_workspace(case: &str, run: &Validation) {
     let path = run.outputs.sweep.as_ref().expect("sweep.json");
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
@@ -295,37 +294,26 @@ fn assert_sweep_shows_the_cubes_limit(case: &str, run: &Validation, spacing_mm: 
     assert_eq!(json["points"], 1000, "{case}");
     let cube = &json["cube"];
     let number = |v: &serde_json::Value| v.as_f64().unwrap();
-    let covered = number(&cube["covered_fraction"]);
-    assert!(covered > 0.0 && covered < 0.3, "{case}: covers {covered}");
-    let inside = number(&cube["covered_residual_pct"]["max"]);
-    assert!(inside <= 10.0, "{case}: {inside} % inside the cube");
+    assert_eq!(cube["model"], "arm", "{case}");
     let everywhere = number(&cube["residual_pct"]["p95"]);
-    assert!(
-        everywhere > 2.0 * inside,
-        "{case}: p95 {everywhere} %, inside {inside} %"
-    );
-    // The lattice of the cube's spacing, holding the plant's own force wherever the handle
-    // reaches, is the bound no calibration at that spacing beats; the cube is far above it.
+    let newtons = number(&cube["residual_mn"]["p95"]);
+    assert!(everywhere <= 5.0, "{case}: p95 {everywhere} %");
     let lattice = &json["exact_lattice"];
-    assert_eq!(number(&lattice["spacing_mm"]), spacing_mm, "{case}");
+    assert_eq!(number(&lattice["spacing_mm"]), 40.0, "{case}");
     let bound = number(&lattice["residual_pct"]["p95"]);
-    assert!(
-        bound > 0.0 && bound < 0.5 * everywhere,
-        "{case}: bound {bound} %"
-    );
+    assert!(bound > 10.0, "{case}: a lattice's bound {bound} %");
     assert!(number(&lattice["measured_vertices"]) > 27.0, "{case}");
     println!(
-        "{case}: sweep covers {:.1} %, p95 {everywhere:.1} %, inside max {inside:.1} %, \
-         a {spacing_mm} mm lattice's bound {bound:.1} %",
-        100.0 * covered
+        "{case}: the arm model over the whole workspace: p95 {everywhere:.2} % ({newtons:.1} mN); \
+         a 40 mm lattice's bound {bound:.1} %"
     );
 }
 
 /// The issue's Must show on a joint-space device: calibration and the experiment run on
 /// `sim:woodenhaptics` through the WoodenHaptics protocol (encoder counts in, motor currents out,
 /// the host's kinematics between), with the validation configs that ship for two units. With
-/// compensation (vector, the default, and scalar) the mean penalty is within 5 % of m_p g / k;
-/// with vector compensation every point within 10 %, as on the Cartesian linkages, though one
+/// scalar compensation the mean penalty is within 5 % of m_p g / k; with the arm model (its
+/// profile's kinematics, the default) every point within 10 %, as on the Cartesian linkages, though one
 /// step of its encoders is 65 µm at the handle, 22 % of the ideal 0.294 mm; without compensation
 /// each point follows the plant's own gravity force.
 #[test]
@@ -342,7 +330,8 @@ fn on_the_woodenhaptics_arm_through_its_joint_space_protocol_compensation_leaves
         let run = validate_sim(dir.path(), "woodenhaptics", config.clone());
         let report = &run.report;
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
-        let worst = assert_ideal(&case, report, mode(Mode::Vector), Reading::TwoSided, 0.10);
+        // Its profile's kinematics are an arm: the corners are held and the arm model compensates.
+        let worst = assert_ideal(&case, report, mode(Mode::Arm), Reading::TwoSided, 0.10);
         // The scalar mode leaves the sideways part of the arm's weight to the hold: its mean only.
         let scalar = &mode(Mode::Scalar).two_sided;
         assert!(
@@ -353,9 +342,11 @@ fn on_the_woodenhaptics_arm_through_its_joint_space_protocol_compensation_leaves
         let none = mode(Mode::None);
         assert_uncompensated_follows_the_plant(&case, report, none, "woodenhaptics", &config);
         println!(
-            "{case}: vector mean {:+.1} %, worst point {:.1} %; scalar mean {:+.1} %",
-            (mode(Mode::Vector).two_sided.mean / report.ideal - 1.0) * 1e2,
+            "{case}: arm mean {:+.1} %, worst point {:.1} %; vector mean {:+.1} %; scalar mean \
+             {:+.1} %",
+            (mode(Mode::Arm).two_sided.mean / report.ideal - 1.0) * 1e2,
             worst * 1e2,
+            (mode(Mode::Vector).two_sided.mean / report.ideal - 1.0) * 1e2,
             (scalar.mean / report.ideal - 1.0) * 1e2,
         );
     }

@@ -105,6 +105,8 @@ class Mode(str, enum.Enum):
     NONE = "none"  # no grid: the daemon renders the applications' forces only
     SCALAR = "scalar"  # M(X) g v_G from the grid's masses
     VECTOR = "vector"  # the grid's per-vertex holding forces, interpolated
+    ARM = "arm"  # the arm model fitted at calibration
+    ARM_RESIDUAL = "arm_residual"  # the arm model plus the lattice of what it left over
 
 
 @dataclass(frozen=True)

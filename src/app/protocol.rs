@@ -117,7 +117,8 @@ impl From<&PublishedState> for StateSample {
     }
 }
 
-/// The compensation a daemon applies now: `"none"`, `"scalar"` or `"vector"` on the wire.
+/// The compensation a daemon applies now: `"none"`, `"scalar"`, `"vector"`, `"arm"` or
+/// `"arm_residual"` on the wire.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Compensating {
@@ -128,6 +129,10 @@ pub enum Compensating {
     Scalar,
     /// The grid's per-vertex holding forces, interpolated.
     Vector,
+    /// The arm model fitted at calibration: the arm's weight through its kinematics.
+    Arm,
+    /// The arm model plus a lattice of what it left over at the calibrated vertices.
+    ArmResidual,
 }
 
 impl From<Option<CompensationMode>> for Compensating {
@@ -136,6 +141,8 @@ impl From<Option<CompensationMode>> for Compensating {
             None => Self::None,
             Some(CompensationMode::Scalar) => Self::Scalar,
             Some(CompensationMode::Vector) => Self::Vector,
+            Some(CompensationMode::Arm) => Self::Arm,
+            Some(CompensationMode::ArmResidual) => Self::ArmResidual,
         }
     }
 }
@@ -148,6 +155,12 @@ impl Compensating {
                 "the weight M(X)·g of the grid's masses, along gravity (the paper's model)"
             }
             Self::Vector => "the holding forces the calibration measured, interpolated",
+            Self::Arm => {
+                "the arm's weight through its kinematics, fitted to the calibration's holds"
+            }
+            Self::ArmResidual => {
+                "the arm model plus what it left over at the calibrated vertices, interpolated"
+            }
             Self::None => "no grid: the handle's own weight is not compensated",
         }
     }
@@ -159,6 +172,8 @@ impl std::fmt::Display for Compensating {
             Self::None => "none",
             Self::Scalar => "scalar",
             Self::Vector => "vector",
+            Self::Arm => "arm",
+            Self::ArmResidual => "arm_residual",
         })
     }
 }
@@ -188,6 +203,10 @@ pub struct Status {
     pub grid: Option<String>,
     /// The compensation applied now.
     pub mode: Compensating,
+    /// Its score on the holds the calibration kept out of every fit, % (null for a grid that
+    /// has none: one calibrated without an arm model, or by an older version).
+    #[serde(default)]
+    pub held_out_pct: Option<f64>,
     pub calibrating: bool,
     pub clients: usize,
     /// Name of the client that owns the force, if any.
@@ -256,6 +275,8 @@ mod tests {
             (Compensating::None, "none"),
             (Compensating::Scalar, "scalar"),
             (Compensating::Vector, "vector"),
+            (Compensating::Arm, "arm"),
+            (Compensating::ArmResidual, "arm_residual"),
         ] {
             assert_eq!(serde_json::to_value(mode).unwrap(), json!(name));
             assert_eq!(mode.to_string(), name);

@@ -2,7 +2,10 @@
 //! offset an application renders and F_G the calibrated gravity force:
 //! - scalar mode (the paper): F_G = M(X) g v_G with M trilinearly interpolated;
 //! - vector mode: the per-vertex holding forces measured during calibration, interpolated with
-//!   the same weights (keeps the horizontal components a real linkage has).
+//!   the same weights (keeps the horizontal components a real linkage has);
+//! - arm mode: J⁻ᵀ τ_g of the arm model fitted at calibration (`arm`, `fit`), everywhere the arm
+//!   reaches; arm + residual: that plus the vector lattice of what it left over at the vertices,
+//!   fading to nothing over one spacing beyond the lattice.
 //!
 //! The offset follows the application: a stale offset (no update for `stale_after`) ramps to zero
 //! over `ramp_time`; removing it (client gone) is immediate.
@@ -10,8 +13,9 @@
 use nalgebra::{Rotation3, Vector3};
 
 use super::{ControlOutput, Controller, DeviceState};
+use crate::arm::ArmGravity;
 pub use crate::config::{CompensationMode, OutsideGrid};
-use crate::grid::{EffectRecord, GridFile, MassGrid};
+use crate::grid::{extrapolate_from_neighbours, EffectRecord, GridFile, MassGrid};
 
 /// The calibrated gravity force field F_G(X).
 #[derive(Clone, Debug, PartialEq)]
@@ -19,8 +23,14 @@ pub struct GravityModel {
     pub grid: MassGrid,
     pub mode: CompensationMode,
     pub outside: OutsideGrid,
-    /// Per-vertex holding forces (vector mode), grid order, N.
+    /// Per-vertex holding forces (vector mode) or what the arm model left of them (arm +
+    /// residual), grid order, N.
     forces: Vec<Vector3<f64>>,
+    /// The arm model (arm modes).
+    arm: Option<ArmGravity>,
+    /// The held-out score of this model at calibration, % (`[model] held_out_pct`; None for a
+    /// grid without one).
+    pub held_out_pct: Option<f64>,
     /// A force of the position alone added to the grid's ([`StaticEffect`]).
     effect: Option<StaticEffect>,
 }
@@ -93,32 +103,86 @@ pub enum ModelError {
          none: recalibrate with this version of hgcd, or use compensation.mode = \"scalar\""
     )]
     NoForceVectors,
+    #[error(
+        "compensation.mode = \"{mode}\" needs the arm model a calibration fits for a device whose \
+         profile has an arm, and this grid has none (docs/calibration.md §13): use \"vector\" or \
+         \"scalar\", or calibrate with such a profile"
+    )]
+    NoArm { mode: CompensationMode },
+    #[error("its arm model is unusable: {0}")]
+    BadArm(String),
 }
 
 impl GravityModel {
-    /// The model of a grid file: its lattice, and in vector mode its per-vertex force vectors.
+    /// The model of a grid file: its lattice, and in vector mode its per-vertex force vectors;
+    /// in the arm modes its arm model, and for arm + residual the vector lattice of what the arm
+    /// model leaves at the measured vertices (the others filled from them).
     ///
-    /// Errors: [`ModelError::NoForceVectors`] in vector mode for a grid without them.
+    /// Errors: [`ModelError::NoForceVectors`] in a vector mode for a grid without them,
+    /// [`ModelError::NoArm`] in an arm mode for a grid without an arm model.
     pub fn new(
         file: GridFile,
         mode: CompensationMode,
         outside: OutsideGrid,
     ) -> Result<Self, ModelError> {
+        let vertex_forces = || {
+            let forces = &file.vertices.force_vectors;
+            if forces.len() != file.grid.vertex_count() {
+                return Err(ModelError::NoForceVectors);
+            }
+            Ok(forces
+                .iter()
+                .copied()
+                .map(Vector3::from)
+                .collect::<Vec<_>>())
+        };
+        let arm = match mode {
+            CompensationMode::Arm | CompensationMode::ArmResidual => {
+                let record = file.arm.as_ref().ok_or(ModelError::NoArm { mode })?;
+                Some(
+                    record
+                        .gravity()
+                        .map_err(|p| ModelError::BadArm(p.to_string()))?,
+                )
+            }
+            _ => None,
+        };
         let forces: Vec<Vector3<f64>> = match mode {
-            CompensationMode::Scalar => Vec::new(),
-            CompensationMode::Vector => {
-                let forces = &file.vertices.force_vectors;
-                if forces.len() != file.grid.vertex_count() {
-                    return Err(ModelError::NoForceVectors);
+            CompensationMode::Scalar | CompensationMode::Arm => Vec::new(),
+            CompensationMode::Vector => vertex_forces()?,
+            CompensationMode::ArmResidual => {
+                let arm = arm.as_ref().expect("an arm mode");
+                let measured = file.measured();
+                let mut left: Vec<Vector3<f64>> = vertex_forces()?
+                    .iter()
+                    .enumerate()
+                    .map(|(n, f)| {
+                        let (i, j, k) = file.grid.coordinates(n);
+                        f - arm.force(&file.grid.vertex_position(i, j, k))
+                    })
+                    .collect();
+                if measured.contains(&true) {
+                    extrapolate_from_neighbours(file.grid.dims, &mut left, &measured);
                 }
-                forces.iter().copied().map(Vector3::from).collect()
+                left
             }
         };
+        let held_out_pct = file.model.as_ref().and_then(|m| {
+            let s = &m.held_out_pct;
+            match mode {
+                CompensationMode::Scalar => s.scalar,
+                CompensationMode::Vector => s.vector,
+                CompensationMode::Arm => s.arm,
+                CompensationMode::ArmResidual => s.arm_residual,
+            }
+        });
         Ok(Self {
             grid: file.grid,
             mode,
             outside,
             forces,
+            arm,
+            held_out_pct,
             effect: None,
         })
     }
@@ -129,17 +193,25 @@ impl GravityModel {
         self
     }
 
-    /// The model `compensation.mode` asks for: `mode`, or, unset, the vector mode when the grid
-    /// has a force vector for every vertex (every grid calibration writes has: where the field
-    /// turns away from v_G, as on a linkage, the scalar mode leaves its sideways part) and the
-    /// scalar mode otherwise.
+    /// The model `compensation.mode` asks for: `mode`, or, unset, the model the calibration
+    /// chose by its held-out score (`[model] chosen`), else the vector mode when the grid has a
+    /// force vector for every vertex (every grid calibration writes has: where the field turns
+    /// away from v_G, as on a linkage, the scalar mode leaves its sideways part) and the scalar
+    /// mode otherwise.
     pub fn configured(
         file: GridFile,
         mode: Option<CompensationMode>,
         outside: OutsideGrid,
     ) -> Result<Self, ModelError> {
         let has_vectors = file.vertices.force_vectors.len() == file.grid.vertex_count();
-        let mode = mode.unwrap_or(if has_vectors {
+        let chosen = file.model.as_ref().and_then(|m| match m.chosen.as_str() {
+            "scalar" => Some(CompensationMode::Scalar),
+            "vector" => Some(CompensationMode::Vector),
+            "arm" => Some(CompensationMode::Arm),
+            "arm-residual" => Some(CompensationMode::ArmResidual),
+            _ => None,
+        });
+        let mode = mode.or(chosen).unwrap_or(if has_vectors {
             CompensationMode::Vector
         } else {
             CompensationMode::Scalar
@@ -147,17 +219,31 @@ impl GravityModel {
         Self::new(file, mode, outside)
     }
 
-    /// F_G at `x`, N.
+    /// F_G at `x`, N. Outside the lattice `outside` applies to the lattice modes; the arm
+    /// modes hold wherever the arm reaches.
     pub fn force(&self, x: &Vector3<f64>) -> Vector3<f64> {
-        if self.outside == OutsideGrid::Zero && !self.grid.contains(x) {
-            return Vector3::zeros();
-        }
-        let grid = match self.mode {
-            CompensationMode::Scalar => self.grid.gravity_force(x),
-            CompensationMode::Vector => {
-                let (idx, w) = self.grid.cell_weights(x);
-                (0..8).map(|n| self.forces[idx[n]] * w[n]).sum()
+        let lattice = |forces: &[Vector3<f64>]| -> Vector3<f64> {
+            let (idx, w) = self.grid.cell_weights(x);
+            (0..8).map(|n| forces[idx[n]] * w[n]).sum()
+        };
+        let grid = match (self.mode, &self.arm) {
+            (CompensationMode::Arm, Some(arm)) => arm.force(x),
+            (CompensationMode::ArmResidual, Some(arm)) => {
+                // The residual fades from its face value to nothing over one spacing outside.
+                let outside = self.grid.distance_outside(x);
+                let fade = (1.0 - outside / self.grid.spacing).max(0.0);
+                let residual = if fade > 0.0 {
+                    lattice(&self.forces) * fade
+                } else {
+                    Vector3::zeros()
+                };
+                arm.force(x) + residual
             }
+            _ if self.outside == OutsideGrid::Zero && !self.grid.contains(x) => {
+                return Vector3::zeros();
+            }
+            (CompensationMode::Vector, _) => lattice(&self.forces),
+            _ => self.grid.gravity_force(x),
         };
         match &self.effect {
             Some(effect) => effect.apply(x, grid),
@@ -311,6 +397,99 @@ mod tests {
                 OutsideGrid::Zero
             ),
             Err(ModelError::NoForceVectors)
+        );
+    }
+
+    /// A lattice file with an arm model of a PHANToM-like serial arm, "arm" chosen, and a
+    /// vertex force of the arm model's own plus (0.01, 0, 0) N at each vertex.
+    fn arm_file() -> GridFile {
+        use crate::arm::{Arm, ArmFrame, ArmGeometry, ArmTable, SerialArm};
+        use crate::grid::{ArmRecord, HeldOutRecord, ModelRecord};
+        let arm = Arm {
+            geometry: ArmGeometry::Serial(SerialArm {
+                shoulder: Vector3::new(-0.215, 0.0, 0.17),
+                upper: 0.215,
+                fore: 0.17,
+            }),
+            frame: ArmFrame::offset(Vector3::zeros()),
+        };
+        let parameters = [-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0, 0.0];
+        let gravity = ArmGravity {
+            arm,
+            parameters,
+            up: Vector3::z(),
+            g: 9.81,
+        };
+        let g = grid();
+        let mut file = GridFile::from(g.clone());
+        file.vertices.force_vectors = (0..27)
+            .map(|n| {
+                let (i, j, k) = g.coordinates(n);
+                (gravity.force(&g.vertex_position(i, j, k)) + Vector3::x() * 0.01).into()
+            })
+            .collect();
+        file.arm = Some(ArmRecord {
+            profile: "test".into(),
+            parameters: parameters[..6].to_vec(),
+            gravity_direction: [0.0, 0.0, 1.0],
+            g: 9.81,
+            rank: 4,
+            unidentified: Vec::new(),
+            condition: 1.0,
+            rms_residual_mn: 0.0,
+            normalised_residual: 0.0,
+            tilt_deg: 0.0,
+            geometry: ArmTable::of(&arm),
+        });
+        file.model = Some(ModelRecord {
+            chosen: "arm".into(),
+            held_out_holds: 7,
+            held_out_pct: HeldOutRecord {
+                arm: Some(0.5),
+                arm_residual: Some(0.6),
+                ..HeldOutRecord::default()
+            },
+            warning: None,
+        });
+        file
+    }
+
+    #[test]
+    fn the_arm_model_holds_beyond_the_lattice_and_its_residual_fades_over_one_spacing() {
+        let file = arm_file();
+        let arm = file.arm.as_ref().unwrap().gravity().unwrap();
+        // Unset, the mode is the one the calibration chose, with its held-out score.
+        let chosen = GravityModel::configured(file.clone(), None, OutsideGrid::Zero).unwrap();
+        assert_eq!(chosen.mode, CompensationMode::Arm);
+        assert_eq!(chosen.held_out_pct, Some(0.5));
+        // Far outside the lattice (and with the zero policy) the arm model still holds.
+        let far = Vector3::new(0.1, 0.05, 0.12);
+        assert_eq!(chosen.force(&far), arm.force(&far));
+        let residual = GravityModel::new(
+            file.clone(),
+            CompensationMode::ArmResidual,
+            OutsideGrid::Zero,
+        )
+        .unwrap();
+        assert_eq!(residual.held_out_pct, Some(0.6));
+        // Inside: the arm plus the 10 mN it left at every vertex; half a spacing outside, half
+        // of it; a spacing outside and beyond, none.
+        let inside = Vector3::new(0.013, -0.021, 0.007);
+        let extra = |x: &Vector3<f64>| residual.force(x) - arm.force(x);
+        assert!((extra(&inside) - Vector3::x() * 0.01).norm() < 1e-12);
+        assert!((extra(&Vector3::new(0.06, 0.0, 0.0)) - Vector3::x() * 0.005).norm() < 1e-12);
+        assert_eq!(extra(&Vector3::new(0.0, 0.0, -0.08)), Vector3::zeros());
+        // An arm mode on a grid without an arm model is refused, naming the mode.
+        let bare = GravityModel::new(
+            GridFile::from(grid()),
+            CompensationMode::Arm,
+            OutsideGrid::Zero,
+        );
+        assert_eq!(
+            bare,
+            Err(ModelError::NoArm {
+                mode: CompensationMode::Arm
+            })
         );
     }
 

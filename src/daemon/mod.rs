@@ -324,6 +324,7 @@ impl Hub {
 
     fn swap_model(&mut self, model: Option<Box<GravityModel>>) {
         self.status.mode = mode_name(&model);
+        self.status.held_out_pct = model.as_ref().and_then(|m| m.held_out_pct);
         self.status.grid = model.as_ref().map(|_| self.grid_path.display().to_string());
         info!("compensation mode now: {}", self.status.mode);
         self.command(ServoCommand::SwapModel(model));
@@ -353,7 +354,10 @@ impl Hub {
                     return;
                 }
                 let (tx, rx) = crossbeam_channel::bounded(4096);
-                match Calibration::new(CalibrationParams::from_config(&self.config), Some(tx)) {
+                match Calibration::new(
+                    CalibrationParams::for_device(&self.config, &self.device.spec),
+                    Some(tx),
+                ) {
                     Ok(calibration) => {
                         // Fail now rather than after minutes of calibration.
                         let plan = calibration.plan();
@@ -603,6 +607,7 @@ impl Daemon {
         }
         let model = load_model(config, &device, &grid_path)?;
         let mode = mode_name(&model);
+        let held_out_pct = model.as_ref().and_then(|m| m.held_out_pct);
         let offset = ForceOffset::new(config.app.stale_offset(), config.app.stale_ramp());
         let compensation = Compensation::new(model, offset);
 
@@ -645,6 +650,7 @@ impl Daemon {
             server.registry.clone(),
             commands,
         );
+        hub.status.held_out_pct = held_out_pct;
         let mut systemd = SystemdWatchdog::new(heartbeat);
         while !servo.is_finished() {
             hub.turn(&mut hub_mailbox, &events, &requests, &signals, &mut systemd);

@@ -123,13 +123,4 @@ pub struct Sample {
     pub g: f64,
 }
 
-/// Two unit vectors spanning the plane across `up`.
-pub fn across(up: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
-    let helper = if up.x.abs() < 0.9 {
-        Vector3::x()
-    } else {
-        Vector3::y()
-    };
-    let e1 = up.cross(&helper).normalize();
-    (e1, up.cross(&e1))
-}
+pub use crate::fit::across;

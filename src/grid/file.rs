@@ -9,10 +9,14 @@ use serde::{Deserialize, Serialize};
 
 use super::lattice::{MassGrid, DIM_RANGE, G_RANGE, MAX_MASS_KG};
 use super::{store, DeviceIdentity, GridError, Problem};
+use crate::arm::{ArmTable, MAX_PARAMETERS};
 use crate::protocol::{MODEL_LEN, SERIAL_LEN};
 
-/// Format tag of version 1 grid files.
+/// Format tag of version 1 grid files: a lattice and its records.
 pub const GRID_FORMAT: &str = "hgcd-grid/1";
+/// Format tag of version 2: version 1 with an arm model (`[arm]`, `[model]`); written only by a
+/// calibration that fitted one, so every other file stays readable by older versions.
+pub const GRID_FORMAT_2: &str = "hgcd-grid/2";
 
 /// `[device]`: the device a grid was made for.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -173,13 +177,134 @@ impl VertexRecords {
     }
 }
 
-/// An `hgcd-grid/1` file: the lattice and what was recorded with it.
+/// `[arm]`: the arm model fitted to the holds (format 2): the profile's arm as it was used, its
+/// base parameters and the gravity it was fitted under, and what the fit says of itself.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ArmRecord {
+    /// The device profile the arm came from.
+    pub profile: String,
+    /// First moments, kg m (a delta's platform: a mass, kg), in the arm's order
+    /// (`docs/grid-format.md` §4).
+    pub parameters: Vec<f64>,
+    /// Unit v_G of the fit (against gravity), and g, m/s².
+    pub gravity_direction: [f64; 3],
+    pub g: f64,
+    /// Combinations of the parameters the holds identified, and the parameters dominating those
+    /// they left unconstrained.
+    pub rank: usize,
+    pub unidentified: Vec<String>,
+    /// Conditioning of the identified combinations.
+    pub condition: f64,
+    /// RMS of |F − F̂| over the holds, mN, and of its components over each hold's noise.
+    pub rms_residual_mn: f64,
+    pub normalised_residual: f64,
+    /// Angle between the fitted v_G and the arm's own up, degrees.
+    pub tilt_deg: f64,
+    /// The arm's geometry and frame (`[arm.geometry]`, as in the profile).
+    pub geometry: ArmTable,
+}
+
+impl ArmRecord {
+    /// The arm model is whole: a geometry that loads, a finite parameter for each of its
+    /// parameters, a unit gravity direction, g in range.
+    fn check(&self) -> Result<(), Problem> {
+        let arm = self
+            .geometry
+            .arm()
+            .map_err(|problem| Problem::Arm { problem })?;
+        let count = arm.parameter_count();
+        if self.parameters.len() != count || count > MAX_PARAMETERS {
+            return Err(Problem::Arm {
+                problem: format!(
+                    "`parameters` has {} values, a {} arm has {count}",
+                    self.parameters.len(),
+                    arm.kind()
+                ),
+            });
+        }
+        if let Some(&value) = self
+            .parameters
+            .iter()
+            .find(|p| !(p.is_finite() && p.abs() <= MAX_MOMENT))
+        {
+            return Err(Problem::Arm {
+                problem: format!("a parameter is {value:?}, expected a finite first moment within ±{MAX_MOMENT} kg m"),
+            });
+        }
+        let norm = Vector3::from(self.gravity_direction).norm();
+        if (norm - 1.0).abs() >= 1e-6 || norm.is_nan() {
+            return Err(Problem::Arm {
+                problem: format!("`gravity_direction` must be a unit vector, its norm is {norm:?}"),
+            });
+        }
+        if !G_RANGE.contains(&self.g) {
+            return Err(Problem::OutOfRange {
+                key: "arm.g",
+                value: self.g,
+                min: *G_RANGE.start(),
+                max: *G_RANGE.end(),
+                unit: "m/s²",
+            });
+        }
+        Ok(())
+    }
+
+    /// The arm model this record describes (checked by [`GridFile::check`] when loaded).
+    pub fn gravity(&self) -> Result<crate::arm::ArmGravity, Problem> {
+        self.check()?;
+        let mut parameters = [0.0; MAX_PARAMETERS];
+        parameters[..self.parameters.len()].copy_from_slice(&self.parameters);
+        Ok(crate::arm::ArmGravity {
+            arm: self
+                .geometry
+                .arm()
+                .map_err(|problem| Problem::Arm { problem })?,
+            parameters,
+            up: Vector3::from(self.gravity_direction),
+            g: self.g,
+        })
+    }
+}
+
+/// The largest first moment (or platform mass) an arm record may hold, kg m (kg).
+pub const MAX_MOMENT: f64 = 100.0;
+
+/// `[model]`: which model compensates (format 2), and the held-out scores that chose it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelRecord {
+    /// "scalar", "vector", "arm" or "arm-residual".
+    pub chosen: String,
+    /// Holds kept out of the fits.
+    pub held_out_holds: usize,
+    /// 100 √(Σ|F − F̂|² / Σ|F|²) over the held-out holds, %, per candidate (a candidate missing
+    /// could not be fitted).
+    pub held_out_pct: HeldOutRecord,
+    /// Why the arm model was not chosen or is off, if it was not or is.
+    pub warning: Option<String>,
+}
+
+/// `[model.held_out_pct]`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct HeldOutRecord {
+    pub scalar: Option<f64>,
+    pub vector: Option<f64>,
+    pub arm: Option<f64>,
+    pub arm_residual: Option<f64>,
+}
+
+/// The names `[model] chosen` takes.
+pub const MODEL_NAMES: [&str; 4] = ["scalar", "vector", "arm", "arm-residual"];
+
+/// An `hgcd-grid/1` or `/2` file: the lattice and what was recorded with it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct GridFile {
     pub grid: MassGrid,
     pub device: Option<DeviceRecord>,
     pub calibration: Option<CalibrationRecord>,
     pub vertices: VertexRecords,
+    /// The arm model and the choice of model (format 2).
+    pub arm: Option<ArmRecord>,
+    pub model: Option<ModelRecord>,
     /// Root keys this version does not know: kept as read and written back (format §4).
     extra: toml::Table,
 }
@@ -192,6 +317,8 @@ impl From<MassGrid> for GridFile {
             device: None,
             calibration: None,
             vertices: VertexRecords::default(),
+            arm: None,
+            model: None,
             extra: toml::Table::new(),
         }
     }
@@ -211,6 +338,8 @@ struct Raw {
     calibration: Option<CalibrationRecord>,
     #[serde(default)]
     vertices: VertexRecords,
+    arm: Option<ArmRecord>,
+    model: Option<ModelRecord>,
     #[serde(flatten)]
     extra: toml::Table,
 }
@@ -222,6 +351,8 @@ struct Records<'a> {
     calibration: &'a Option<CalibrationRecord>,
     #[serde(skip_serializing_if = "VertexRecords::is_empty")]
     vertices: &'a VertexRecords,
+    model: &'a Option<ModelRecord>,
+    arm: &'a Option<ArmRecord>,
     #[serde(flatten)]
     extra: &'a toml::Table,
 }
@@ -237,7 +368,50 @@ impl GridFile {
     /// Errors: the first [`Problem`] found, in the order of the format's table.
     pub fn check(&self) -> Result<(), Problem> {
         self.grid.check()?;
-        self.vertices.check(self.grid.vertex_count())
+        self.vertices.check(self.grid.vertex_count())?;
+        if let Some(arm) = &self.arm {
+            arm.check()?;
+        }
+        if let Some(model) = &self.model {
+            let arm_chosen = model.chosen.starts_with("arm");
+            if !MODEL_NAMES.contains(&model.chosen.as_str()) || (arm_chosen && self.arm.is_none()) {
+                return Err(Problem::Model {
+                    chosen: model.chosen.clone(),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The format tag this file is written with: 2 with an arm model, else 1.
+    pub fn format(&self) -> &'static str {
+        if self.arm.is_some() || self.model.is_some() {
+            GRID_FORMAT_2
+        } else {
+            GRID_FORMAT
+        }
+    }
+
+    /// Per vertex, grid order: whether its values were measured (not listed by `[calibration]`
+    /// as unreachable or extrapolated).
+    pub fn measured(&self) -> Vec<bool> {
+        let grid = &self.grid;
+        let mut measured = vec![true; grid.masses.len()];
+        if let Some(c) = &self.calibration {
+            let centre = Vector3::from(c.centre_mm.unwrap_or_default()) * 1e-3;
+            let listed = c
+                .unreachable_vertices
+                .iter()
+                .chain(&c.extrapolated_vertices);
+            for k in listed.flatten() {
+                let x = centre + Vector3::new(k[0] as f64, k[1] as f64, k[2] as f64) * grid.spacing;
+                let i = ((x - grid.origin) / grid.spacing).map(|u| u.round());
+                if (0..3).all(|a| i[a] >= 0.0 && (i[a] as usize) < grid.dims[a]) {
+                    measured[grid.index(i[0] as usize, i[1] as usize, i[2] as usize)] = false;
+                }
+            }
+        }
+        measured
     }
 
     /// Parse and check a grid from TOML text; `path` names the source in messages. Errors:
@@ -248,7 +422,7 @@ impl GridFile {
             problem,
         };
         let raw: Raw = toml::from_str(text).map_err(|e| diagnose(text, &e, path))?;
-        if raw.format != GRID_FORMAT {
+        if raw.format != GRID_FORMAT && raw.format != GRID_FORMAT_2 {
             return Err(invalid(Problem::Format {
                 found: format!("{:?}", raw.format),
             }));
@@ -272,6 +446,8 @@ impl GridFile {
             device: raw.device,
             calibration: raw.calibration,
             vertices: raw.vertices,
+            arm: raw.arm,
+            model: raw.model,
             extra: raw.extra,
         };
         file.check().map_err(invalid)?;
@@ -319,8 +495,9 @@ impl GridFile {
         let g = &self.grid;
         let vec3 = |v: &Vector3<f64>| format!("[{:?}, {:?}, {:?}]", v.x, v.y, v.z);
         let mut out = format!(
-            "format = \"{GRID_FORMAT}\"\ng = {:?}\ngravity_direction = {}\norigin = {}\n\
+            "format = \"{}\"\ng = {:?}\ngravity_direction = {}\norigin = {}\n\
              spacing = {:?}\ndims = [{}, {}, {}]\nmasses = [\n",
+            self.format(),
             g.g,
             vec3(&g.gravity_direction),
             vec3(&g.origin),
@@ -338,6 +515,8 @@ impl GridFile {
             device: &self.device,
             calibration: &self.calibration,
             vertices: &self.vertices,
+            model: &self.model,
+            arm: &self.arm,
             extra: &self.extra,
         };
         // Plain structs of numbers, strings, arrays and tables always serialise; the fallback
@@ -394,9 +573,14 @@ fn diagnose(text: &str, error: &toml::de::Error, path: &Path) -> GridError {
         },
         Ok(table) => {
             let problem = match table.get("format") {
-                Some(found) if found.as_str() != Some(GRID_FORMAT) => Problem::Format {
-                    found: clip(&found.to_string(), 60),
-                },
+                Some(found)
+                    if found.as_str() != Some(GRID_FORMAT)
+                        && found.as_str() != Some(GRID_FORMAT_2) =>
+                {
+                    Problem::Format {
+                        found: clip(&found.to_string(), 60),
+                    }
+                }
                 _ => Problem::Schema {
                     at: error.span().and_then(|span| {
                         let (line, line_text) = line_of(text, span.start);
@@ -564,7 +748,7 @@ pub(crate) mod tests {
         ));
         // A newer version's keys need not match ours: the format is what is reported.
         assert!(matches!(
-            problem("format = \"hgcd-grid/2\"\nlattice = 1\n"),
+            problem("format = \"hgcd-grid/3\"\nlattice = 1\n"),
             Problem::Format { .. }
         ));
         assert!(matches!(
@@ -800,5 +984,96 @@ pub(crate) mod tests {
             let bound = GridFile::size_bound(2 * n, spec.len());
             assert!(size <= bound, "{dims:?}: {size} > {bound}");
         }
+    }
+
+    /// [`calibrated`] with an arm model chosen, as a calibration with an arm profile writes it.
+    fn with_arm() -> GridFile {
+        use crate::arm::{Arm, ArmFrame, ArmGeometry, SerialArm};
+        let arm = Arm {
+            geometry: ArmGeometry::Serial(SerialArm {
+                shoulder: Vector3::new(-0.215, 0.0, 0.17),
+                upper: 0.215,
+                fore: 0.17,
+            }),
+            frame: ArmFrame::offset(Vector3::zeros()),
+        };
+        let mut file = calibrated();
+        file.arm = Some(ArmRecord {
+            profile: "phantom_1_5".into(),
+            parameters: vec![-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0],
+            gravity_direction: [0.0, 0.0, 1.0],
+            g: 9.81,
+            rank: 4,
+            unidentified: vec!["base, radial".into(), "base, lateral".into()],
+            condition: 4.0,
+            rms_residual_mn: 0.3,
+            normalised_residual: 0.2,
+            tilt_deg: 0.0,
+            geometry: ArmTable::of(&arm),
+        });
+        file.model = Some(ModelRecord {
+            chosen: "arm".into(),
+            held_out_holds: 2,
+            held_out_pct: HeldOutRecord {
+                scalar: Some(48.0),
+                vector: Some(9.3),
+                arm: Some(0.13),
+                arm_residual: None,
+            },
+            warning: None,
+        });
+        file
+    }
+
+    #[test]
+    fn an_arm_model_is_format_2_and_round_trips_and_format_1_stays_1() {
+        let file = with_arm();
+        let text = file.to_toml_string();
+        assert!(text.starts_with("format = \"hgcd-grid/2\"\n"), "{text}");
+        assert_eq!(parse(&text).unwrap(), file);
+        // Without an arm model the same file is written, and read, as version 1.
+        let plain = calibrated().to_toml_string();
+        assert!(plain.starts_with("format = \"hgcd-grid/1\"\n"));
+        assert!(!plain.contains("[arm]") && !plain.contains("[model]"));
+    }
+
+    #[test]
+    fn a_broken_arm_model_is_refused_with_what_is_wrong() {
+        let text = with_arm().to_toml_string();
+        // `from` replaced by `to` at its first place in or after the `[model]` table.
+        let broken = |from: &str, to: &str| {
+            let at = text.find("[model]").unwrap();
+            let (head, tail) = text.split_at(at);
+            assert!(tail.contains(from), "{from}");
+            problem(&format!("{head}{}", tail.replacen(from, to, 1)))
+        };
+        let p = broken("parameters = [", "parameters = [0.1, ");
+        assert!(p.to_string().contains("`parameters` has 7 values"), "{p}");
+        let p = broken("upper_m = 0.215", "upper_m = 2.0");
+        assert!(p.to_string().contains("`upper_m`"), "{p}");
+        let p = broken("chosen = \"arm\"", "chosen = \"spline\"");
+        assert_eq!(
+            p,
+            Problem::Model {
+                chosen: "spline".into()
+            }
+        );
+        let p = broken(
+            "gravity_direction = [0.0, 0.0, 1.0]",
+            "gravity_direction = [0.0, 0.0, 2.0]",
+        );
+        assert!(
+            p.to_string().starts_with("`[arm]`: `gravity_direction`"),
+            "{p}"
+        );
+        // An arm model chosen without its table.
+        let mut file = with_arm();
+        file.arm = None;
+        assert_eq!(
+            file.check(),
+            Err(Problem::Model {
+                chosen: "arm".into()
+            })
+        );
     }
 }

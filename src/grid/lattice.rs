@@ -87,6 +87,15 @@ impl MassGrid {
         i + self.dims[0] * (j + self.dims[1] * k)
     }
 
+    /// (i, j, k) of the vertex at flat index `n`.
+    pub fn coordinates(&self, n: usize) -> (usize, usize, usize) {
+        (
+            n % self.dims[0],
+            (n / self.dims[0]) % self.dims[1],
+            n / (self.dims[0] * self.dims[1]),
+        )
+    }
+
     /// Position of vertex (i, j, k), m.
     pub fn vertex_position(&self, i: usize, j: usize, k: usize) -> Vector3<f64> {
         self.origin + Vector3::new(i as f64, j as f64, k as f64) * self.spacing
@@ -101,6 +110,12 @@ impl MassGrid {
     pub fn contains(&self, x: &Vector3<f64>) -> bool {
         let far = self.far_corner();
         (0..3).all(|a| x[a] >= self.origin[a] && x[a] <= far[a])
+    }
+
+    /// How far `x` lies outside the grid's bounding box, m (0 inside).
+    pub fn distance_outside(&self, x: &Vector3<f64>) -> f64 {
+        let far = self.far_corner();
+        ((self.origin - x).sup(&Vector3::zeros()) + (x - far).sup(&Vector3::zeros())).norm()
     }
 
     /// Trilinear weights for `x`. Outside the grid the position is clamped onto it, so the nearest

@@ -6,11 +6,13 @@
 //! - `store`: where grids live and how they are read and written: only regular files, bounded,
 //!   never blocking; atomic replace with a backup that needs no data space; a room check;
 //! - `effect`: the `hgcd-model/1` file, the effect `hgcd analyze` found beside a grid;
+//! - `fill`: a lattice's unknown vertices filled from their neighbours;
 //! - `identity`: which device a grid belongs to ([`DeviceIdentity`]): its model and serial
 //!   number when the device names itself, else the spec it was opened with.
 
 mod effect;
 mod file;
+mod fill;
 #[cfg(test)]
 mod fuzz;
 mod identity;
@@ -24,7 +26,11 @@ use thiserror::Error;
 use lattice::{DIM_RANGE, MAX_VERTICES};
 
 pub use effect::{EffectRecord, ModelFile, ModelFileError, MODEL_FORMAT};
-pub use file::{CalibrationRecord, DeviceRecord, GridFile, UnitRecord, VertexRecords, GRID_FORMAT};
+pub use file::{
+    ArmRecord, CalibrationRecord, DeviceRecord, GridFile, HeldOutRecord, ModelRecord, UnitRecord,
+    VertexRecords, GRID_FORMAT, GRID_FORMAT_2,
+};
+pub use fill::{extrapolate_from_neighbours, fill_from_neighbours, Field};
 pub use identity::DeviceIdentity;
 pub use lattice::{CellWeights, MassGrid, G_RANGE, MAX_MASS_KG, SPACING_RANGE};
 pub use store::{check_room, grid_path};
@@ -96,7 +102,8 @@ pub enum GridError {
 #[derive(Clone, Debug, PartialEq, Error)]
 pub enum Problem {
     #[error(
-        "`format` is {found}, expected \"{GRID_FORMAT}\" (not an hgcd grid, or a newer version)"
+        "`format` is {found}, expected \"{GRID_FORMAT}\" or \"{GRID_FORMAT_2}\" (not an hgcd grid, or \
+         a newer version)"
     )]
     Format { found: String },
     /// A key is missing or a value has the wrong type; `at` is the line and its text, when the
@@ -149,6 +156,13 @@ pub enum Problem {
         value: [f64; 3],
         max: f64,
     },
+    #[error("`[arm]`: {problem}")]
+    Arm { problem: String },
+    #[error(
+        "`[model] chosen` is {chosen:?}: expected \"scalar\", \"vector\", \"arm\" or \
+         \"arm-residual\", and an `[arm]` table for the arm models"
+    )]
+    Model { chosen: String },
     #[error(
         "`[vertices] final_error_mm` at vertex {vertex} must be a finite distance ≥ 0 mm, got \
          {value:?}"

@@ -12,6 +12,8 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+use crate::arm::{Arm, ArmFrame, ArmGeometry, SerialArm};
+
 /// Kinematics of one point of a mechanism at (q, q̇): where it is, ∂x/∂q, and the part of its
 /// acceleration that does not come from q̈ (ẍ = J q̈ + bias, bias = J̇ q̇). The simulated
 /// linkages (`sim::linkage`) describe their points with it too.
@@ -142,6 +144,19 @@ impl ArmModel {
         let (er, eh) = (lb * qb.sin(), lb * qb.cos());
         let qc = (r - er).atan2(eh - h);
         Some(Vector3::new(qa, qb, qc))
+    }
+
+    /// The arm as the gravity model knows it: a yaw–pitch–pitch arm with its shoulder L_a up
+    /// the yaw axis, in a frame whose origin is the workspace origin.
+    pub fn gravity_arm(&self) -> Arm {
+        Arm {
+            geometry: ArmGeometry::Serial(SerialArm {
+                shoulder: Vector3::new(0.0, 0.0, self.lengths[0]),
+                upper: self.lengths[1],
+                fore: self.lengths[2],
+            }),
+            frame: ArmFrame::offset(self.origin),
+        }
     }
 
     /// Motor currents, A (unclamped), that render the force `force` (N, device frame) at the

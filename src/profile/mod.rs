@@ -18,6 +18,7 @@ use nalgebra::Vector3;
 use serde::Deserialize;
 use thiserror::Error;
 
+use crate::arm::{Arm, ArmTable};
 use crate::config::{Config, DeviceSpec};
 use crate::protocol::{
     DeviceInfo, InputReport, OutputReport, ProtocolError, Status, OUTPUT_REPORT_LEN,
@@ -47,7 +48,19 @@ const BUILT_IN: &[(&str, &str)] = &[
         "polhem_v1",
         include_str!("../../config/profiles/polhem_v1.toml"),
     ),
+    (
+        PHANTOM_PROFILE,
+        include_str!("../../config/profiles/phantom_1_5.toml"),
+    ),
+    (
+        DELTA_PROFILE,
+        include_str!("../../config/profiles/falcon_delta.toml"),
+    ),
 ];
+
+/// The profiles `sim:phantom` and `sim:delta` use unless a Cartesian profile is configured.
+pub const PHANTOM_PROFILE: &str = "phantom_1_5";
+pub const DELTA_PROFILE: &str = "falcon_delta";
 
 /// Why a profile cannot be used.
 #[derive(Debug, Error)]
@@ -140,6 +153,7 @@ struct ProfileFile {
     max_force_n: Option<f64>,
     kinematics: Option<KinematicsFile>,
     bodies: Option<BodiesFile>,
+    arm: Option<ArmTable>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -179,6 +193,8 @@ pub struct Profile {
     arm: Option<ArmModel>,
     /// The published masses of the arm's bodies (a simulated device is built with them).
     pub bodies: Option<BodiesFile>,
+    /// The arm the gravity model knows: the `[arm]` table, or a joint-space arm's kinematics.
+    gravity_arm: Option<Arm>,
 }
 
 impl Profile {
@@ -285,6 +301,15 @@ impl Profile {
             check("bodies.masses_kg", &b.masses_kg)?;
             check("bodies.centres_of_mass_m", &b.centres_of_mass_m)?;
         }
+        let gravity_arm = match (&file.arm, &arm) {
+            (Some(table), _) => Some(
+                table
+                    .arm()
+                    .map_err(|message| invalid(format!("[arm]: {message}")))?,
+            ),
+            (None, Some(joint_space)) => Some(joint_space.gravity_arm()),
+            (None, None) => None,
+        };
         let name_ok = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_';
         if !(1..=NAME_LEN).contains(&file.name.len()) || !file.name.chars().all(name_ok) {
             return Err(invalid(format!(
@@ -300,6 +325,7 @@ impl Profile {
             max_force: file.max_force_n,
             arm,
             bodies: file.bodies,
+            gravity_arm,
         })
     }
 
@@ -345,8 +371,9 @@ impl Profile {
         Self::parse(&text, &path.display().to_string())
     }
 
-    /// The profile for the device `spec`: [`CARTESIAN_V1`] for the simulated v1 devices
-    /// (`sim:point-mass`, `sim:phantom`, `sim:delta`); else the configured one
+    /// The profile for the device `spec`: for the simulated v1 devices the configured one if
+    /// it speaks protocol v1, else [`PHANTOM_PROFILE`] for `sim:phantom`, [`DELTA_PROFILE`] for
+    /// `sim:delta` and [`CARTESIAN_V1`] for `sim:point-mass`; else the configured one
     /// (`device.profile`, which `--profile` sets); else the first profile claiming a HID
     /// device's USB IDs (the user's, by name, then the built-in ones), `woodenhaptics_v2015`
     /// for `sim:woodenhaptics`, and [`CARTESIAN_V1`] for anything else.
@@ -357,9 +384,20 @@ impl Profile {
         let dir = config.profile_dir();
         let configured = !config.device.profile.is_empty();
         match spec {
-            // The other simulated devices' firmware speaks protocol v1, whatever is configured.
+            // The other simulated devices' firmware speaks protocol v1: a configured profile
+            // counts only if it does too (it may name another arm).
             DeviceSpec::Sim { model } if model != crate::config::SIM_WOODENHAPTICS => {
-                Ok(Self::cartesian())
+                if configured {
+                    let profile = Self::load(&config.device.profile, &dir)?;
+                    if profile.wire == Wire::CartesianV1 {
+                        return Ok(profile);
+                    }
+                }
+                Ok(match model.as_str() {
+                    "phantom" => Self::built_in(PHANTOM_PROFILE).expect("built in"),
+                    "delta" => Self::built_in(DELTA_PROFILE).expect("built in"),
+                    _ => Self::cartesian(),
+                })
             }
             _ if configured => Self::load(&config.device.profile, &dir),
             DeviceSpec::Hid { vid, pid, .. } => Ok(Self::all(&dir)?
@@ -402,6 +440,12 @@ impl Profile {
     /// The default profile.
     pub fn cartesian() -> Self {
         Self::built_in(CARTESIAN_V1).expect("built in")
+    }
+
+    /// The arm whose gravity the host can model (`[arm]`, or a joint-space profile's
+    /// kinematics): None for a device the host knows only as Cartesian reports.
+    pub fn gravity_arm(&self) -> Option<Arm> {
+        self.gravity_arm
     }
 
     /// The arm's kinematics, for a joint-space profile.
@@ -602,12 +646,20 @@ mod tests {
     #[test]
     fn the_built_in_profiles_load_and_claim_the_published_usb_ids() {
         let all = Profile::built_ins();
-        assert_eq!(all.len(), 3);
+        assert_eq!(all.len(), 5);
         assert_eq!(all[0].wire, Wire::CartesianV1);
-        for p in &all[1..] {
+        assert!(all[0].gravity_arm().is_none());
+        for p in &all[1..3] {
             assert_eq!(p.wire, Wire::WoodenHaptics);
             assert_eq!(p.usb_ids, [(0x1234, 0x0006)]);
             assert!(p.device_info(1000.0).is_some());
+            assert_eq!(p.gravity_arm().unwrap().kind(), "serial");
+        }
+        // The simulated arms' profiles: Cartesian reports, an arm, no USB IDs claimed.
+        for (p, kind) in all[3..].iter().zip(["serial", "delta"]) {
+            assert_eq!(p.wire, Wire::CartesianV1);
+            assert!(p.usb_ids.is_empty() && p.device_info(1000.0).is_none());
+            assert_eq!(p.gravity_arm().unwrap().kind(), kind);
         }
         assert!(all[0].device_info(1000.0).is_none());
     }
@@ -644,7 +696,15 @@ mod tests {
             name(&"sim:woodenhaptics".parse().unwrap(), &config),
             "woodenhaptics_v2015"
         );
-        assert_eq!(name(&"sim:phantom".parse().unwrap(), &config), CARTESIAN_V1);
+        assert_eq!(
+            name(&"sim:phantom".parse().unwrap(), &config),
+            PHANTOM_PROFILE
+        );
+        assert_eq!(name(&"sim:delta".parse().unwrap(), &config), DELTA_PROFILE);
+        assert_eq!(
+            name(&"sim:point-mass".parse().unwrap(), &config),
+            CARTESIAN_V1
+        );
         // A user's profile claims the IDs before the built-in ones.
         let mine = include_str!("../../config/profiles/polhem_v1.toml")
             .replace("name = \"polhem_v1\"", "name = \"my-polhem\"");
@@ -658,11 +718,17 @@ mod tests {
             Profile::all(config.paths.profile_dir.as_ref().unwrap())
                 .unwrap()
                 .len(),
-            3
+            5
         );
         config.device.profile = "polhem_v1".into();
         assert_eq!(name(&hid(0x1234, 6), &config), "polhem_v1");
-        assert_eq!(name(&"sim:delta".parse().unwrap(), &config), CARTESIAN_V1);
+        // A simulated v1 device takes a configured profile only if it speaks v1 too.
+        assert_eq!(name(&"sim:delta".parse().unwrap(), &config), DELTA_PROFILE);
+        config.device.profile = PHANTOM_PROFILE.into();
+        assert_eq!(
+            name(&"sim:delta".parse().unwrap(), &config),
+            PHANTOM_PROFILE
+        );
         config.device.profile = "nope".into();
         let err = Profile::for_device(&hid(0x1234, 6), &config).unwrap_err();
         assert!(

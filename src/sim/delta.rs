@@ -43,6 +43,9 @@ pub struct Delta {
     /// Directions of the three legs in the horizontal plane (away from the user, right front,
     /// left front).
     pub legs: [Vector3<f64>; 3],
+    /// Where the home pose puts the handle off the device frame's origin, m: zero on the
+    /// nominal device, up to a millimetre on a unit.
+    pub home_offset: Vector3<f64>,
 }
 
 impl Delta {
@@ -64,13 +67,25 @@ impl Delta {
                 let (s, c) = deg.to_radians().sin_cos();
                 Vector3::new(c, s, 0.0)
             }),
+            home_offset: Vector3::zeros(),
         }
     }
 
-    /// The nominal device with its masses and centres of mass varied as one unit.
+    /// The nominal device with its masses and centres of mass varied as one unit, its link
+    /// lengths and home pose a little off the nominal ones.
     pub fn unit(variation: &mut UnitVariation) -> Self {
         let d = Self::nominal();
+        let arm = variation.vary_length(d.arm);
+        let rod = variation.vary_length(d.rod);
+        let base_radius = variation.vary_length(d.base_radius);
+        let platform_radius = variation.vary_length(d.platform_radius);
+        let home_offset = variation.home_offset();
         Self {
+            arm,
+            rod,
+            base_radius,
+            platform_radius,
+            home_offset,
             m_platform: variation.vary(d.m_platform),
             m_rods: variation.vary(d.m_rods),
             m_arm: variation.vary(d.m_arm),
@@ -95,7 +110,7 @@ impl Delta {
 
     /// Pivot of arm i, device frame.
     fn pivot(&self, i: usize) -> Vector3<f64> {
-        self.legs[i] * self.base_radius + Vector3::z() * self.home_depth
+        self.legs[i] * self.base_radius + Vector3::z() * self.home_depth + self.home_offset
     }
 
     /// The platform centre for joints q: the lower intersection of the three spheres of radius

@@ -29,7 +29,8 @@ const JOINT_RELEASE: f64 = 1e-3;
 const IMPULSE_ROUNDS: usize = 4;
 
 /// The geometry and masses of a mechanism (kinematics only: no friction, motors or sensors).
-/// Positions are in the device frame, m, with the handle at the origin at q = 0.
+/// Positions are in the device frame, m, with the handle at the origin at q = 0 on the nominal
+/// unit (a unit's home may sit up to [`UnitVariation::HOME_SPREAD`] from it).
 pub trait Mechanism: Send + 'static {
     /// The handle's kinematics (the point forces act on and the device reports).
     fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point;
@@ -82,29 +83,65 @@ impl Drives {
     }
 }
 
-/// Deterministic few-percent differences between nominally identical units (`sim.unit_seed`).
-pub struct UnitVariation(Option<ChaCha8Rng>);
+/// Deterministic differences between nominally identical units (`sim.unit_seed`): a few percent
+/// in masses and friction, and, drawn from a stream of their own (so a unit's masses are the
+/// same with or without them), up to half a percent in link lengths and a millimetre in where
+/// the home pose sits, so that a profile's published geometry is never exactly the unit's.
+pub struct UnitVariation(Option<(ChaCha8Rng, ChaCha8Rng)>);
 
 impl UnitVariation {
     /// Largest relative change of one parameter.
     pub const SPREAD: f64 = 0.03;
+    /// Largest relative change of a link length.
+    pub const LENGTH_SPREAD: f64 = 0.005;
+    /// Largest distance of a unit's home pose from the nominal one, m.
+    pub const HOME_SPREAD: f64 = 1e-3;
 
     /// Seed 0 is the nominal unit: [`UnitVariation::vary`] then changes nothing.
     pub fn new(unit_seed: u64) -> Self {
-        Self((unit_seed != 0).then(|| ChaCha8Rng::seed_from_u64(unit_seed)))
+        Self((unit_seed != 0).then(|| {
+            (
+                ChaCha8Rng::seed_from_u64(unit_seed),
+                ChaCha8Rng::seed_from_u64(unit_seed ^ 0x6765_6f6d_6574_7279),
+            )
+        }))
     }
 
     /// `value` scaled by a factor drawn uniformly in 1 ± [`UnitVariation::SPREAD`].
     pub fn vary(&mut self, value: f64) -> f64 {
         match &mut self.0 {
             None => value,
-            Some(rng) => value * (1.0 + rng.gen_range(-Self::SPREAD..=Self::SPREAD)),
+            Some((rng, _)) => value * (1.0 + rng.gen_range(-Self::SPREAD..=Self::SPREAD)),
         }
     }
 
     /// Each component varied on its own.
     pub fn vary3(&mut self, v: Vector3<f64>) -> Vector3<f64> {
         v.map(|c| self.vary(c))
+    }
+
+    /// A link length scaled by a factor drawn uniformly in 1 ± [`UnitVariation::LENGTH_SPREAD`].
+    pub fn vary_length(&mut self, value: f64) -> f64 {
+        match &mut self.0 {
+            None => value,
+            Some((_, rng)) => {
+                value * (1.0 + rng.gen_range(-Self::LENGTH_SPREAD..=Self::LENGTH_SPREAD))
+            }
+        }
+    }
+
+    /// Where the unit's home pose sits from the nominal one: uniform in a ball of radius
+    /// [`UnitVariation::HOME_SPREAD`], m.
+    pub fn home_offset(&mut self) -> Vector3<f64> {
+        match &mut self.0 {
+            None => Vector3::zeros(),
+            Some((_, rng)) => loop {
+                let v = Vector3::from_fn(|_, _| rng.gen_range(-1.0..=1.0));
+                if v.norm() <= 1.0 {
+                    break v * Self::HOME_SPREAD;
+                }
+            },
+        }
     }
 }
 

@@ -43,6 +43,9 @@ pub struct Phantom {
     pub i_base_yy: f64,
     /// Mechanical stops (lower, upper), rad.
     pub limits: (Vector3<f64>, Vector3<f64>),
+    /// Where the home pose (q = 0) puts the handle in the device frame, m: zero on the
+    /// published arm, up to a millimetre off on a unit.
+    pub home_offset: Vector3<f64>,
 }
 
 impl Phantom {
@@ -73,13 +76,20 @@ impl Phantom {
                 Vector3::new(-60f64, -35.0, -40.0).map(f64::to_radians),
                 Vector3::new(60f64, 40.0, 45.0).map(f64::to_radians),
             ),
+            home_offset: Vector3::zeros(),
         }
     }
 
-    /// The published arm with its masses and centres of mass varied as one unit (`variation`).
+    /// The published arm with its masses and centres of mass varied as one unit (`variation`),
+    /// its link lengths and home pose a little off the published ones.
     pub fn unit(variation: &mut UnitVariation) -> Self {
         let p = Self::published();
+        let (l1, l2) = (variation.vary_length(p.l1), variation.vary_length(p.l2));
+        let home_offset = variation.home_offset();
         Self {
+            l1,
+            l2,
+            home_offset,
             m_a: variation.vary(p.m_a),
             m_c: variation.vary(p.m_c),
             m_be: variation.vary(p.m_be),
@@ -108,7 +118,7 @@ impl Phantom {
         let w1 = qd[0];
         Point {
             // The shoulder is l1 behind and l2 above the home handle position.
-            position: Vector3::new(t.c1 * r - self.l1, t.s1 * r, self.l2 + h),
+            position: Vector3::new(t.c1 * r - self.l1, t.s1 * r, self.l2 + h) + self.home_offset,
             jacobian: Matrix3::new(
                 -t.s1 * r,
                 t.c1 * r2,
@@ -192,6 +202,7 @@ impl Mechanism for Phantom {
 
     fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
         // Relative to the shoulder: r outward in the arm's plane, h up.
+        let x = x - self.home_offset;
         let (fx, fy) = (x[0] + self.l1, x[1]);
         let theta1 = fy.atan2(fx);
         let r = fx.hypot(fy);

@@ -21,6 +21,7 @@ fn colour(mode: Mode) -> RGBColor {
         Mode::None => RGBColor(31, 119, 180),
         Mode::Scalar => RGBColor(214, 39, 40),
         Mode::Vector => RGBColor(44, 160, 44),
+        Mode::Arm => RGBColor(148, 103, 189),
     }
 }
 

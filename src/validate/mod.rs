@@ -52,10 +52,23 @@ pub enum Mode {
     Scalar,
     /// The calibrated holding-force vectors, interpolated.
     Vector,
+    /// The arm model of a grid calibrated with an arm profile, as its calibration chose it
+    /// (with or without the residual lattice).
+    Arm,
 }
 
 impl Mode {
-    pub const ALL: [Mode; 3] = [Mode::None, Mode::Scalar, Mode::Vector];
+    pub const ALL: [Mode; 4] = [Mode::None, Mode::Scalar, Mode::Vector, Mode::Arm];
+
+    /// The modes run when none are named: none, scalar and vector, and arm for a device whose
+    /// profile has an arm.
+    pub fn defaults(has_arm: bool) -> Vec<Mode> {
+        let mut modes = vec![Mode::None, Mode::Scalar, Mode::Vector];
+        if has_arm {
+            modes.push(Mode::Arm);
+        }
+        modes
+    }
 
     /// The name used on the command line and in the output files.
     pub fn name(self) -> &'static str {
@@ -63,14 +76,20 @@ impl Mode {
             Mode::None => "none",
             Mode::Scalar => "scalar",
             Mode::Vector => "vector",
+            Mode::Arm => "arm",
         }
     }
 
-    fn compensation(self) -> Option<CompensationMode> {
+    /// The compensation of this mode with the grid `file`.
+    fn compensation(self, file: &GridFile) -> Option<CompensationMode> {
         match self {
             Mode::None => None,
             Mode::Scalar => Some(CompensationMode::Scalar),
             Mode::Vector => Some(CompensationMode::Vector),
+            Mode::Arm => Some(match file.model.as_ref().map(|m| m.chosen.as_str()) {
+                Some("arm-residual") => CompensationMode::ArmResidual,
+                _ => CompensationMode::Arm,
+            }),
         }
     }
 }
@@ -81,7 +100,7 @@ impl std::str::FromStr for Mode {
         Mode::ALL
             .into_iter()
             .find(|m| m.name() == s)
-            .ok_or_else(|| format!("unknown mode `{s}`; use none, scalar or vector"))
+            .ok_or_else(|| format!("unknown mode `{s}`; use none, scalar, vector or arm"))
     }
 }
 
@@ -126,7 +145,9 @@ pub enum ValidateError {
     Stiffness(f64),
     #[error("--repetitions {0} is out of range (1 to 1000)")]
     Repetitions(usize),
-    #[error("--modes names no mode, or one twice; give some of none, scalar, vector once each")]
+    #[error(
+        "--modes names no mode, or one twice; give some of none, scalar, vector, arm once each"
+    )]
     Modes,
     #[error(transparent)]
     Out(#[from] OutError),
@@ -234,6 +255,11 @@ pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, V
     check_request(request)?;
     crate::figure::check_out_dir(&request.out, "validate")?;
     let mut request = request.clone();
+    if request.modes.is_empty() {
+        let has_arm = crate::profile::Profile::for_device(&request.device, config)
+            .is_ok_and(|p| p.gravity_arm().is_some());
+        request.modes = Mode::defaults(has_arm);
+    }
     let simulated = matches!(request.device, DeviceSpec::Sim { .. });
     // On a simulated device the probe mass is part of the plant; on hardware the user attaches it.
     let mut device_config = config.clone();
@@ -307,7 +333,7 @@ fn check_request(r: &ValidateRequest) -> Result<(), ValidateError> {
     let mut modes = r.modes.clone();
     modes.sort();
     modes.dedup();
-    if modes.is_empty() || modes.len() != r.modes.len() {
+    if modes.len() != r.modes.len() {
         return Err(ValidateError::Modes);
     }
     if let Some(n) = r.sweep {
@@ -363,7 +389,7 @@ fn experiment_setup(
     let models = request
         .modes
         .iter()
-        .map(|mode| match mode.compensation() {
+        .map(|mode| match mode.compensation(file) {
             None => Ok(None),
             Some(m) => GravityModel::new(file.clone(), m, config.compensation.outside_grid)
                 .map(|model| Some(Box::new(model)))

@@ -17,9 +17,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::config::{CompensationMode, Config, OutsideGrid};
-use crate::control::calibration::extrapolate_from_neighbours;
 use crate::control::compensation::GravityModel;
-use crate::grid::{GridFile, MassGrid};
+use crate::grid::{extrapolate_from_neighbours, GridFile, MassGrid};
 use crate::sim::{SimDevice, SimError};
 
 /// Draws per point at most: a workspace that fills less than 1/`MAX_DRAWS` of its bounding box
@@ -51,6 +50,9 @@ pub struct Percentiles {
 /// One grid over the sweep's points.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct GridSweep {
+    /// The gravity model swept: the compensation mode the grid is used in ("scalar",
+    /// "vector", "arm", "arm-residual").
+    pub model: String,
     /// Vertices of the grid, and how many of them were measured.
     pub vertices: usize,
     pub measured_vertices: usize,
@@ -58,6 +60,8 @@ pub struct GridSweep {
     pub covered_fraction: f64,
     /// |F_true − F_G| / |F_true| over all points, %.
     pub residual_pct: Percentiles,
+    /// |F_true − F_G| over all points, mN.
+    pub residual_mn: Percentiles,
     /// The same over the covered points only (None: no point covered).
     pub covered_residual_pct: Option<Percentiles>,
 }
@@ -103,23 +107,7 @@ impl SweptGrid {
     /// The grid of `file` under `model`: the vertices its `[calibration]` record lists as
     /// unreachable or extrapolated were not measured.
     pub fn new(model: GravityModel, file: &GridFile) -> Self {
-        let grid = &model.grid;
-        let mut measured = vec![true; grid.masses.len()];
-        if let Some(c) = &file.calibration {
-            let centre = Vector3::from(c.centre_mm.unwrap_or_default()) * 1e-3;
-            let listed = c
-                .unreachable_vertices
-                .iter()
-                .chain(&c.extrapolated_vertices);
-            for k in listed.flatten() {
-                let x = centre + Vector3::new(k[0] as f64, k[1] as f64, k[2] as f64) * grid.spacing;
-                let at = (x - grid.origin) / grid.spacing;
-                let i = at.map(|u| u.round());
-                if (0..3).all(|a| i[a] >= 0.0 && (i[a] as usize) < grid.dims[a]) {
-                    measured[grid.index(i[0] as usize, i[1] as usize, i[2] as usize)] = false;
-                }
-            }
-        }
+        let measured = file.measured();
         Self { model, measured }
     }
 
@@ -262,23 +250,28 @@ impl GridSweep {
     /// `grid` over `truth` ([`reachable_truth`]).
     pub fn new(grid: &SweptGrid, truth: &[TruePoint]) -> Self {
         let mut all = Vec::with_capacity(truth.len());
+        let mut absolute = Vec::with_capacity(truth.len());
         let mut covered = Vec::new();
         for TruePoint {
             position: x,
             holding_force: f_true,
         } in truth
         {
-            let residual = 100.0 * (f_true - grid.model.force(x)).norm() / f_true.norm();
+            let error = (f_true - grid.model.force(x)).norm();
+            let residual = 100.0 * error / f_true.norm();
             all.push(residual);
+            absolute.push(error * 1e3);
             if grid.covers(x) {
                 covered.push(residual);
             }
         }
         Self {
+            model: grid.model.mode.to_string(),
             vertices: grid.measured.len(),
             measured_vertices: grid.measured.iter().filter(|&&m| m).count(),
             covered_fraction: covered.len() as f64 / truth.len().max(1) as f64,
             residual_pct: Percentiles::of(&mut all),
+            residual_mn: Percentiles::of(&mut absolute),
             covered_residual_pct: (!covered.is_empty()).then(|| Percentiles::of(&mut covered)),
         }
     }

@@ -79,6 +79,65 @@ pub fn with_device_id(grid: MassGrid, id: &str) -> GridFile {
     file
 }
 
+/// A grid file of `sim:phantom`'s paper cube with an arm model, as a calibration on the
+/// nominal unit writes it: the published arm's parameters, the plant's own force at each vertex
+/// (the arm model's plus 2 mN a vertex, for the residual lattice to hold), "arm-residual" chosen.
+pub fn phantom_arm_grid() -> GridFile {
+    use hgcd::arm::{ArmGravity, ArmTable};
+    use hgcd::grid::{ArmRecord, HeldOutRecord, ModelRecord};
+    let arm = hgcd::profile::Profile::built_in("phantom_1_5")
+        .unwrap()
+        .gravity_arm()
+        .unwrap();
+    let p = hgcd::sim::phantom::Phantom::published();
+    let upper = p.m_a * p.l1 + p.m_c * p.c_along_upper_arm + p.m_be * p.l5;
+    let fore = p.m_a * p.a_along_forearm + p.m_c * p.l3 - p.m_df * p.l6;
+    let parameters = vec![upper, 0.0, fore, 0.0, 0.0, 0.0];
+    let gravity = ArmGravity {
+        arm,
+        parameters: [upper, 0.0, fore, 0.0, 0.0, 0.0, 0.0],
+        up: Vector3::z(),
+        g: 9.81,
+    };
+    let grid = MassGrid::uniform(
+        0.0,
+        9.81,
+        Vector3::z(),
+        Vector3::new(-0.04, -0.04, -0.04),
+        0.04,
+        [3, 3, 3],
+    );
+    let forces = (0..27)
+        .map(|n| {
+            let (i, j, k) = grid.coordinates(n);
+            let f = gravity.force(&grid.vertex_position(i, j, k));
+            (f + Vector3::new(0.002, 0.0, 0.0)).into()
+        })
+        .collect();
+    let mut file = GridFile::from(grid);
+    file.vertices.force_vectors = forces;
+    file.arm = Some(ArmRecord {
+        profile: "phantom_1_5".into(),
+        parameters,
+        gravity_direction: [0.0, 0.0, 1.0],
+        g: 9.81,
+        rank: 4,
+        unidentified: vec!["base, radial".into(), "base, lateral".into()],
+        condition: 4.0,
+        rms_residual_mn: 0.1,
+        normalised_residual: 0.1,
+        tilt_deg: 0.0,
+        geometry: ArmTable::of(&arm),
+    });
+    file.model = Some(ModelRecord {
+        chosen: "arm-residual".into(),
+        held_out_holds: 7,
+        held_out_pct: HeldOutRecord::default(),
+        warning: None,
+    });
+    file
+}
+
 /// The `hgcd` binary, run from the temporary directory so no installed config is picked up.
 pub fn hgcd() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_hgcd"));

@@ -35,6 +35,12 @@
 // `hgcd_daemon_status.mode`: the grid's per-vertex holding forces, interpolated.
 #define HGCD_MODE_VECTOR 2
 
+// `hgcd_daemon_status.mode`: the arm model fitted at calibration.
+#define HGCD_MODE_ARM 3
+
+// `hgcd_daemon_status.mode`: the arm model plus the lattice of what it left over.
+#define HGCD_MODE_ARM_RESIDUAL 4
+
 // `hgcd_state.flags`: motors enabled.
 #define HGCD_FLAG_MOTORS_ENABLED 1
 

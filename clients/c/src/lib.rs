@@ -76,6 +76,10 @@ pub const HGCD_MODE_NONE: c_int = 0;
 pub const HGCD_MODE_SCALAR: c_int = 1;
 /// `hgcd_daemon_status.mode`: the grid's per-vertex holding forces, interpolated.
 pub const HGCD_MODE_VECTOR: c_int = 2;
+/// `hgcd_daemon_status.mode`: the arm model fitted at calibration.
+pub const HGCD_MODE_ARM: c_int = 3;
+/// `hgcd_daemon_status.mode`: the arm model plus the lattice of what it left over.
+pub const HGCD_MODE_ARM_RESIDUAL: c_int = 4;
 
 /// `hgcd_state.flags`: motors enabled.
 pub const HGCD_FLAG_MOTORS_ENABLED: u16 = 0x1;
@@ -726,6 +730,8 @@ impl Session {
                 Compensating::None => HGCD_MODE_NONE,
                 Compensating::Scalar => HGCD_MODE_SCALAR,
                 Compensating::Vector => HGCD_MODE_VECTOR,
+                Compensating::Arm => HGCD_MODE_ARM,
+                Compensating::ArmResidual => HGCD_MODE_ARM_RESIDUAL,
             },
             calibrating: status.calibrating,
             clients: status.clients as u64,

@@ -10,8 +10,8 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::explore::{self, Explorer};
 use super::outcome::{
-    carry_to_vertices, extrapolate_from_neighbours, fill_from_neighbours, principal_direction,
-    CalibrationFailure, CalibrationResult, InitialMeasurement, VertexResult,
+    carry_to_vertices, principal_direction, CalibrationFailure, CalibrationResult,
+    InitialMeasurement, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Stroked, Strokes};
@@ -21,6 +21,7 @@ use crate::config::WorkspaceMode;
 use crate::control::pd::{AxisGains, PointHold};
 use crate::control::{ControlOutput, Controller, DeviceState};
 use crate::estimate::Foaw;
+use crate::grid::{extrapolate_from_neighbours, fill_from_neighbours};
 
 /// Progress, sent with `try_send` from the servo thread.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -579,6 +580,7 @@ impl Calibration {
                 vertex,
                 mass: 0.0,
                 force: Vector3::zeros(),
+                held_force: Vector3::zeros(),
                 one_sided_force: Vector3::zeros(),
                 friction: Vector3::zeros(),
                 iterations: 0,
@@ -1868,6 +1870,7 @@ impl Calibration {
             vertex,
             mass: 0.0,
             force: self.estimate,
+            held_force: self.estimate,
             one_sided_force: self.one_sided.unwrap_or(self.estimate),
             friction: self.band_friction,
             iterations: self.iteration,
@@ -1902,6 +1905,7 @@ impl Calibration {
             vertex,
             mass: 0.0,
             force: Vector3::zeros(),
+            held_force: Vector3::zeros(),
             one_sided_force: Vector3::zeros(),
             friction: Vector3::zeros(),
             iterations: self.iteration,

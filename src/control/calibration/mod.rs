@@ -37,15 +37,15 @@ mod probe;
 pub(crate) mod steady;
 
 pub use machine::{Calibration, CalibrationEvent};
-pub(crate) use outcome::extrapolate_from_neighbours;
 pub use outcome::{CalibrationFailure, CalibrationResult, InitialMeasurement, VertexResult};
 pub use plan::{GridPlan, PlanError, Vertex};
 
 use nalgebra::Vector3;
 
 use super::pd::LinearisedGains;
-use crate::config::{Config, WorkspaceMode};
+use crate::config::{Config, DeviceSpec, HoldPlan, WorkspaceMode};
 use crate::estimate::FoawVariant;
+use crate::profile::Profile;
 
 /// Calibration parameters in SI units.
 #[derive(Clone, Debug, PartialEq)]
@@ -89,6 +89,8 @@ pub struct CalibrationParams {
     pub max_window: usize,
     /// The paper's cube, or the workspace explored first.
     pub workspace_mode: WorkspaceMode,
+    /// Hold the cube's corners only (`calibration.holds`).
+    pub sparse: bool,
 }
 
 impl CalibrationParams {
@@ -117,6 +119,19 @@ impl CalibrationParams {
             noise_bound: config.estimate.noise_bound(),
             max_window: config.estimate.max_window,
             workspace_mode: c.workspace,
+            sparse: c.holds == HoldPlan::Sparse,
         }
+    }
+
+    /// [`from_config`](Self::from_config) for the device `device`: `calibration.holds = "auto"`
+    /// holds sparsely on a device whose profile has an arm (the arm model needs few holds, far
+    /// apart in joint angles; docs/calibration.md §13).
+    pub fn for_device(config: &Config, device: &DeviceSpec) -> Self {
+        let mut params = Self::from_config(config);
+        if config.calibration.holds == HoldPlan::Auto {
+            params.sparse =
+                Profile::for_device(device, config).is_ok_and(|p| p.gravity_arm().is_some());
+        }
+        params
     }
 }

@@ -1,15 +1,21 @@
-//! What a calibration leaves on disk: the grid file built from its result, and the check, made
-//! before it starts, that the file will fit where it goes. Used by `hgcd calibrate` and by the
-//! daemon's calibration on request alike.
+//! What a calibration leaves on disk: the grid file built from its result, with the gravity
+//! model chosen from its holds (`fit`), and the check, made before it starts, that the file will
+//! fit where it goes. Used by `hgcd calibrate` and by the daemon's calibration on request alike.
 
 use std::path::Path;
 use std::time::SystemTime;
 
+use tracing::warn;
+
 use super::{CalibrationResult, GridPlan};
+use crate::arm::ArmTable;
 use crate::config::{Config, DeviceSpec};
+use crate::fit::{self, Hold, LatticeHolds};
 use crate::grid::{
-    self, CalibrationRecord, DeviceRecord, GridError, GridFile, MassGrid, VertexRecords,
+    self, ArmRecord, CalibrationRecord, DeviceRecord, GridError, GridFile, HeldOutRecord, MassGrid,
+    ModelRecord, VertexRecords,
 };
+use crate::profile::Profile;
 
 /// The record of the device a grid is made for.
 fn device_record(device: &DeviceSpec) -> DeviceRecord {
@@ -25,12 +31,14 @@ fn device_record(device: &DeviceSpec) -> DeviceRecord {
 /// produce on `device` (see [`grid::check_room`]).
 pub fn check_room(path: &Path, plan: &GridPlan, device: &DeviceSpec) -> Result<(), GridError> {
     let vertices = plan.most_vertices();
-    let bytes = GridFile::size_bound(vertices, device.to_string().len());
+    // The arm model's tables: under 2 KiB with the longest warning.
+    let bytes = GridFile::size_bound(vertices, device.to_string().len()) + 2048;
     grid::check_room(path, bytes)
 }
 
 /// The grid file a finished calibration produced on `device` with `config`: the lattice, the
-/// device, the parameters used and what was measured at each vertex.
+/// device, the parameters used, what was measured at each vertex and, for a device whose profile
+/// has an arm, the arm model and the model chosen by held-out score (format 2, [`with_model`]).
 pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpec) -> GridFile {
     let c = &config.calibration;
     let i = &result.initial;
@@ -99,5 +107,87 @@ pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpe
             .collect(),
         friction_n: result.vertices.iter().map(|v| v.friction.into()).collect(),
     };
+    with_model(&mut file, result, device, config);
     file
+}
+
+/// Fit the arm model to the grid's holds and choose the model by held-out score
+/// ([`fit::choose`]), recording both in `file`; nothing for a device whose profile has no arm
+/// (its file stays format 1, compensated as before).
+fn with_model(
+    file: &mut GridFile,
+    result: &CalibrationResult,
+    device: &DeviceSpec,
+    config: &Config,
+) {
+    let profile = match Profile::for_device(device, config) {
+        Ok(profile) => profile,
+        Err(e) => {
+            warn!("no arm model: {e}");
+            return;
+        }
+    };
+    let Some(arm) = profile.gravity_arm() else {
+        return;
+    };
+    let grid = &file.grid;
+    let measured = file.measured();
+    let positions: Vec<_> = (0..grid.vertex_count())
+        .map(|n| {
+            let (i, j, k) = grid.coordinates(n);
+            grid.vertex_position(i, j, k)
+        })
+        .collect();
+    let holds = (0..grid.vertex_count())
+        .map(|n| {
+            let force = file.vertices.force_vectors.get(n)?;
+            measured[n].then(|| Hold::new(positions[n], (*force).into()))
+        })
+        .collect();
+    let held = result
+        .vertices
+        .iter()
+        .zip(&measured)
+        .map(|(v, &m)| (m && v.reached).then(|| Hold::new(v.measured_at, v.held_force)))
+        .collect();
+    let lattice = LatticeHolds {
+        dims: grid.dims,
+        positions,
+        holds,
+        measured: held,
+        up: grid.gravity_direction,
+        g: grid.g,
+    };
+    let choice = fit::choose(&lattice, Some(&arm));
+    if let Some(warning) = choice.warning() {
+        warn!("{warning}");
+    }
+    file.arm = match &choice.arm {
+        Some(Ok(fit)) => Some(ArmRecord {
+            profile: profile.name.clone(),
+            parameters: fit.gravity.parameters[..arm.parameter_count()].to_vec(),
+            gravity_direction: fit.gravity.up.into(),
+            g: fit.gravity.g,
+            rank: fit.rank,
+            unidentified: fit.unidentified.iter().map(|s| s.to_string()).collect(),
+            condition: fit.condition,
+            rms_residual_mn: fit.rms_residual * 1e3,
+            normalised_residual: fit.normalised_residual,
+            tilt_deg: fit.tilt.to_degrees(),
+            geometry: ArmTable::of(&arm),
+        }),
+        _ => None,
+    };
+    let s = &choice.scores;
+    file.model = Some(ModelRecord {
+        chosen: choice.mode.to_string(),
+        held_out_holds: choice.held_out,
+        held_out_pct: HeldOutRecord {
+            scalar: Some(s.scalar),
+            vector: Some(s.vector),
+            arm: s.arm,
+            arm_residual: s.arm_residual,
+        },
+        warning: choice.warning(),
+    });
 }

@@ -149,14 +149,49 @@ impl GridPlan {
                 }
             }
         }
-        Ok(Self {
+        let mut plan = Self {
             origin: at([kept[0][0], kept[1][0], kept[2][0]]),
             path,
             grid_index,
             dims,
             left_out,
             extrapolated: Vec::new(),
-        })
+        };
+        if params.sparse && params.workspace_mode == crate::config::WorkspaceMode::Cube {
+            plan.keep_corners();
+        }
+        Ok(plan)
+    }
+
+    /// Visit only the grid's eight corners, in the serpentine's order; the others are not
+    /// visited, their values filled from these (`calibration.holds = "sparse"`). The corners are
+    /// the vertices farthest apart in joint angles, where the arm model's parameters are best
+    /// conditioned.
+    fn keep_corners(&mut self) {
+        let dims = self.dims;
+        let coordinates = |n: usize| {
+            [
+                n % dims[0],
+                (n / dims[0]) % dims[1],
+                n / (dims[0] * dims[1]),
+            ]
+        };
+        let held = |n: usize| {
+            let c = coordinates(n);
+            (0..3).all(|a| c[a] == 0 || c[a] == dims[a] - 1)
+        };
+        let mut path = Vec::with_capacity(self.path.len());
+        let mut grid_index = Vec::with_capacity(self.path.len());
+        for (vertex, &n) in self.path.iter().zip(&self.grid_index) {
+            if held(n) {
+                path.push(*vertex);
+                grid_index.push(n);
+            } else {
+                self.extrapolated.push((*vertex, n));
+            }
+        }
+        self.path = path;
+        self.grid_index = grid_index;
     }
 
     /// Make room for an explored grid ([`GridPlan::explore`]) of up to
@@ -250,7 +285,7 @@ impl GridPlan {
         if self.extrapolated.capacity() >= MAX_EXPLORED {
             MAX_EXPLORED
         } else {
-            self.path.len() + self.left_out.len()
+            self.path.len() + self.left_out.len() + self.extrapolated.len()
         }
     }
 

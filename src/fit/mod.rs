@@ -1,0 +1,280 @@
+//! Gravity models fitted from holds, and the held-out score that chooses among them.
+//!
+//! Calibration measures *holds*: where the handle was held and the force that held it there.
+//! This module turns them into the parameters of a model, off the servo thread:
+//! - the paper's scalar lattice (M(X) g v_G) and the vector lattice (the holding forces
+//!   themselves), interpolated trilinearly: they need no knowledge of the device, and hold
+//!   nothing beyond the calibrated cube;
+//! - the arm model ([`arm::fit_arm`]): for a device whose profile gives its kinematics, the
+//!   base parameters of its links' weight and the gravity direction, which fix the holding
+//!   force everywhere the arm can go;
+//! - the arm model plus a lattice of what it leaves over (a cable's spring, a counterweight's
+//!   sag), inside the cube, fading out over one spacing beyond it.
+//!
+//! Some holds are kept out of every fit; each candidate is scored on them
+//! ([`choose`]) and the best is used. `control::compensation::GravityModel` evaluates the one
+//! chosen.
+
+pub mod arm;
+
+use nalgebra::Vector3;
+
+use crate::arm::Arm;
+use crate::config::CompensationMode;
+use crate::grid::extrapolate_from_neighbours;
+pub use arm::{fit_arm, ArmFit, ArmFitError};
+
+/// A hold's noise: this share of its force, or this floor, whichever is larger (the accuracy
+/// of the friction-robust hold, docs/calibration.md §6), N.
+pub const HOLD_NOISE_SHARE: f64 = 0.005;
+pub const HOLD_NOISE_FLOOR_N: f64 = 0.001;
+
+/// One in this many holds is kept out of the fits and scores them.
+pub const HELD_OUT_EVERY: usize = 4;
+
+/// A candidate within this many percentage points of the best held-out score (or 10 % of it,
+/// whichever is more) counts as good as the best; among those, the model that covers the whole
+/// workspace is used.
+pub const SCORE_TOLERANCE_PCT: f64 = 0.25;
+
+/// The arm model is judged off when it explains the holds this many times worse than their
+/// noise (RMS of the residual's components over each hold's noise).
+pub const RESIDUAL_ABOVE_NOISE: f64 = 2.0;
+
+/// Two unit vectors spanning the plane across `up` (a tilt of `up` is a step in that plane).
+pub fn across(up: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    let helper = if up.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let e1 = up.cross(&helper).normalize();
+    (e1, up.cross(&e1))
+}
+
+/// A holding force measured at a position (device frame, SI).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hold {
+    pub position: Vector3<f64>,
+    pub force: Vector3<f64>,
+    /// Standard deviation of each component of `force`, N.
+    pub noise: f64,
+}
+
+impl Hold {
+    /// A hold with the calibration's noise ([`HOLD_NOISE_SHARE`], [`HOLD_NOISE_FLOOR_N`]).
+    pub fn new(position: Vector3<f64>, force: Vector3<f64>) -> Self {
+        Self {
+            position,
+            force,
+            noise: (force.norm() * HOLD_NOISE_SHARE).max(HOLD_NOISE_FLOOR_N),
+        }
+    }
+}
+
+/// The holds of a lattice calibration: one per vertex the handle was held at.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LatticeHolds {
+    /// Vertices along x, y, z (grid order, x fastest).
+    pub dims: [usize; 3],
+    /// Each vertex's position, m.
+    pub positions: Vec<Vector3<f64>>,
+    /// Each vertex's hold carried to the vertex (what the lattices interpolate); None where the
+    /// handle was not held (unreachable, extrapolated).
+    pub holds: Vec<Option<Hold>>,
+    /// The same holds where they were measured, a millimetre or two off the vertex (what the
+    /// arm model is fitted to).
+    pub measured: Vec<Option<Hold>>,
+    /// The lattice's v_G (the scalar mode's direction) and g, m/s².
+    pub up: Vector3<f64>,
+    pub g: f64,
+}
+
+/// Held-out scores: 100 √(Σ|F − F̂|² / Σ|F|²) over the held-out holds, %; None for a model that
+/// could not be fitted.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Scores {
+    pub scalar: f64,
+    pub vector: f64,
+    pub arm: Option<f64>,
+    pub arm_residual: Option<f64>,
+}
+
+impl Scores {
+    /// The score of `mode`.
+    pub fn of(&self, mode: CompensationMode) -> Option<f64> {
+        match mode {
+            CompensationMode::Scalar => Some(self.scalar),
+            CompensationMode::Vector => Some(self.vector),
+            CompensationMode::Arm => self.arm,
+            CompensationMode::ArmResidual => self.arm_residual,
+        }
+    }
+}
+
+/// The model chosen for a calibration, and why.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Choice {
+    pub mode: CompensationMode,
+    pub scores: Scores,
+    /// Holds kept out of the fits.
+    pub held_out: usize,
+    /// The arm model fitted to every hold (None without an arm).
+    pub arm: Option<Result<ArmFit, ArmFitError>>,
+}
+
+impl Choice {
+    /// A sentence on the arm model when it was not chosen or is off (None when all is well).
+    pub fn warning(&self) -> Option<String> {
+        let fit = match &self.arm {
+            None => return None,
+            Some(Err(e)) => return Some(format!("the arm model was not used: {e}")),
+            Some(Ok(fit)) => fit,
+        };
+        if !matches!(
+            self.mode,
+            CompensationMode::Arm | CompensationMode::ArmResidual
+        ) {
+            return Some(format!(
+                "the arm model scored {:.1} % on the held-out holds against the {} lattice's \
+                 {:.1} %: the profile's arm does not describe this device (check device.profile); \
+                 the lattice compensates, inside the calibrated cube only",
+                self.scores.arm.unwrap_or(f64::NAN),
+                self.mode,
+                self.scores.of(self.mode).unwrap_or(f64::NAN),
+            ));
+        }
+        (fit.normalised_residual > RESIDUAL_ABOVE_NOISE).then(|| {
+            format!(
+                "the arm model leaves {:.1} times the holds' noise ({:.1} mN RMS): the arm's \
+                 geometry in the profile is off, or a force the arm model lacks acts on it \
+                 (a cable, a spring)",
+                fit.normalised_residual,
+                fit.rms_residual * 1e3
+            )
+        })
+    }
+}
+
+/// Score the candidates on held-out holds and choose: every [`HELD_OUT_EVERY`]-th measured hold
+/// (the second, the sixth, …) is kept out; the lattices predict it from their neighbours, the arm
+/// model from its fit to the others. Without `arm` the vector lattice is chosen (the scalar one
+/// without holds to score), as before arm models existed. The arm model returned is fitted to
+/// every hold.
+pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
+    let measured: Vec<usize> = (0..lattice.holds.len())
+        .filter(|&n| lattice.holds[n].is_some())
+        .collect();
+    let held_out: Vec<usize> = measured
+        .iter()
+        .copied()
+        .skip(1)
+        .step_by(HELD_OUT_EVERY)
+        .collect();
+    let training: Vec<bool> = (0..lattice.holds.len())
+        .map(|n| lattice.holds[n].is_some() && !held_out.contains(&n))
+        .collect();
+    let truth: Vec<Hold> = held_out
+        .iter()
+        .map(|&n| lattice.holds[n].expect("measured"))
+        .collect();
+    let score = |predicted: &[Vector3<f64>]| {
+        let error: f64 = truth
+            .iter()
+            .zip(predicted)
+            .map(|(h, p)| (h.force - p).norm_squared())
+            .sum();
+        let size: f64 = truth.iter().map(|h| h.force.norm_squared()).sum();
+        100.0 * (error / size.max(f64::MIN_POSITIVE)).sqrt()
+    };
+    // The lattices: the held-out vertices filled from the training ones.
+    let forces: Vec<Vector3<f64>> = lattice
+        .holds
+        .iter()
+        .map(|h| h.map_or(Vector3::zeros(), |h| h.force))
+        .collect();
+    let filled = |values: &[Vector3<f64>]| {
+        let mut values = values.to_vec();
+        if training.contains(&true) {
+            extrapolate_from_neighbours(lattice.dims, &mut values, &training);
+        }
+        values
+    };
+    let vector = filled(&forces);
+    let scalar: Vec<Vector3<f64>> = filled(
+        &forces
+            .iter()
+            .map(|f| lattice.up * f.dot(&lattice.up))
+            .collect::<Vec<_>>(),
+    );
+    let at = |values: &[Vector3<f64>]| held_out.iter().map(|&n| values[n]).collect::<Vec<_>>();
+    let mut scores = Scores {
+        scalar: score(&at(&scalar)),
+        vector: score(&at(&vector)),
+        ..Scores::default()
+    };
+    let Some(arm) = arm else {
+        return Choice {
+            mode: CompensationMode::Vector,
+            scores,
+            held_out: held_out.len(),
+            arm: None,
+        };
+    };
+    let starts = [arm.up(), lattice.up];
+    let raw = |n: usize| lattice.measured[n].or(lattice.holds[n]).expect("measured");
+    let train: Vec<Hold> = (0..training.len())
+        .filter(|&n| training[n])
+        .map(raw)
+        .collect();
+    if let Ok(fit) = fit_arm(arm, &train, lattice.g, &starts) {
+        let model = |x: &Vector3<f64>| fit.gravity.force(x);
+        // Scored where the held-out holds were measured, against what they measured.
+        let error: f64 = held_out
+            .iter()
+            .map(|&n| (raw(n).force - model(&raw(n).position)).norm_squared())
+            .sum();
+        let size: f64 = held_out.iter().map(|&n| raw(n).force.norm_squared()).sum();
+        scores.arm = Some(100.0 * (error / size.max(f64::MIN_POSITIVE)).sqrt());
+        let residual: Vec<Vector3<f64>> = (0..forces.len())
+            .map(|n| forces[n] - model(&lattice.positions[n]))
+            .collect();
+        let residual = filled(&residual);
+        scores.arm_residual = Some(score(
+            &held_out
+                .iter()
+                .map(|&n| model(&lattice.positions[n]) + residual[n])
+                .collect::<Vec<_>>(),
+        ));
+    }
+    let all: Vec<Hold> = measured.iter().map(|&n| raw(n)).collect();
+    let full = fit_arm(arm, &all, lattice.g, &starts);
+    // Preference when scores are as good: the models that cover the whole workspace first.
+    let order = [
+        CompensationMode::Arm,
+        CompensationMode::ArmResidual,
+        CompensationMode::Vector,
+        CompensationMode::Scalar,
+    ];
+    let usable = |m: CompensationMode| match m {
+        CompensationMode::Arm | CompensationMode::ArmResidual => full.is_ok(),
+        _ => true,
+    };
+    let best = order
+        .iter()
+        .filter(|&&m| usable(m))
+        .filter_map(|&m| scores.of(m))
+        .fold(f64::INFINITY, f64::min);
+    let tolerance = SCORE_TOLERANCE_PCT.max(0.1 * best);
+    let mode = order
+        .into_iter()
+        .filter(|&m| usable(m))
+        .find(|&m| scores.of(m).is_some_and(|s| s <= best + tolerance))
+        .unwrap_or(CompensationMode::Vector);
+    Choice {
+        mode,
+        scores,
+        held_out: held_out.len(),
+        arm: Some(full),
+    }
+}

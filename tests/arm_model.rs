@@ -1,0 +1,302 @@
+//! The arm model against the simulated plants' own holding force (`Plant::holding_force`): with
+//! the published masses it is the plant's force everywhere the handle can go; fitted to the
+//! plant's exact holds at the paper's cube it extrapolates to the whole workspace; a tilted base
+//! is found; the wrong arm is caught.
+
+use hgcd::arm::{Arm, ArmGravity, MAX_PARAMETERS};
+use hgcd::config::{CompensationMode, Config};
+use hgcd::fit::{choose, fit_arm, Hold, LatticeHolds};
+use hgcd::profile::Profile;
+use hgcd::sim::delta::Delta;
+use hgcd::sim::phantom::Phantom;
+use hgcd::validate::sweep::{reachable_truth, TruePoint};
+use nalgebra::Vector3;
+
+fn profile_arm(model: &str, config: &Config) -> Arm {
+    let spec = format!("sim:{model}").parse().unwrap();
+    Profile::for_device(&spec, config)
+        .unwrap()
+        .gravity_arm()
+        .expect("an arm")
+}
+
+/// p95 of |F_true − F| / |F_true| over `truth`, %.
+fn p95(truth: &[TruePoint], model: impl Fn(&Vector3<f64>) -> Vector3<f64>) -> f64 {
+    let mut r: Vec<f64> = truth
+        .iter()
+        .map(|t| 100.0 * (t.holding_force - model(&t.position)).norm() / t.holding_force.norm())
+        .collect();
+    r.sort_by(f64::total_cmp);
+    r[(0.95 * r.len() as f64).ceil() as usize - 1]
+}
+
+#[test]
+fn with_the_published_masses_the_arm_model_is_the_plants_force_everywhere() {
+    let config = Config::default();
+    let p = Phantom::published();
+    // Σ m p of each body, written on the upper arm's and the forearm's directions.
+    let upper = p.m_a * p.l1 + p.m_c * p.c_along_upper_arm + p.m_be * p.l5;
+    let fore = p.m_a * p.a_along_forearm + p.m_c * p.l3 - p.m_df * p.l6;
+    let d = Delta::nominal();
+    let along = d.m_arm * d.arm_com + 0.5 * d.m_rods * d.arm;
+    let platform = d.m_platform + 1.5 * d.m_rods;
+    let cases = [
+        ("phantom", [upper, 0.0, fore, 0.0, 0.0, 0.0, 0.0]),
+        ("delta", [along, 0.0, along, 0.0, along, 0.0, platform]),
+    ];
+    for (model, parameters) in cases {
+        let gravity = ArmGravity {
+            arm: profile_arm(model, &config),
+            parameters,
+            up: Vector3::z(),
+            g: config.sim.g,
+        };
+        let truth = reachable_truth(model, &config, 500, 7).unwrap();
+        for t in &truth {
+            let f = gravity.force(&t.position);
+            assert!(
+                (f - t.holding_force).norm() < 1e-6 + 1e-4 * t.holding_force.norm(),
+                "{model} at {:?}: {f:?} against {:?}",
+                t.position,
+                t.holding_force
+            );
+        }
+    }
+}
+
+/// The plant's exact holds at the vertices of the paper's default cube (±40 mm).
+fn cube_holds(model: &str, config: &Config) -> LatticeHolds {
+    let mut positions = Vec::new();
+    let mut holds = Vec::new();
+    for n in 0..27 {
+        let i = Vector3::new((n % 3) as f64, ((n / 3) % 3) as f64, (n / 9) as f64);
+        let x = (i.add_scalar(-1.0)) * 0.04;
+        let mut placed = config.clone();
+        placed.sim.start_position_mm = (x * 1e3).into();
+        let device = hgcd::sim::SimDevice::from_config(model, &placed).unwrap();
+        holds.push(Some(Hold::new(x, device.plant().holding_force())));
+        positions.push(x);
+    }
+    LatticeHolds {
+        dims: [3, 3, 3],
+        positions,
+        measured: holds.clone(),
+        holds,
+        up: Vector3::z(),
+        g: config.sim.g,
+    }
+}
+
+/// Fitted to the plant's exact holds at the cube's 27 vertices, the arm model holds the whole
+/// workspace, level or tilted 10°, and finds the tilt: on the nominal unit (the profile's
+/// geometry exactly) within 0.2 % and 0.05°; on unit 2, whose link lengths are up to 0.5 % and
+/// whose home is up to 1 mm off the profile's, within 5 %, the tilt absorbing part of the
+/// geometry's error.
+#[test]
+fn fitted_to_the_cubes_exact_holds_it_holds_the_whole_workspace_level_or_tilted() {
+    for model in ["phantom", "delta", "woodenhaptics"] {
+        for (unit, within_pct, within_deg) in [(0, 0.2, 0.05), (2, 5.0, 1.0)] {
+            for tilt_deg in [0.0f64, 10.0] {
+                let mut config = Config::default();
+                config.sim.unit_seed = unit;
+                let (s, c) = tilt_deg.to_radians().sin_cos();
+                config.sim.gravity_direction = [s * 0.6, s * 0.8, c];
+                let arm = profile_arm(model, &config);
+                let lattice = cube_holds(model, &config);
+                let holds: Vec<Hold> = lattice.holds.iter().flatten().copied().collect();
+                let fit = fit_arm(&arm, &holds, config.sim.g, &[arm.up()]).unwrap();
+                let truth = reachable_truth(model, &config, 1000, 3).unwrap();
+                let whole = p95(&truth, |x| fit.gravity.force(x));
+                let up = Vector3::from(config.sim.gravity_direction).normalize();
+                let off = fit.gravity.up.angle(&up).to_degrees();
+                let case = format!("{model} unit {unit} tilted {tilt_deg}°");
+                println!(
+                    "{case}: whole-workspace p95 {whole:.3} %, v_G off by {off:.4}°, rank {}, \
+                     condition {:.0}, unidentified {:?}, residual/noise {:.3}",
+                    fit.rank, fit.condition, fit.unidentified, fit.normalised_residual
+                );
+                assert!(whole < within_pct, "{case}: p95 {whole} %");
+                assert!(off < within_deg, "{case}: v_G off by {off}°");
+                let choice = choose(&lattice, Some(&arm));
+                assert!(
+                    matches!(
+                        choice.mode,
+                        CompensationMode::Arm | CompensationMode::ArmResidual
+                    ),
+                    "{case}: {choice:?}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn the_wrong_arm_is_caught_by_its_held_out_score() {
+    let config = Config::default();
+    let lattice = cube_holds("phantom", &config);
+    let wrong = profile_arm("delta", &config);
+    let choice = choose(&lattice, Some(&wrong));
+    println!("{:?}", choice.scores);
+    assert!(
+        matches!(
+            choice.mode,
+            CompensationMode::Vector | CompensationMode::Scalar
+        ),
+        "{choice:?}"
+    );
+    assert!(choice.warning().is_some());
+    let _ = MAX_PARAMETERS;
+}
+
+/// A calibration of `sim:MODEL` with `config`, held as `hgcd calibrate` holds it (the device's
+/// profile decides the holds), in virtual time.
+fn calibrated(model: &str, config: &Config) -> hgcd::control::calibration::CalibrationResult {
+    use hgcd::control::calibration::{Calibration, CalibrationParams};
+    use hgcd::servo::{self, ServoOptions};
+    use hgcd::transport::sim::SimTransport;
+    use hgcd::transport::Pacing;
+    let spec = format!("sim:{model}").parse().unwrap();
+    let device = hgcd::sim::SimDevice::from_config(model, config).unwrap();
+    let mut transport = SimTransport::new(device, Pacing::Virtual);
+    let mut calibration =
+        Calibration::new(CalibrationParams::for_device(config, &spec), None).unwrap();
+    let mut options = ServoOptions::from_config(config);
+    options.stop_on_fault = true;
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    servo::run(&mut transport, &mut calibration, &options, &stop, None).unwrap();
+    calibration.outcome().unwrap().unwrap()
+}
+
+/// The plant's holding force at `x` (the handle placed there at rest).
+fn plant_force(model: &str, config: &Config, x: &Vector3<f64>) -> Vector3<f64> {
+    let mut placed = config.clone();
+    placed.sim.start_position_mm = (x * 1e3).into();
+    hgcd::sim::SimDevice::from_config(model, &placed)
+        .unwrap()
+        .plant()
+        .holding_force()
+}
+
+#[test]
+#[ignore = "diagnostic: prints each hold against the plant's force"]
+fn holds_against_the_plant() {
+    let cases: Vec<(&str, u64, f64, &str)> = std::env::var("HOLDS_CASES")
+        .map(|v| {
+            v.split(';')
+                .map(|c| {
+                    let f: Vec<&str> = c.split(',').collect();
+                    let leak =
+                        |s: &str| -> &'static str { Box::leak(s.to_string().into_boxed_str()) };
+                    (
+                        leak(f[0]),
+                        f[1].parse().unwrap(),
+                        f[2].parse().unwrap(),
+                        leak(f[3]),
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_else(|_| vec![("phantom", 2, 0.04, "auto")]);
+    for (model, seed, friction, holds) in cases {
+        let mut config = Config::default();
+        config.calibration.holds = toml::Value::String(holds.into()).try_into().unwrap();
+        config.sim.unit_seed = seed;
+        config.sim.coulomb_friction_n = friction;
+        let result = calibrated(model, &config);
+        println!("{model} unit {seed} at {friction} N: {} s", result.duration);
+        for v in result.vertices.iter().filter(|v| v.reached) {
+            let truth = plant_force(model, &config, &v.measured_at);
+            println!(
+                "  at {:?} mm: held {:?}, plant {:?}: off {:.2} mN ({:.2} %)",
+                (v.measured_at * 1e3)
+                    .map(|c| (c * 10.0).round() / 10.0)
+                    .as_slice(),
+                v.held_force.as_slice(),
+                truth.as_slice(),
+                (v.held_force - truth).norm() * 1e3,
+                100.0 * (v.held_force - truth).norm() / truth.norm()
+            );
+        }
+    }
+}
+
+/// The sweep of the Must show: on each arm, units 1 and 2, 0.04 N at the handle, level and
+/// tilted 10°, a default calibration (the cube's corners held, the model chosen by held-out
+/// score) against the plant's own force at 1000 random points of the whole reachable workspace.
+/// Its table is docs/calibration.md §13.3; rerun with
+/// `cargo test --release --test arm_model -- --ignored --nocapture whole_workspace`.
+#[test]
+#[ignore = "about two minutes: the table of docs/calibration.md §13.3"]
+fn whole_workspace_after_a_default_calibration_on_every_arm() {
+    use hgcd::control::calibration::persist::grid_file;
+    use hgcd::control::compensation::GravityModel;
+    use hgcd::validate::sweep::{GridSweep, SweptGrid};
+    println!("| device | unit | tilt | device time | model | held-out | p50 | p95 | p95 | max |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    for model in ["phantom", "delta", "woodenhaptics"] {
+        for unit in [1, 2] {
+            for tilt_deg in [0.0f64, 10.0] {
+                let mut config = Config::default();
+                if model == "woodenhaptics" {
+                    let shipped = format!("config/validate-woodenhaptics-unit-{unit}.toml");
+                    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(shipped);
+                    config = Config::load(&path).unwrap();
+                }
+                config.sim.unit_seed = unit;
+                config.sim.coulomb_friction_n = 0.04;
+                let (s, c) = tilt_deg.to_radians().sin_cos();
+                config.sim.gravity_direction = [s * 0.6, s * 0.8, c];
+                let result = calibrated(model, &config);
+                let spec = format!("sim:{model}").parse().unwrap();
+                let file = grid_file(&result, &config, &spec);
+                let chosen = file.model.clone().unwrap();
+                let gravity =
+                    GravityModel::configured(file.clone(), None, Default::default()).unwrap();
+                let truth = reachable_truth(model, &config, 1000, 1).unwrap();
+                let sweep = GridSweep::new(&SweptGrid::new(gravity, &file), &truth);
+                let score = match chosen.chosen.as_str() {
+                    "arm" => chosen.held_out_pct.arm,
+                    "arm-residual" => chosen.held_out_pct.arm_residual,
+                    "vector" => chosen.held_out_pct.vector,
+                    _ => chosen.held_out_pct.scalar,
+                };
+                println!(
+                    "| sim:{model} | {unit} | {tilt_deg}° | {:.0} s | {} | {:.2} % | {:.2} % | \
+                     {:.2} % | {:.1} mN | {:.1} % |",
+                    result.duration,
+                    sweep.model,
+                    score.unwrap_or(f64::NAN),
+                    sweep.residual_pct.p50,
+                    sweep.residual_pct.p95,
+                    sweep.residual_mn.p95,
+                    sweep.residual_pct.max
+                );
+            }
+        }
+    }
+}
+
+/// A profile that names the wrong arm (the delta's on the PHANToM, `device.profile`) is caught
+/// when the calibration is saved: the lattice is chosen with a warning naming the failed model,
+/// and nothing crashes.
+#[test]
+fn a_profile_naming_the_wrong_arm_leaves_the_lattice_with_a_warning() {
+    use hgcd::control::calibration::persist::grid_file;
+    use hgcd::control::compensation::GravityModel;
+    let mut config = Config::default();
+    config.device.profile = "falcon_delta".into();
+    config.calibration.holds = hgcd::config::HoldPlan::All;
+    let result = calibrated("phantom", &config);
+    let spec = "sim:phantom".parse().unwrap();
+    let file = grid_file(&result, &config, &spec);
+    let model = file.model.clone().expect("a model record");
+    assert!(
+        model.chosen == "vector" || model.chosen == "scalar",
+        "{model:?}"
+    );
+    let warning = model.warning.expect("a warning");
+    assert!(warning.contains("arm model"), "{warning}");
+    let gravity = GravityModel::configured(file, None, Default::default()).unwrap();
+    assert_eq!(gravity.mode.to_string(), model.chosen);
+    println!("{warning}");
+}
