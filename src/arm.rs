@@ -38,11 +38,12 @@ pub const MAX_PARAMETERS: usize = 7;
 pub type ForceRegressor = SMatrix<f64, 3, MAX_PARAMETERS>;
 
 /// Damping of J⁻ᵀ near singular poses, m: F = J (JᵀJ + λ² I)⁻¹ τ, with λ growing from 0 where
-/// the Jacobian's columns are [`SINGULAR_QUALITY`] from degenerate (|det J| over the product of
-/// their lengths: 1 for orthogonal columns, 0 at a singularity) to this at the singularity.
-/// Everywhere else F = J⁻ᵀ τ exactly.
-const SINGULAR_DAMPING: f64 = 1e-3;
-const SINGULAR_QUALITY: f64 = 0.05;
+/// |det J| / L³ (L the arm's [`Arm::length_scale`]) falls below [`SINGULAR_QUALITY`] to this at
+/// the singularity. |det J| is the product of J's singular values, so it falls whichever of them
+/// does: a delta's arm in line with its rod at the edge of its reach, a serial arm's handle on its
+/// yaw axis. Everywhere else F = J⁻ᵀ τ exactly. At the singularity |F| ≤ |τ| / (2 λ).
+const SINGULAR_DAMPING: f64 = 0.02;
+const SINGULAR_QUALITY: f64 = 0.02;
 
 /// A yaw–pitch–pitch arm (see the module's doc), in its own frame: z up along the yaw axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -152,9 +153,22 @@ impl Arm {
         }
     }
 
+    /// A length typical of the arm, m: the serial arm's reach, the delta's arm.
+    pub fn length_scale(&self) -> f64 {
+        match &self.geometry {
+            ArmGeometry::Serial(a) => a.upper + a.fore,
+            ArmGeometry::Delta(a) => a.arm,
+        }
+    }
+
     /// The arm's up (its z axis) in the device frame: the gravity direction of a level base.
     pub fn up(&self) -> Vector3<f64> {
         self.frame.axes * Vector3::z()
+    }
+
+    /// Whether the handle can be at `x` (device frame, m).
+    pub fn reaches(&self, x: &Vector3<f64>) -> bool {
+        self.joints_at(x).is_some()
     }
 
     /// The host's joint angles with the handle at `x` (device frame, m); None out of reach.
@@ -197,8 +211,7 @@ impl Arm {
             }
         };
         // F = J (JᵀJ + λ² I)⁻¹ τ for every column at once.
-        let lengths: f64 = (0..3).map(|c| jacobian.column(c).norm()).product();
-        let quality = (jacobian.determinant().abs() / lengths).min(1.0);
+        let quality = jacobian.determinant().abs() / self.length_scale().powi(3);
         let lambda = SINGULAR_DAMPING * (1.0 - quality / SINGULAR_QUALITY).max(0.0);
         let damped =
             jacobian.transpose() * jacobian + Matrix3::from_diagonal_element(lambda * lambda);
@@ -307,7 +320,8 @@ impl DeltaArm {
             let c = radial * radial + lateral * lateral + up * up + self.arm * self.arm
                 - self.rod * self.rod;
             let norm = a.hypot(b);
-            if c.abs() > norm {
+            // Written so that a non-finite position is out of reach too.
+            if c.is_nan() || norm.is_nan() || c.abs() > norm || norm == 0.0 {
                 return None;
             }
             let angle = b.atan2(a) + (-c / norm).acos() + std::f64::consts::PI;
@@ -402,6 +416,9 @@ fn same_axes() -> [String; 3] {
     ["x", "y", "z"].map(String::from)
 }
 
+/// The least angle between two legs of a delta, degrees.
+pub const MIN_LEG_ANGLE_DEG: f64 = 30.0;
+
 /// The longest link or offset an `[arm]` table may give, m.
 pub const MAX_LENGTH_M: f64 = 1.0;
 
@@ -462,6 +479,18 @@ impl ArmTable {
                         "`legs_deg` is {legs_deg:?}, expected angles within ±360°"
                     ));
                 }
+                // Legs closer than this leave the platform's position undetermined.
+                let apart = |a: f64, b: f64| {
+                    let d = (a - b).rem_euclid(360.0);
+                    d.min(360.0 - d) >= MIN_LEG_ANGLE_DEG
+                };
+                let [l0, l1, l2] = *legs_deg;
+                if !(apart(l0, l1) && apart(l1, l2) && apart(l0, l2)) {
+                    return Err(format!(
+                        "`legs_deg` is {legs_deg:?}: the legs must be at least \
+                         {MIN_LEG_ANGLE_DEG}° apart"
+                    ));
+                }
                 (
                     ArmGeometry::Delta(DeltaArm {
                         arm: length("arm_m", *arm_m)?,
@@ -504,9 +533,12 @@ impl ArmTable {
                 origin: offset("origin_m", origin)?,
             },
         };
-        if arm.joints_at(&Vector3::zeros()).is_none() {
+        let at_origin = arm.force_regressor(&Vector3::zeros(), &arm.up(), 9.81);
+        if !at_origin.is_some_and(|g| g.iter().all(|c| c.is_finite())) {
             return Err(
-                "the arm cannot reach the device's origin (check origin_m and the lengths)".into(),
+                "the arm cannot reach the device's origin, or is singular there (check origin_m \
+                 and the lengths)"
+                    .into(),
             );
         }
         Ok(arm)
@@ -561,6 +593,9 @@ pub struct ArmGravity {
 
 /// Bisection steps toward the device's origin for a position out of the arm's reach.
 const REACH_STEPS: usize = 12;
+/// Where the force of a position out of reach is taken: this share of the way from the origin
+/// to the last reachable point found, away from the singular pose at the edge of the reach.
+const EDGE_MARGIN: f64 = 0.95;
 
 impl ArmGravity {
     /// The force that holds the handle at `x` (device frame, m), N. Out of the arm's reach (a
@@ -568,27 +603,31 @@ impl ArmGravity {
     /// `x` on the way to the device's origin.
     pub fn force(&self, x: &Vector3<f64>) -> Vector3<f64> {
         let theta = SMatrix::<f64, MAX_PARAMETERS, 1>::from(self.parameters);
+        if !x.iter().all(|c| c.is_finite()) {
+            // No position, no model: nothing to render (the safety layer treats the reading).
+            return Vector3::zeros();
+        }
         if let Some(g) = self.arm.force_regressor(x, &self.up, self.g) {
             return g * theta;
         }
         // Bisect the segment from the origin (reachable) to x for the last reachable point.
         let (mut inside, mut outside) = (0.0, 1.0);
-        let mut last = None;
         for _ in 0..REACH_STEPS {
             let mid = 0.5 * (inside + outside);
-            match self.arm.force_regressor(&(x * mid), &self.up, self.g) {
-                Some(g) => {
-                    inside = mid;
-                    last = Some(g);
-                }
-                None => outside = mid,
+            if self.arm.reaches(&(x * mid)) {
+                inside = mid;
+            } else {
+                outside = mid;
             }
         }
-        last.or_else(|| {
-            self.arm
-                .force_regressor(&Vector3::zeros(), &self.up, self.g)
-        })
-        .map_or(Vector3::zeros(), |g| g * theta)
+        // A step back inside from the edge, where the arm nears a singular pose.
+        self.arm
+            .force_regressor(&(x * (inside * EDGE_MARGIN)), &self.up, self.g)
+            .or_else(|| {
+                self.arm
+                    .force_regressor(&Vector3::zeros(), &self.up, self.g)
+            })
+            .map_or(Vector3::zeros(), |g| g * theta)
     }
 }
 
@@ -768,5 +807,58 @@ mod tests {
         .unwrap();
         assert!(short.arm().unwrap_err().contains("`upper_m`"));
         assert!(toml::from_str::<ArmTable>("kind = \"scara\"\n").is_err());
+    }
+
+    #[test]
+    fn near_the_edge_of_its_reach_and_for_no_number_the_force_stays_bounded() {
+        for arm in [delta(), phantom()] {
+            let gravity = ArmGravity {
+                arm,
+                parameters: [0.005, 0.001, -0.004, 0.0, 0.003, 0.0, 0.05],
+                up: Vector3::z(),
+                g: 9.81,
+            };
+            let at_home = gravity.force(&Vector3::zeros()).norm();
+            let mut largest: f64 = 0.0;
+            // Along rays from the origin out past the reach, every half millimetre.
+            for dir in [
+                Vector3::x(),
+                -Vector3::x(),
+                Vector3::y(),
+                Vector3::z(),
+                -Vector3::z(),
+                Vector3::new(1.0, 1.0, -1.0).normalize(),
+                Vector3::new(-1.0, 0.5, 1.0).normalize(),
+            ] {
+                for k in 0..1000 {
+                    let f = gravity.force(&(dir * (k as f64 * 5e-4)));
+                    assert!(f.iter().all(|c| c.is_finite()), "{}: {f:?}", arm.kind());
+                    largest = largest.max(f.norm());
+                }
+            }
+            println!(
+                "{}: |F| at home {at_home:.3} N, largest {largest:.3} N",
+                arm.kind()
+            );
+            // Near a singular pose (beyond the stops of a real arm: a stretched serial arm, a
+            // delta's arm in line with its rod) the damping bounds |F| by |τ| / (2 λ).
+            assert!(largest < 12.0, "{}: {largest} N", arm.kind());
+            let nan = Vector3::new(f64::NAN, 0.0, 0.01);
+            assert_eq!(gravity.force(&nan), Vector3::zeros());
+            assert_eq!(
+                gravity.force(&Vector3::repeat(f64::INFINITY)),
+                Vector3::zeros()
+            );
+        }
+    }
+
+    #[test]
+    fn a_delta_whose_legs_coincide_is_refused() {
+        let mut table = ArmTable::of(&delta());
+        if let ArmTable::Delta { legs_deg, .. } = &mut table {
+            *legs_deg = [0.0, 0.0, 120.0];
+        }
+        let error = table.arm().unwrap_err();
+        assert!(error.contains("`legs_deg`"), "{error}");
     }
 }

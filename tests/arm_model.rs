@@ -84,6 +84,7 @@ fn cube_holds(model: &str, config: &Config) -> LatticeHolds {
         holds,
         up: Vector3::z(),
         g: config.sim.g,
+        linear_fill: false,
     }
 }
 

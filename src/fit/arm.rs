@@ -16,6 +16,11 @@ use crate::arm::{Arm, ArmGravity, MAX_PARAMETERS};
 /// A singular value below this share of the largest, in the column-scaled design, is a
 /// direction the holds leave unconstrained: dropped, and reported.
 const UNIDENTIFIED: f64 = 1e-6;
+/// The largest first moment a parameter may plausibly have, kg m (a kilogram a metre out): a
+/// parameter that at this size would move the holds by less than one noise's worth (its
+/// noise-weighted column shorter than 1 / this) is unconstrained, as a base moment under a level
+/// base is, and dropped rather than fitted to the noise.
+const PLAUSIBLE_MOMENT: f64 = 1.0;
 /// The fit is refused when the directions it keeps are conditioned worse than this: its
 /// parameters would carry the holds' noise, amplified, everywhere the arm goes.
 pub const MAX_CONDITION: f64 = 1e4;
@@ -99,7 +104,9 @@ pub fn fit_arm(
             parameters,
         });
     }
-    if let Some(h) = holds.iter().find(|h| arm.joints_at(&h.position).is_none()) {
+    // The regressor exists where the arm reaches and J is invertible, whatever v_G.
+    let reachable = |h: &&Hold| arm.force_regressor(&h.position, &arm.up(), g).is_some();
+    if let Some(h) = holds.iter().find(|h| !reachable(h)) {
         return Err(ArmFitError::OutOfReach {
             position: h.position,
         });
@@ -224,7 +231,7 @@ fn solve(arm: &Arm, holds: &[Hold], g: f64, up: &Vector3<f64>) -> Linear {
     let scale: Vec<f64> = (0..p).map(|c| a.column(c).norm()).collect();
     let largest_column = scale.iter().copied().fold(0.0, f64::max);
     let kept: Vec<usize> = (0..p)
-        .filter(|&c| scale[c] > UNIDENTIFIED * largest_column)
+        .filter(|&c| scale[c] > UNIDENTIFIED * largest_column && scale[c] * PLAUSIBLE_MOMENT >= 1.0)
         .collect();
     let mut unidentified: Vec<&'static str> = (0..p)
         .filter(|c| !kept.contains(c))
@@ -233,6 +240,15 @@ fn solve(arm: &Arm, holds: &[Hold], g: f64, up: &Vector3<f64>) -> Linear {
     let mut scaled = DMatrix::zeros(rows, kept.len());
     for (k, &c) in kept.iter().enumerate() {
         scaled.set_column(k, &(a.column(c) / scale[c]));
+    }
+    if kept.is_empty() {
+        return Linear {
+            theta: [0.0; MAX_PARAMETERS],
+            residual: b,
+            rank: 0,
+            unidentified,
+            condition: f64::INFINITY,
+        };
     }
     let svd = scaled.svd(true, true);
     let (u, v_t) = (svd.u.expect("asked for"), svd.v_t.expect("asked for"));

@@ -21,7 +21,7 @@ use nalgebra::Vector3;
 
 use crate::arm::Arm;
 use crate::config::CompensationMode;
-use crate::grid::extrapolate_from_neighbours;
+use crate::grid::{extrapolate_from_neighbours, fill_from_neighbours};
 pub use arm::{fit_arm, ArmFit, ArmFitError};
 
 /// A hold's noise: this share of its force, or this floor, whichever is larger (the accuracy
@@ -88,6 +88,9 @@ pub struct LatticeHolds {
     /// The lattice's v_G (the scalar mode's direction) and g, m/s².
     pub up: Vector3<f64>,
     pub g: f64,
+    /// How the lattice fills the vertices it did not hold, as the calibration filled them:
+    /// along straight lines (an explored grid) or with its neighbours' mean.
+    pub linear_fill: bool,
 }
 
 /// Held-out scores: 100 √(Σ|F − F̂|² / Σ|F|²) over the held-out holds, %; None for a model that
@@ -157,7 +160,8 @@ impl Choice {
 }
 
 /// Score the candidates on held-out holds and choose: every [`HELD_OUT_EVERY`]-th measured hold
-/// (the second, the sixth, …) is kept out; the lattices predict it from their neighbours, the arm
+/// (the second, the sixth, …) is kept out; the lattices predict it from their neighbours (as
+/// they fill a vertex not held, [`LatticeHolds::linear_fill`]), the arm
 /// model from its fit to the others. Without `arm` the vector lattice is chosen (the scalar one
 /// without holds to score), as before arm models existed. The arm model returned is fitted to
 /// every hold.
@@ -196,7 +200,11 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
     let filled = |values: &[Vector3<f64>]| {
         let mut values = values.to_vec();
         if training.contains(&true) {
-            extrapolate_from_neighbours(lattice.dims, &mut values, &training);
+            if lattice.linear_fill {
+                extrapolate_from_neighbours(lattice.dims, &mut values, &training);
+            } else {
+                fill_from_neighbours(lattice.dims, &mut values, &training);
+            }
         }
         values
     };

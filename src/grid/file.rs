@@ -207,7 +207,9 @@ pub struct ArmRecord {
 impl ArmRecord {
     /// The arm model is whole: a geometry that loads, a finite parameter for each of its
     /// parameters, a unit gravity direction, g in range.
-    fn check(&self) -> Result<(), Problem> {
+    ///
+    /// Errors: [`Problem::Arm`] naming the key, [`Problem::OutOfRange`] for `g`.
+    pub fn check(&self) -> Result<(), Problem> {
         let arm = self
             .geometry
             .arm()

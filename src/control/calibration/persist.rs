@@ -9,7 +9,7 @@ use tracing::warn;
 
 use super::{CalibrationResult, GridPlan};
 use crate::arm::ArmTable;
-use crate::config::{Config, DeviceSpec};
+use crate::config::{CompensationMode, Config, DeviceSpec};
 use crate::fit::{self, Hold, LatticeHolds};
 use crate::grid::{
     self, ArmRecord, CalibrationRecord, DeviceRecord, GridError, GridFile, HeldOutRecord, MassGrid,
@@ -157,12 +157,13 @@ fn with_model(
         measured: held,
         up: grid.gravity_direction,
         g: grid.g,
+        linear_fill: result.workspace.is_some(),
     };
     let choice = fit::choose(&lattice, Some(&arm));
     if let Some(warning) = choice.warning() {
         warn!("{warning}");
     }
-    file.arm = match &choice.arm {
+    let record = match &choice.arm {
         Some(Ok(fit)) => Some(ArmRecord {
             profile: profile.name.clone(),
             parameters: fit.gravity.parameters[..arm.parameter_count()].to_vec(),
@@ -178,9 +179,28 @@ fn with_model(
         }),
         _ => None,
     };
+    // A fit the file format would refuse must not cost the calibration: the lattice stays.
+    let (record, mut mode, mut warning) = match record.map(|r| r.check().map(|_| r)) {
+        Some(Err(problem)) => (
+            None,
+            CompensationMode::Vector,
+            Some(format!("the arm model was not kept: {problem}")),
+        ),
+        other => (other.and_then(Result::ok), choice.mode, choice.warning()),
+    };
+    if record.is_none() && matches!(mode, CompensationMode::Arm | CompensationMode::ArmResidual) {
+        mode = CompensationMode::Vector;
+        warning.get_or_insert_with(|| "the arm model was not kept".into());
+    }
+    if let Some(w) = &warning {
+        if choice.warning().as_ref() != Some(w) {
+            warn!("{w}");
+        }
+    }
+    file.arm = record;
     let s = &choice.scores;
     file.model = Some(ModelRecord {
-        chosen: choice.mode.to_string(),
+        chosen: mode.to_string(),
         held_out_holds: choice.held_out,
         held_out_pct: HeldOutRecord {
             scalar: Some(s.scalar),
@@ -188,6 +208,6 @@ fn with_model(
             arm: s.arm,
             arm_residual: s.arm_residual,
         },
-        warning: choice.warning(),
+        warning,
     });
 }

@@ -282,10 +282,11 @@ impl GridPlan {
     /// The most vertices the grid can end with, left-out ones included: the cube's, or the
     /// largest explored grid's once room is made for one.
     pub fn most_vertices(&self) -> usize {
+        let planned = self.path.len() + self.left_out.len() + self.extrapolated.len();
         if self.extrapolated.capacity() >= MAX_EXPLORED {
-            MAX_EXPLORED
+            planned.max(MAX_EXPLORED)
         } else {
-            self.path.len() + self.left_out.len() + self.extrapolated.len()
+            planned
         }
     }
 
