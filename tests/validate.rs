@@ -215,7 +215,7 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
 }
 
 /// The Must show on the linkages, two units each, after a default calibration (their profiles
-/// have arms: the cube's corners and centre are held and the arm model is chosen): with it the
+/// have arms: the cube's eight corners are held and the arm model is chosen): with it the
 /// probe alone presses on the surface; without compensation the penalty follows the plant's own
 /// gravity force from point to point; friction makes the paper's one-sided reading miss what the
 /// two-sided one finds; and the run takes well under a minute. The sweep over 1000 random points
@@ -283,9 +283,9 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
     }
 }
 
-/// `sweep.json` as written, and what it shows on a linkage calibrated with its arm profile:
-/// the arm model, fitted to the cube's nine holds, holds the whole workspace; a 40 mm lattice
-/// holding the plant's own force at every vertex it can reach does not.
+/// `sweep.json` as written, and what it shows on a linkage calibrated with its arm profile: the
+/// arm model, fitted to the cube's eight corner holds, holds the whole workspace; a 40 mm
+/// lattice holding the plant's own force at every vertex it can reach does not.
 fn assert_sweep_shows_the_arm_holds_the_workspace(case: &str, run: &Validation) {
     let path = run.outputs.sweep.as_ref().expect("sweep.json");
     let json: serde_json::Value =
