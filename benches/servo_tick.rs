@@ -204,7 +204,7 @@ impl ArmFile {
 }
 
 fn phantom_arm_model() -> ArmFile {
-    use hgcd::arm::{ArmGravity, ArmTable};
+    use hgcd::arm::ArmGravity;
     use hgcd::grid::{ArmRecord, GridFile};
     let arm = hgcd::profile::Profile::built_in("phantom_1_5")
         .unwrap()
@@ -227,19 +227,7 @@ fn phantom_arm_model() -> ArmFile {
         .collect();
     let mut file = GridFile::from(grid);
     file.vertices.force_vectors = forces;
-    file.arm = Some(ArmRecord {
-        profile: "phantom_1_5".into(),
-        parameters: parameters[..6].to_vec(),
-        gravity_direction: [0.0, 0.0, 1.0],
-        g: 9.81,
-        rank: 6,
-        unidentified: Vec::new(),
-        condition: 4.0,
-        rms_residual_mn: 0.1,
-        normalised_residual: 0.1,
-        tilt_deg: 0.0,
-        geometry: ArmTable::of(&arm),
-    });
+    file.arm = Some(ArmRecord::new("phantom_1_5", &gravity));
     ArmFile(file)
 }
 

@@ -403,7 +403,7 @@ mod tests {
     /// A lattice file with an arm model of a PHANToM-like serial arm, "arm" chosen, and a
     /// vertex force of the arm model's own plus (0.01, 0, 0) N at each vertex.
     fn arm_file() -> GridFile {
-        use crate::arm::{Arm, ArmFrame, ArmGeometry, ArmTable, SerialArm};
+        use crate::arm::{Arm, ArmFrame, ArmGeometry, SerialArm};
         use crate::grid::{ArmRecord, HeldOutRecord, ModelRecord};
         let arm = Arm {
             geometry: ArmGeometry::Serial(SerialArm {
@@ -428,19 +428,7 @@ mod tests {
                 (gravity.force(&g.vertex_position(i, j, k)) + Vector3::x() * 0.01).into()
             })
             .collect();
-        file.arm = Some(ArmRecord {
-            profile: "test".into(),
-            parameters: parameters[..6].to_vec(),
-            gravity_direction: [0.0, 0.0, 1.0],
-            g: 9.81,
-            rank: 4,
-            unidentified: Vec::new(),
-            condition: 1.0,
-            rms_residual_mn: 0.0,
-            normalised_residual: 0.0,
-            tilt_deg: 0.0,
-            geometry: ArmTable::of(&arm),
-        });
+        file.arm = Some(ArmRecord::new("test", &gravity));
         file.model = Some(ModelRecord {
             chosen: "arm".into(),
             held_out_holds: 7,

@@ -205,6 +205,25 @@ pub struct ArmRecord {
 }
 
 impl ArmRecord {
+    /// The record of the arm model `gravity`, from the profile `profile`, with the statistics of
+    /// an exact fit (every parameter identified, no residual); a fit sets its own.
+    pub fn new(profile: &str, gravity: &crate::arm::ArmGravity) -> Self {
+        let count = gravity.arm.parameter_count();
+        Self {
+            profile: profile.to_string(),
+            parameters: gravity.parameters[..count].to_vec(),
+            gravity_direction: gravity.up.into(),
+            g: gravity.g,
+            rank: count,
+            unidentified: Vec::new(),
+            condition: 1.0,
+            rms_residual_mn: 0.0,
+            normalised_residual: 0.0,
+            tilt_deg: gravity.up.angle(&gravity.arm.up()).to_degrees(),
+            geometry: ArmTable::of(&gravity.arm),
+        }
+    }
+
     /// The arm model is whole: a geometry that loads, a finite parameter for each of its
     /// parameters, a unit gravity direction, g in range.
     ///
@@ -1000,18 +1019,16 @@ pub(crate) mod tests {
             frame: ArmFrame::offset(Vector3::zeros()),
         };
         let mut file = calibrated();
-        file.arm = Some(ArmRecord {
-            profile: "phantom_1_5".into(),
-            parameters: vec![-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0],
-            gravity_direction: [0.0, 0.0, 1.0],
+        let gravity = crate::arm::ArmGravity {
+            arm,
+            parameters: [-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0, 0.0],
+            up: Vector3::z(),
             g: 9.81,
+        };
+        file.arm = Some(ArmRecord {
             rank: 4,
             unidentified: vec!["base, radial".into(), "base, lateral".into()],
-            condition: 4.0,
-            rms_residual_mn: 0.3,
-            normalised_residual: 0.2,
-            tilt_deg: 0.0,
-            geometry: ArmTable::of(&arm),
+            ..ArmRecord::new("phantom_1_5", &gravity)
         });
         file.model = Some(ModelRecord {
             chosen: "arm".into(),

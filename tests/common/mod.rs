@@ -83,7 +83,7 @@ pub fn with_device_id(grid: MassGrid, id: &str) -> GridFile {
 /// nominal unit writes it: the published arm's parameters, the plant's own force at each vertex
 /// (the arm model's plus 2 mN a vertex, for the residual lattice to hold), "arm-residual" chosen.
 pub fn phantom_arm_grid() -> GridFile {
-    use hgcd::arm::{ArmGravity, ArmTable};
+    use hgcd::arm::ArmGravity;
     use hgcd::grid::{ArmRecord, HeldOutRecord, ModelRecord};
     let arm = hgcd::profile::Profile::built_in("phantom_1_5")
         .unwrap()
@@ -92,7 +92,6 @@ pub fn phantom_arm_grid() -> GridFile {
     let p = hgcd::sim::phantom::Phantom::published();
     let upper = p.m_a * p.l1 + p.m_c * p.c_along_upper_arm + p.m_be * p.l5;
     let fore = p.m_a * p.a_along_forearm + p.m_c * p.l3 - p.m_df * p.l6;
-    let parameters = vec![upper, 0.0, fore, 0.0, 0.0, 0.0];
     let gravity = ArmGravity {
         arm,
         parameters: [upper, 0.0, fore, 0.0, 0.0, 0.0, 0.0],
@@ -116,19 +115,7 @@ pub fn phantom_arm_grid() -> GridFile {
         .collect();
     let mut file = GridFile::from(grid);
     file.vertices.force_vectors = forces;
-    file.arm = Some(ArmRecord {
-        profile: "phantom_1_5".into(),
-        parameters,
-        gravity_direction: [0.0, 0.0, 1.0],
-        g: 9.81,
-        rank: 4,
-        unidentified: vec!["base, radial".into(), "base, lateral".into()],
-        condition: 4.0,
-        rms_residual_mn: 0.1,
-        normalised_residual: 0.1,
-        tilt_deg: 0.0,
-        geometry: ArmTable::of(&arm),
-    });
+    file.arm = Some(ArmRecord::new("phantom_1_5", &gravity));
     file.model = Some(ModelRecord {
         chosen: "arm-residual".into(),
         held_out_holds: 7,

@@ -8,7 +8,6 @@ use std::time::SystemTime;
 use tracing::warn;
 
 use super::{CalibrationResult, GridPlan};
-use crate::arm::ArmTable;
 use crate::config::{CompensationMode, Config, DeviceSpec};
 use crate::fit::{self, Hold, LatticeHolds};
 use crate::grid::{
@@ -165,17 +164,13 @@ fn with_model(
     }
     let record = match &choice.arm {
         Some(Ok(fit)) => Some(ArmRecord {
-            profile: profile.name.clone(),
-            parameters: fit.gravity.parameters[..arm.parameter_count()].to_vec(),
-            gravity_direction: fit.gravity.up.into(),
-            g: fit.gravity.g,
             rank: fit.rank,
             unidentified: fit.unidentified.iter().map(|s| s.to_string()).collect(),
             condition: fit.condition,
             rms_residual_mn: fit.rms_residual * 1e3,
             normalised_residual: fit.normalised_residual,
             tilt_deg: fit.tilt.to_degrees(),
-            geometry: ArmTable::of(&arm),
+            ..ArmRecord::new(&profile.name, &fit.gravity)
         }),
         _ => None,
     };
