@@ -626,10 +626,11 @@ impl ArmGravity {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn phantom() -> Arm {
+    /// A PHANToM 1.5's arm (the `phantom_1_5` profile's geometry).
+    pub(crate) fn phantom() -> Arm {
         Arm {
             geometry: ArmGeometry::Serial(SerialArm {
                 shoulder: Vector3::new(-0.215, 0.0, 0.170),
@@ -637,6 +638,16 @@ mod tests {
                 fore: 0.170,
             }),
             frame: ArmFrame::offset(Vector3::zeros()),
+        }
+    }
+
+    /// Its gravity with parameters of the order of the published arm's, level.
+    pub(crate) fn phantom_gravity() -> ArmGravity {
+        ArmGravity {
+            arm: phantom(),
+            parameters: [-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0, 0.0],
+            up: Vector3::z(),
+            g: 9.81,
         }
     }
 

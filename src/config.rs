@@ -348,6 +348,19 @@ pub enum CompensationMode {
     ArmResidual,
 }
 
+impl std::str::FromStr for CompensationMode {
+    type Err = String;
+
+    /// The name [`Display`](std::fmt::Display) gives, as `compensation.mode` and a grid file's
+    /// `[model] chosen` spell it.
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Self::Scalar, Self::Vector, Self::Arm, Self::ArmResidual]
+            .into_iter()
+            .find(|m| m.to_string() == s)
+            .ok_or_else(|| format!("unknown compensation mode `{s}`"))
+    }
+}
+
 impl std::fmt::Display for CompensationMode {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(match self {

@@ -255,12 +255,7 @@ fn whole_workspace_after_a_default_calibration_on_every_arm() {
                     GravityModel::configured(file.clone(), None, Default::default()).unwrap();
                 let truth = reachable_truth(model, &config, 1000, 1).unwrap();
                 let sweep = GridSweep::new(&SweptGrid::new(gravity, &file), &truth);
-                let score = match chosen.chosen.as_str() {
-                    "arm" => chosen.held_out_pct.arm,
-                    "arm-residual" => chosen.held_out_pct.arm_residual,
-                    "vector" => chosen.held_out_pct.vector,
-                    _ => chosen.held_out_pct.scalar,
-                };
+                let score = chosen.held_out_pct.of(chosen.chosen.parse().unwrap());
                 println!(
                     "| sim:{model} | {unit} | {tilt_deg}° | {:.0} s | {} | {:.2} % | {:.2} % | \
                      {:.2} % | {:.1} mN | {:.1} % |",

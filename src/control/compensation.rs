@@ -15,7 +15,7 @@ use nalgebra::{Rotation3, Vector3};
 use super::{ControlOutput, Controller, DeviceState};
 use crate::arm::ArmGravity;
 pub use crate::config::{CompensationMode, OutsideGrid};
-use crate::grid::{extrapolate_from_neighbours, EffectRecord, GridFile, MassGrid};
+use crate::grid::{EffectRecord, GridFile, MassGrid, Problem};
 
 /// The calibrated gravity force field F_G(X).
 #[derive(Clone, Debug, PartialEq)]
@@ -110,7 +110,7 @@ pub enum ModelError {
     )]
     NoArm { mode: CompensationMode },
     #[error("its arm model is unusable: {0}")]
-    BadArm(String),
+    BadArm(Problem),
 }
 
 impl GravityModel {
@@ -139,11 +139,7 @@ impl GravityModel {
         let arm = match mode {
             CompensationMode::Arm | CompensationMode::ArmResidual => {
                 let record = file.arm.as_ref().ok_or(ModelError::NoArm { mode })?;
-                Some(
-                    record
-                        .gravity()
-                        .map_err(|p| ModelError::BadArm(p.to_string()))?,
-                )
+                Some(record.gravity().map_err(ModelError::BadArm)?)
             }
             _ => None,
         };
@@ -161,21 +157,11 @@ impl GravityModel {
                         f - arm.force(&file.grid.vertex_position(i, j, k))
                     })
                     .collect();
-                if measured.contains(&true) {
-                    extrapolate_from_neighbours(file.grid.dims, &mut left, &measured);
-                }
+                file.fill_unmeasured(&mut left, &measured);
                 left
             }
         };
-        let held_out_pct = file.model.as_ref().and_then(|m| {
-            let s = &m.held_out_pct;
-            match mode {
-                CompensationMode::Scalar => s.scalar,
-                CompensationMode::Vector => s.vector,
-                CompensationMode::Arm => s.arm,
-                CompensationMode::ArmResidual => s.arm_residual,
-            }
-        });
+        let held_out_pct = file.model.as_ref().and_then(|m| m.held_out_pct.of(mode));
         Ok(Self {
             grid: file.grid,
             mode,
@@ -204,13 +190,7 @@ impl GravityModel {
         outside: OutsideGrid,
     ) -> Result<Self, ModelError> {
         let has_vectors = file.vertices.force_vectors.len() == file.grid.vertex_count();
-        let chosen = file.model.as_ref().and_then(|m| match m.chosen.as_str() {
-            "scalar" => Some(CompensationMode::Scalar),
-            "vector" => Some(CompensationMode::Vector),
-            "arm" => Some(CompensationMode::Arm),
-            "arm-residual" => Some(CompensationMode::ArmResidual),
-            _ => None,
-        });
+        let chosen = file.model.as_ref().and_then(|m| m.chosen.parse().ok());
         let mode = mode.or(chosen).unwrap_or(if has_vectors {
             CompensationMode::Vector
         } else {
@@ -403,23 +383,8 @@ mod tests {
     /// A lattice file with an arm model of a PHANToM-like serial arm, "arm" chosen, and a
     /// vertex force of the arm model's own plus (0.01, 0, 0) N at each vertex.
     fn arm_file() -> GridFile {
-        use crate::arm::{Arm, ArmFrame, ArmGeometry, SerialArm};
         use crate::grid::{ArmRecord, HeldOutRecord, ModelRecord};
-        let arm = Arm {
-            geometry: ArmGeometry::Serial(SerialArm {
-                shoulder: Vector3::new(-0.215, 0.0, 0.17),
-                upper: 0.215,
-                fore: 0.17,
-            }),
-            frame: ArmFrame::offset(Vector3::zeros()),
-        };
-        let parameters = [-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0, 0.0];
-        let gravity = ArmGravity {
-            arm,
-            parameters,
-            up: Vector3::z(),
-            g: 9.81,
-        };
+        let gravity = crate::arm::tests::phantom_gravity();
         let g = grid();
         let mut file = GridFile::from(g.clone());
         file.vertices.force_vectors = (0..27)

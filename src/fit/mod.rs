@@ -159,6 +159,14 @@ impl Choice {
     }
 }
 
+/// 100 √(Σ|F − F̂|² / Σ|F|²) over (measured F, predicted F̂) pairs, %.
+fn score(pairs: impl Iterator<Item = (Vector3<f64>, Vector3<f64>)>) -> f64 {
+    let (error, size) = pairs.fold((0.0, 0.0), |(e, s), (f, p)| {
+        (e + (f - p).norm_squared(), s + f.norm_squared())
+    });
+    100.0 * (error / f64::max(size, f64::MIN_POSITIVE)).sqrt()
+}
+
 /// Score the candidates on held-out holds and choose: every [`HELD_OUT_EVERY`]-th measured hold
 /// (the second, the sixth, …) is kept out; the lattices predict it from their neighbours (as
 /// they fill a vertex not held, [`LatticeHolds::linear_fill`]), the arm
@@ -178,18 +186,12 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
     let training: Vec<bool> = (0..lattice.holds.len())
         .map(|n| lattice.holds[n].is_some() && !held_out.contains(&n))
         .collect();
-    let truth: Vec<Hold> = held_out
-        .iter()
-        .map(|&n| lattice.holds[n].expect("measured"))
-        .collect();
-    let score = |predicted: &[Vector3<f64>]| {
-        let error: f64 = truth
-            .iter()
-            .zip(predicted)
-            .map(|(h, p)| (h.force - p).norm_squared())
-            .sum();
-        let size: f64 = truth.iter().map(|h| h.force.norm_squared()).sum();
-        100.0 * (error / size.max(f64::MIN_POSITIVE)).sqrt()
+    // A lattice's prediction of each held-out hold, against the hold carried to its vertex.
+    let score_at_vertices = |predicted: &[Vector3<f64>]| {
+        score(held_out.iter().map(|&n| {
+            let hold = lattice.holds[n].expect("measured");
+            (hold.force, predicted[n])
+        }))
     };
     // The lattices: the held-out vertices filled from the training ones.
     let forces: Vec<Vector3<f64>> = lattice
@@ -215,10 +217,9 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
             .map(|f| lattice.up * f.dot(&lattice.up))
             .collect::<Vec<_>>(),
     );
-    let at = |values: &[Vector3<f64>]| held_out.iter().map(|&n| values[n]).collect::<Vec<_>>();
     let mut scores = Scores {
-        scalar: score(&at(&scalar)),
-        vector: score(&at(&vector)),
+        scalar: score_at_vertices(&scalar),
+        vector: score_at_vertices(&vector),
         ..Scores::default()
     };
     let Some(arm) = arm else {
@@ -238,22 +239,20 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
     if let Ok(fit) = fit_arm(arm, &train, lattice.g, &starts) {
         let model = |x: &Vector3<f64>| fit.gravity.force(x);
         // Scored where the held-out holds were measured, against what they measured.
-        let error: f64 = held_out
-            .iter()
-            .map(|&n| (raw(n).force - model(&raw(n).position)).norm_squared())
-            .sum();
-        let size: f64 = held_out.iter().map(|&n| raw(n).force.norm_squared()).sum();
-        scores.arm = Some(100.0 * (error / size.max(f64::MIN_POSITIVE)).sqrt());
+        scores.arm = Some(score(
+            held_out
+                .iter()
+                .map(|&n| (raw(n).force, model(&raw(n).position))),
+        ));
+        let at_vertices: Vec<Vector3<f64>> = lattice.positions.iter().map(model).collect();
         let residual: Vec<Vector3<f64>> = (0..forces.len())
-            .map(|n| forces[n] - model(&lattice.positions[n]))
+            .map(|n| forces[n] - at_vertices[n])
             .collect();
         let residual = filled(&residual);
-        scores.arm_residual = Some(score(
-            &held_out
-                .iter()
-                .map(|&n| model(&lattice.positions[n]) + residual[n])
-                .collect::<Vec<_>>(),
-        ));
+        let with_residual: Vec<Vector3<f64>> = (0..forces.len())
+            .map(|n| at_vertices[n] + residual[n])
+            .collect();
+        scores.arm_residual = Some(score_at_vertices(&with_residual));
     }
     let all: Vec<Hold> = measured.iter().map(|&n| raw(n)).collect();
     let full = fit_arm(arm, &all, lattice.g, &starts);

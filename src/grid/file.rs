@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::lattice::{MassGrid, DIM_RANGE, G_RANGE, MAX_MASS_KG};
 use super::{store, DeviceIdentity, GridError, Problem};
 use crate::arm::{ArmTable, MAX_PARAMETERS};
+use crate::config::CompensationMode;
 use crate::protocol::{MODEL_LEN, SERIAL_LEN};
 
 /// Format tag of version 1 grid files: a lattice and its records.
@@ -313,8 +314,17 @@ pub struct HeldOutRecord {
     pub arm_residual: Option<f64>,
 }
 
-/// The names `[model] chosen` takes.
-pub const MODEL_NAMES: [&str; 4] = ["scalar", "vector", "arm", "arm-residual"];
+impl HeldOutRecord {
+    /// The score of `mode`, if it was scored.
+    pub fn of(&self, mode: CompensationMode) -> Option<f64> {
+        match mode {
+            CompensationMode::Scalar => self.scalar,
+            CompensationMode::Vector => self.vector,
+            CompensationMode::Arm => self.arm,
+            CompensationMode::ArmResidual => self.arm_residual,
+        }
+    }
+}
 
 /// An `hgcd-grid/1` or `/2` file: the lattice and what was recorded with it.
 #[derive(Clone, Debug, PartialEq)]
@@ -394,14 +404,42 @@ impl GridFile {
             arm.check()?;
         }
         if let Some(model) = &self.model {
-            let arm_chosen = model.chosen.starts_with("arm");
-            if !MODEL_NAMES.contains(&model.chosen.as_str()) || (arm_chosen && self.arm.is_none()) {
+            let chosen = model.chosen.parse::<CompensationMode>();
+            let needs_arm = matches!(
+                chosen,
+                Ok(CompensationMode::Arm | CompensationMode::ArmResidual)
+            );
+            if chosen.is_err() || (needs_arm && self.arm.is_none()) {
                 return Err(Problem::Model {
                     chosen: model.chosen.clone(),
                 });
             }
         }
         Ok(())
+    }
+
+    /// Whether this is an explored grid (`[calibration] workspace = "explore"`), whose vertices
+    /// not measured are extrapolated along straight lines rather than filled with their
+    /// neighbours' mean.
+    pub fn explored(&self) -> bool {
+        self.calibration
+            .as_ref()
+            .and_then(|c| c.workspace.as_deref())
+            == Some("explore")
+    }
+
+    /// Fill the vertices of `values` (grid order) that `measured` does not mark from those it
+    /// does, as the calibration filled this grid's: along straight lines on an explored grid,
+    /// with the neighbours' mean otherwise. Nothing to fill from, nothing is filled.
+    pub fn fill_unmeasured<T: super::Field>(&self, values: &mut [T], measured: &[bool]) {
+        if !measured.contains(&true) {
+            return;
+        }
+        if self.explored() {
+            super::extrapolate_from_neighbours(self.grid.dims, values, measured);
+        } else {
+            super::fill_from_neighbours(self.grid.dims, values, measured);
+        }
     }
 
     /// The format tag this file is written with: 2 with an arm model, else 1.
@@ -1009,22 +1047,8 @@ pub(crate) mod tests {
 
     /// [`calibrated`] with an arm model chosen, as a calibration with an arm profile writes it.
     fn with_arm() -> GridFile {
-        use crate::arm::{Arm, ArmFrame, ArmGeometry, SerialArm};
-        let arm = Arm {
-            geometry: ArmGeometry::Serial(SerialArm {
-                shoulder: Vector3::new(-0.215, 0.0, 0.17),
-                upper: 0.215,
-                fore: 0.17,
-            }),
-            frame: ArmFrame::offset(Vector3::zeros()),
-        };
         let mut file = calibrated();
-        let gravity = crate::arm::ArmGravity {
-            arm,
-            parameters: [-0.0017, 0.0, -0.0075, 0.0, 0.0, 0.0, 0.0],
-            up: Vector3::z(),
-            g: 9.81,
-        };
+        let gravity = crate::arm::tests::phantom_gravity();
         file.arm = Some(ArmRecord {
             rank: 4,
             unidentified: vec!["base, radial".into(), "base, lateral".into()],

@@ -86,10 +86,12 @@ impl Mode {
             Mode::None => None,
             Mode::Scalar => Some(CompensationMode::Scalar),
             Mode::Vector => Some(CompensationMode::Vector),
-            Mode::Arm => Some(match file.model.as_ref().map(|m| m.chosen.as_str()) {
-                Some("arm-residual") => CompensationMode::ArmResidual,
-                _ => CompensationMode::Arm,
-            }),
+            Mode::Arm => Some(
+                match file.model.as_ref().and_then(|m| m.chosen.parse().ok()) {
+                    Some(CompensationMode::ArmResidual) => CompensationMode::ArmResidual,
+                    _ => CompensationMode::Arm,
+                },
+            ),
         }
     }
 }
@@ -545,12 +547,11 @@ impl Prepared {
             for (file, path) in
                 std::iter::once((&file, &path)).chain(other.iter().map(|(f, p)| (f, p)))
             {
-                let explore = file
-                    .calibration
-                    .as_ref()
-                    .and_then(|c| c.workspace.as_deref())
-                    == Some("explore");
-                let slot = if explore { &mut explored } else { &mut cube };
+                let slot = if file.explored() {
+                    &mut explored
+                } else {
+                    &mut cube
+                };
                 *slot = Some(sweepable(file, path)?);
             }
             let sweep = sweep::Sweep::run(

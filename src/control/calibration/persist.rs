@@ -156,12 +156,9 @@ fn with_model(
         measured: held,
         up: grid.gravity_direction,
         g: grid.g,
-        linear_fill: result.workspace.is_some(),
+        linear_fill: file.explored(),
     };
     let choice = fit::choose(&lattice, Some(&arm));
-    if let Some(warning) = choice.warning() {
-        warn!("{warning}");
-    }
     let record = match &choice.arm {
         Some(Ok(fit)) => Some(ArmRecord {
             rank: fit.rank,
@@ -174,23 +171,18 @@ fn with_model(
         }),
         _ => None,
     };
-    // A fit the file format would refuse must not cost the calibration: the lattice stays.
-    let (record, mut mode, mut warning) = match record.map(|r| r.check().map(|_| r)) {
+    // A fit the file format would refuse must not cost the calibration: the lattice stays. (A
+    // fit that failed was never chosen.)
+    let (record, mode, warning) = match record.map(|r| r.check().map(|()| r)) {
         Some(Err(problem)) => (
             None,
             CompensationMode::Vector,
             Some(format!("the arm model was not kept: {problem}")),
         ),
-        other => (other.and_then(Result::ok), choice.mode, choice.warning()),
+        record => (record.and_then(Result::ok), choice.mode, choice.warning()),
     };
-    if record.is_none() && matches!(mode, CompensationMode::Arm | CompensationMode::ArmResidual) {
-        mode = CompensationMode::Vector;
-        warning.get_or_insert_with(|| "the arm model was not kept".into());
-    }
     if let Some(w) = &warning {
-        if choice.warning().as_ref() != Some(w) {
-            warn!("{w}");
-        }
+        warn!("{w}");
     }
     file.arm = record;
     let s = &choice.scores;
