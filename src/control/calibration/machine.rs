@@ -356,6 +356,8 @@ pub struct Calibration {
     /// Device time of the first and of the last tick, s.
     start_time: f64,
     end_time: f64,
+    /// Every reading of the initialisation, for the encoder's step once the handle has moved.
+    moving: NoiseMeter,
 
     // What the initialisation found.
     /// Centre X_C of the initial field, m.
@@ -486,6 +488,7 @@ impl Calibration {
             phase: Phase::Start,
             start_time: 0.0,
             end_time: 0.0,
+            moving: NoiseMeter::new(n_init),
             rest_point: Vector3::zeros(),
             catch_force: Vector3::zeros(),
             field_scale: 1.0,
@@ -776,11 +779,7 @@ impl Calibration {
         if self.field_steady(s).is_some() {
             self.initial.noise = self.noise.sigma();
             self.initial.step = self.noise.step();
-            // A slip is a move beyond the noise and beyond an encoder step (a reading flickering
-            // between two steps is no move); a reading within half a step and two standard
-            // deviations of where the handle stuck has not moved yet.
-            self.slip = (MIN_SLIP + 3.0 * self.initial.noise).max(SLIP_STEPS * self.initial.step);
-            self.still = 0.5 * self.initial.step + 2.0 * self.initial.noise;
+            self.set_slip();
             self.phase = self.init_band_along(0, t);
         }
         ControlOutput::force(force)
@@ -796,6 +795,16 @@ impl Calibration {
         let force = self.field_force(&self.rest_point, s) + axis(a) * probe.offset(t);
         match probe.observe(s, &self.smoothed, &force) {
             Step::Running => self.phase = Phase::InitBand(probe),
+            // A handle that rested on one encoder reading, without noise, showed no step while
+            // it was caught: the slip threshold assumed a fine encoder, and a reading that flips
+            // by one step without a slip (a handle resting at a step's edge) passed for one.
+            // The band's slips have moved the handle since: with the step they showed, measure
+            // the bands again.
+            Step::Done(_) if self.initial.step == 0.0 && self.moving.step() > 0.0 => {
+                self.initial.step = self.moving.step();
+                self.set_slip();
+                self.phase = self.init_band_along(0, t);
+            }
             Step::Done(band) => {
                 self.initial.load[a] = band.middle();
                 self.initial.friction[a] = band.half_width();
@@ -808,6 +817,14 @@ impl Calibration {
             Step::Blocked { .. } => return self.held(t, a, self.push_limit()),
         }
         ControlOutput::force(force)
+    }
+
+    /// A slip is a move beyond the noise and beyond an encoder step (a reading flickering
+    /// between two steps is no move); a reading within half a step and two standard deviations
+    /// of where the handle stuck has not moved yet.
+    fn set_slip(&mut self) {
+        self.slip = (MIN_SLIP + 3.0 * self.initial.noise).max(SLIP_STEPS * self.initial.step);
+        self.still = 0.5 * self.initial.step + 2.0 * self.initial.noise;
     }
 
     /// The band along axis `a` at X_C, from `t`.
@@ -2002,6 +2019,21 @@ impl Calibration {
     }
 }
 
+impl Calibration {
+    /// Whether the run is still at X_C, measuring what the holds will be built on.
+    fn initialising(&self) -> bool {
+        matches!(
+            self.phase,
+            Phase::Start
+                | Phase::Catch(_)
+                | Phase::InitBand(_)
+                | Phase::Recentre { .. }
+                | Phase::Pulse(_)
+                | Phase::InitStrokes(_)
+        )
+    }
+}
+
 /// The unit vector along axis `a`.
 fn axis(a: usize) -> Vector3<f64> {
     let mut e = Vector3::zeros();
@@ -2011,6 +2043,9 @@ fn axis(a: usize) -> Vector3<f64> {
 
 impl Controller for Calibration {
     fn tick(&mut self, state: &DeviceState) -> ControlOutput {
+        if self.initialising() {
+            self.moving.push(&state.position);
+        }
         let mut s = *state;
         s.velocity = self.filter.update(&s.position);
         let s = &s;
