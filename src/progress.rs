@@ -8,7 +8,7 @@ use tracing::info;
 
 use hgcd::calibrate::CalibrationRun;
 use hgcd::config::{Config, DeviceSpec};
-use hgcd::control::calibration::{CalibrationEvent, CalibrationParams, GridPlan};
+use hgcd::control::calibration::{CalibrationEvent, CalibrationParams, GridPlan, TimeSpent};
 use hgcd::validate::ValidateEvent;
 
 pub struct Display {
@@ -348,6 +348,7 @@ pub fn summary(run: &CalibrationRun) -> String {
         r.duration,
         run.wall_time
     );
+    out.push_str(&time_spent(&r.time_spent));
     out.push_str(
         "  vertex (n, m, p)   position mm              mass g   force N                       \
          friction N  updates  final error µm\n",
@@ -387,6 +388,24 @@ pub fn summary(run: &CalibrationRun) -> String {
     }
     out.push_str(&model_summary(run));
     out
+}
+
+/// Where a calibration's device time went, one line.
+fn time_spent(t: &TimeSpent) -> String {
+    let mut line = format!("time: initialisation {:.1} s", t.initialisation);
+    for (what, seconds) in [
+        ("exploration", t.exploration),
+        ("moves", t.moves),
+        ("rests", t.rests),
+        ("bands", t.bands),
+        ("strokes", t.strokes),
+    ] {
+        if seconds > 0.0 {
+            line.push_str(&format!(", {what} {seconds:.1} s"));
+        }
+    }
+    line.push('\n');
+    line
 }
 
 /// The holds and the gravity model chosen from them (docs/calibration.md §13), for a grid with

@@ -637,6 +637,23 @@ fn a_handle_resting_on_one_encoder_reading_is_measured_with_the_step_its_slips_s
     }
 }
 
+/// `hgcd calibrate` says where the device time went: the kinds of step add up to the run's
+/// duration; a frictionless handle needs no bands nor strokes, a frictional one both.
+#[test]
+fn the_time_spent_on_each_kind_of_step_adds_up_to_the_duration() {
+    for friction in [0.0, 0.04] {
+        let (result, _) = Device::point_mass(0.12, friction, 0.0, 3).calibrate();
+        let t = result.time_spent;
+        assert!((t.total() - result.duration).abs() < 0.002, "{result:?}");
+        assert!(
+            t.initialisation > 0.0 && t.moves > 0.0 && t.rests > 0.0,
+            "{t:?}"
+        );
+        assert_eq!(t.exploration, 0.0);
+        assert_eq!(t.bands > 0.0 && t.strokes > 0.0, friction > 0.0, "{t:?}");
+    }
+}
+
 /// WoodenHaptics unit 2 with noise seed 13: at 0.02 N at the handle its band along x at X_C
 /// reads 0.17 N, the hold along x is stiff (about 150 rad/s), and an undamped still hold on the
 /// smoothed position once rang up from a slip to a 0.3 m excursion onto a joint stop, twice,

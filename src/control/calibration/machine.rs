@@ -11,7 +11,7 @@ use nalgebra::{Matrix3, Vector3};
 use super::explore::{self, Explorer};
 use super::outcome::{
     carry_to_vertices, principal_direction, CalibrationFailure, CalibrationResult,
-    InitialMeasurement, VertexResult,
+    InitialMeasurement, TimeSpent, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Stroked, Strokes};
@@ -358,6 +358,9 @@ pub struct Calibration {
     end_time: f64,
     /// Every reading of the initialisation, for the encoder's step once the handle has moved.
     moving: NoiseMeter,
+    /// Device time of the last tick, s, and where the time went so far.
+    last_tick: Option<f64>,
+    time_spent: TimeSpent,
 
     // What the initialisation found.
     /// Centre X_C of the initial field, m.
@@ -489,6 +492,8 @@ impl Calibration {
             start_time: 0.0,
             end_time: 0.0,
             moving: NoiseMeter::new(n_init),
+            last_tick: None,
+            time_spent: TimeSpent::default(),
             rest_point: Vector3::zeros(),
             catch_force: Vector3::zeros(),
             field_scale: 1.0,
@@ -649,6 +654,7 @@ impl Calibration {
             extrapolated,
             workspace: self.explorer.as_ref().map(|e| e.map().clone()),
             duration: self.end_time - self.start_time,
+            time_spent: self.time_spent,
         })
     }
 
@@ -2032,6 +2038,28 @@ impl Calibration {
                 | Phase::InitStrokes(_)
         )
     }
+
+    /// Adds the device time since the last tick to the kind of step the run has been in.
+    fn account(&mut self, now: f64) {
+        let dt = self.last_tick.map_or(0.0, |last| (now - last).max(0.0));
+        self.last_tick = Some(now);
+        let spent = &mut self.time_spent;
+        let bucket = match self.phase {
+            Phase::Start
+            | Phase::Catch(_)
+            | Phase::InitBand(_)
+            | Phase::Recentre { .. }
+            | Phase::Pulse(_)
+            | Phase::InitStrokes(_) => &mut spent.initialisation,
+            Phase::Explore => &mut spent.exploration,
+            Phase::Move { .. } => &mut spent.moves,
+            Phase::Settle { .. } | Phase::Push(_) => &mut spent.rests,
+            Phase::Band { .. } | Phase::Check { .. } => &mut spent.bands,
+            Phase::Strokes { .. } => &mut spent.strokes,
+            Phase::Finished | Phase::Failed(_) => return,
+        };
+        *bucket += dt;
+    }
 }
 
 /// The unit vector along axis `a`.
@@ -2043,6 +2071,7 @@ fn axis(a: usize) -> Vector3<f64> {
 
 impl Controller for Calibration {
     fn tick(&mut self, state: &DeviceState) -> ControlOutput {
+        self.account(state.time);
         if self.initialising() {
             self.moving.push(&state.position);
         }

@@ -37,7 +37,9 @@ mod probe;
 pub(crate) mod steady;
 
 pub use machine::{Calibration, CalibrationEvent};
-pub use outcome::{CalibrationFailure, CalibrationResult, InitialMeasurement, VertexResult};
+pub use outcome::{
+    CalibrationFailure, CalibrationResult, InitialMeasurement, TimeSpent, VertexResult,
+};
 pub use plan::{GridPlan, PlanError, Vertex};
 
 use nalgebra::Vector3;

@@ -82,6 +82,31 @@ pub struct CalibrationResult {
     pub workspace: Option<super::explore::WorkspaceMap>,
     /// Device time of the whole run, s.
     pub duration: f64,
+    /// Where that time went.
+    pub time_spent: TimeSpent,
+}
+
+/// Device time a calibration spent in each kind of step, s (they add up to its duration).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TimeSpent {
+    /// At X_C: catching the handle, its stick bands, moving mass and survey strokes.
+    pub initialisation: f64,
+    /// Probing the reachable workspace (`calibration.workspace = "explore"`).
+    pub exploration: f64,
+    /// Moving from vertex to vertex.
+    pub moves: f64,
+    /// At vertices: settling, rests, updates and pushes toward the vertex.
+    pub rests: f64,
+    /// At vertices: the stick bands' rounds and the check after them.
+    pub bands: f64,
+    /// At vertices: the strokes.
+    pub strokes: f64,
+}
+
+impl TimeSpent {
+    pub fn total(&self) -> f64 {
+        self.initialisation + self.exploration + self.moves + self.rests + self.bands + self.strokes
+    }
 }
 
 /// Why a calibration failed.
