@@ -13,6 +13,8 @@ use hgcd::validate::ValidateEvent;
 
 pub struct Display {
     bar: Option<ProgressBar>,
+    /// Device time at which the initialisation ended, s.
+    init_end: Option<f64>,
 }
 
 impl Display {
@@ -22,14 +24,36 @@ impl Display {
             let bar = ProgressBar::new(vertices as u64);
             bar.set_style(
                 ProgressStyle::with_template(
-                    "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} vertices  {msg}",
+                    "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} vertices  {prefix}  {msg}",
                 )
                 .expect("valid template"),
             );
             bar.set_message("initialising");
             bar
         });
-        Self { bar }
+        Self {
+            bar,
+            init_end: None,
+        }
+    }
+
+    /// After vertex `vertex` (counted from 0) of `of`, `elapsed` s of device time into the run:
+    /// the estimate of the time left, on the bar or appended to the log line.
+    fn time_left(&self, line: String, vertex: usize, of: usize, elapsed: f64) -> String {
+        let Some(left) = self
+            .init_end
+            .and_then(|init| time_left(elapsed - init, vertex + 1, of))
+        else {
+            return line;
+        };
+        let left = format!("about {} of device time left", duration(left));
+        match &self.bar {
+            Some(bar) => {
+                bar.set_prefix(left);
+                line
+            }
+            None => format!("{line}; {left}"),
+        }
     }
 
     pub fn show(&mut self, event: &CalibrationEvent) {
@@ -44,7 +68,10 @@ impl Display {
                 initial_mass,
                 friction: f,
                 inertia: m,
-            } => format!(
+                elapsed,
+            } => {
+                self.init_end = Some(*elapsed);
+                format!(
                 "load along ({:.4}, {:.4}, {:.4}) of {:.1} g; friction ({:.3}, {:.3}, {:.3}) N; \
                  moving mass ({:.0}, {:.0}, {:.0}) g",
                 v.x,
@@ -57,7 +84,8 @@ impl Display {
                 m.x * 1e3,
                 m.y * 1e3,
                 m.z * 1e3
-            ),
+            )
+            }
             CalibrationEvent::VertexStarted { vertex, of, at } => {
                 // The plan the device's workspace gave (the bar began with the config's).
                 if let Some(bar) = &self.bar {
@@ -87,36 +115,40 @@ impl Display {
                 of,
                 force: f,
                 iterations,
+                elapsed,
                 ..
             } => {
                 if let Some(bar) = &self.bar {
                     bar.set_position(*vertex as u64 + 1);
                 }
-                format!(
+                let line = format!(
                     "vertex {}/{} done: F = ({:.4}, {:.4}, {:.4}) N after {iterations} updates",
                     vertex + 1,
                     of,
                     f.x,
                     f.y,
                     f.z
-                )
+                );
+                self.time_left(line, *vertex, *of, *elapsed)
             }
             CalibrationEvent::VertexUnreachable {
                 vertex,
                 of,
                 at,
                 distance,
+                elapsed,
             } => {
                 if let Some(bar) = &self.bar {
                     bar.set_position(*vertex as u64 + 1);
                 }
-                format!(
+                let line = format!(
                     "vertex {}/{}: {at} is unreachable: the handle stays {:.1} mm away and does \
                      not yield to a push; its values will be filled from its neighbours",
                     vertex + 1,
                     of,
                     distance * 1e3
-                )
+                );
+                self.time_left(line, *vertex, *of, *elapsed)
             }
             CalibrationEvent::Probed {
                 probe,
@@ -390,6 +422,23 @@ pub fn summary(run: &CalibrationRun) -> String {
     out
 }
 
+/// The device time a calibration has left, s, once `done` of its `of` vertices took `spent` s
+/// after the initialisation: their mean for each vertex still to come (the moves between them
+/// are alike, and so are the holds on one device). None before the first vertex.
+fn time_left(spent: f64, done: usize, of: usize) -> Option<f64> {
+    (done > 0).then(|| spent / done as f64 * of.saturating_sub(done) as f64)
+}
+
+/// A duration for people: "45 s", "3 min 05 s".
+fn duration(seconds: f64) -> String {
+    let s = seconds.max(0.0).round() as u64;
+    if s < 60 {
+        format!("{s} s")
+    } else {
+        format!("{} min {:02} s", s / 60, s % 60)
+    }
+}
+
 /// Where a calibration's device time went, one line.
 fn time_spent(t: &TimeSpent) -> String {
     let mut line = format!("time: initialisation {:.1} s", t.initialisation);
@@ -462,4 +511,18 @@ fn model_summary(run: &CalibrationRun) -> String {
         out.push_str(&format!("warning: {warning}\n"));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_time_left_is_the_mean_vertex_times_the_vertices_to_come() {
+        assert_eq!(time_left(30.0, 0, 27), None);
+        assert_eq!(time_left(30.0, 3, 27), Some(240.0));
+        assert_eq!(time_left(270.0, 27, 27), Some(0.0));
+        assert_eq!(duration(44.6), "45 s");
+        assert_eq!(duration(185.0), "3 min 05 s");
+    }
 }

@@ -34,6 +34,8 @@ pub enum CalibrationEvent {
         initial_mass: f64,
         friction: Vector3<f64>,
         inertia: Vector3<f64>,
+        /// Device time since the run began, s.
+        elapsed: f64,
     },
     VertexStarted {
         vertex: usize,
@@ -61,6 +63,8 @@ pub enum CalibrationEvent {
         mass: f64,
         force: Vector3<f64>,
         iterations: u32,
+        /// Device time since the run began, s.
+        elapsed: f64,
     },
     /// The handle did not yield to a push toward the vertex: it stays `distance` m away.
     VertexUnreachable {
@@ -68,6 +72,8 @@ pub enum CalibrationEvent {
         of: usize,
         at: Vertex,
         distance: f64,
+        /// Device time since the run began, s.
+        elapsed: f64,
     },
     /// Exploration: move `probe` (counted from 0) went `run` m from the vertex at `from` along
     /// the axis `direction` toward its neighbour, and met a stop (`stopped`) or arrived.
@@ -1028,6 +1034,7 @@ impl Calibration {
             initial_mass: load.norm() / self.params.g,
             friction,
             inertia,
+            elapsed: self.elapsed(),
         });
     }
 
@@ -1916,6 +1923,7 @@ impl Calibration {
             mass: self.estimate.dot(&along) / self.params.g,
             force: self.estimate,
             iterations: self.iteration,
+            elapsed: self.elapsed(),
         });
         self.next_vertex(s, vertex.position)
     }
@@ -1942,6 +1950,7 @@ impl Calibration {
             of: self.plan.path.len(),
             at: vertex,
             distance,
+            elapsed: self.elapsed(),
         });
         self.estimate = self.last_good;
         self.gain_scale = 1.0;
@@ -2037,6 +2046,11 @@ impl Calibration {
                 | Phase::Pulse(_)
                 | Phase::InitStrokes(_)
         )
+    }
+
+    /// Device time since the run began, s.
+    fn elapsed(&self) -> f64 {
+        self.last_tick.map_or(0.0, |t| t - self.start_time)
     }
 
     /// Adds the device time since the last tick to the kind of step the run has been in.
