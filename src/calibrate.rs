@@ -12,7 +12,7 @@ use crate::config::{Config, ConfigError, DeviceSpec, WorkspaceMode};
 use crate::control::calibration::persist::{check_room, grid_file};
 use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
-    PlanError,
+    PlanError, VertexResult,
 };
 use crate::control::compensation::ModelError;
 use crate::grid::{grid_path, DeviceIdentity, GridError, GridFile};
@@ -227,11 +227,29 @@ pub fn calibrate_on(
         (ExitReason::Fault(fault), None) => return Err(CalibrateError::Fault(fault)),
         (exit, None) => return Err(CalibrateError::EndedEarly(exit)),
     };
-    if !result.unreachable.is_empty() {
-        let names: Vec<String> = result.unreachable.iter().map(|v| v.to_string()).collect();
+    let (stops, unread): (Vec<&VertexResult>, Vec<&VertexResult>) = result
+        .vertices
+        .iter()
+        .filter(|v| result.unreachable.contains(&v.vertex))
+        .partition(|v| v.failure.is_none());
+    if !stops.is_empty() {
+        let names: Vec<String> = stops.iter().map(|v| v.vertex.to_string()).collect();
         warn!(
             "{} of {} vertices could not be reached (the handle did not yield to a push toward \
-             them) and were filled from their neighbours: {}",
+             them, from two sides) and were filled from their neighbours: {}",
+            names.len(),
+            result.vertices.len(),
+            names.join("; ")
+        );
+    }
+    if !unread.is_empty() {
+        let names: Vec<String> = unread
+            .iter()
+            .filter_map(|v| v.failure.map(|f| f.to_string()))
+            .collect();
+        warn!(
+            "{} of {} vertices could not be measured, from two sides, and were filled from their \
+             neighbours: {}",
             names.len(),
             result.vertices.len(),
             names.join("; ")

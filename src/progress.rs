@@ -136,19 +136,46 @@ impl Display {
                 of,
                 at,
                 distance,
+                failure,
                 elapsed,
             } => {
                 if let Some(bar) = &self.bar {
                     bar.set_position(*vertex as u64 + 1);
                 }
+                let why = match failure {
+                    None => format!(
+                        "is unreachable: the handle stays {:.1} mm away and does not yield to a \
+                         push",
+                        distance * 1e3
+                    ),
+                    Some(failure) => format!("could not be measured, twice: {failure}"),
+                };
                 let line = format!(
-                    "vertex {}/{}: {at} is unreachable: the handle stays {:.1} mm away and does \
-                     not yield to a push; its values will be filled from its neighbours",
+                    "vertex {}/{}: {at} {why}; its values will be filled from its neighbours",
                     vertex + 1,
                     of,
-                    distance * 1e3
                 );
                 self.time_left(line, *vertex, *of, *elapsed)
+            }
+            CalibrationEvent::VertexRetried {
+                vertex,
+                at,
+                failure,
+                beside,
+            } => {
+                let why = match failure {
+                    None => "the handle did not yield to a push toward it".to_string(),
+                    Some(failure) => failure.to_string(),
+                };
+                let b = beside * 1e3;
+                format!(
+                    "vertex {}: {at} once more, by way of ({:.1}, {:.1}, {:.1}) mm beside it \
+                     ({why})",
+                    vertex + 1,
+                    b.x,
+                    b.y,
+                    b.z
+                )
             }
             CalibrationEvent::Probed {
                 probe,

@@ -334,6 +334,34 @@ fn vertices_behind_a_mechanical_stop_are_marked_unreachable_and_filled_from_thei
     }
 }
 
+/// A floor at z = +30 mm, the handle resting above it at z = +40 mm: the two lower layers, 18 of
+/// 27 vertices, cannot be reached from either side. Filling two thirds of a grid from one layer
+/// would be a guess: once more than half of the vertices are missed, the run fails and says so.
+#[test]
+fn fewer_than_half_of_the_vertices_measured_fail_the_run() {
+    let (outcome, events) = calibrate_fresh(
+        "workspace_min_mm = [-80.0, -80.0, 30.0]\nstart_position_mm = [0.0, 0.0, 40.0]\n\
+         [calibration]\nvertex_timeout_s = 8.0\ncentre_mm = [0.0, 0.0, 0.0]\n[device]\n\
+         workspace_min_mm = [-70.0, -70.0, -70.0]\n",
+    );
+    // The lower layers come first: once 14 vertices are missed, half cannot be measured.
+    assert_eq!(
+        outcome,
+        Err(CalibrationFailure::TooFewVertices { missed: 14, of: 27 })
+    );
+    assert_eq!(vertices_done(&events), 0);
+    let retried = events
+        .iter()
+        .filter(|e| matches!(e, CalibrationEvent::VertexRetried { failure: None, .. }))
+        .count();
+    assert_eq!(retried, 14);
+    let message = outcome.unwrap_err().to_string();
+    assert!(
+        message.starts_with("14 of the 27 vertices could not be measured"),
+        "{message}"
+    );
+}
+
 #[test]
 fn a_failed_calibration_tells_the_user_why_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
@@ -391,10 +419,81 @@ fn position_noise_beyond_eps_init_keeps_the_initialisation_from_any_steady_state
     );
 }
 
+/// What became of the first vertex: it failed with `failure`, was approached once more from
+/// beside it, failed again and was skipped (issue 35: a calibration gives up on a vertex, not on
+/// the run).
+fn first_vertex_retried_then_skipped(events: &[CalibrationEvent]) -> CalibrationFailure {
+    let retried = events.iter().find_map(|e| match e {
+        CalibrationEvent::VertexRetried {
+            vertex: 0,
+            failure: Some(f),
+            beside,
+            ..
+        } => Some((*f, *beside)),
+        _ => None,
+    });
+    let (failure, beside) = retried.expect("the first vertex is tried again");
+    // Half a cell beside (−40, −40, −40) mm, toward the grid's centre, square to the way from
+    // the start (the grid's centre itself: along the diagonal, so the first axis).
+    assert!(
+        (beside - Vector3::new(-0.04, -0.04, -0.04)).norm() - 0.02 < 1e-9,
+        "{beside}"
+    );
+    let kind = std::mem::discriminant(&failure);
+    let skipped = events.iter().find_map(|e| match e {
+        CalibrationEvent::VertexUnreachable {
+            vertex: 0,
+            failure: Some(f),
+            ..
+        } if std::mem::discriminant(f) == kind => Some(*f),
+        _ => None,
+    });
+    skipped.expect("the first vertex is skipped after failing again")
+}
+
+/// An obstacle on the straight way to a vertex (a box 4 mm thick and 27–30 mm wide halfway
+/// between (0, −40, −40) and (40, −40, −40) mm: a cable clamp, say): the handle stops at it, does not yield to the push, and
+/// before issue 35 the vertex was marked unreachable. It is approached again, back by way of the
+/// vertex before it and a point beside it, and measured like every other: within 1 % of the
+/// truth, nothing filled.
+#[test]
+fn a_vertex_behind_an_obstacle_on_the_way_is_reached_from_beside_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = config(
+        dir.path(),
+        "obstacle_min_mm = [18.0, -60.0, -60.0]\nobstacle_max_mm = [22.0, -33.0, -30.0]\n",
+    );
+    let (outcome, events) = run_calibration(&config);
+    let result = outcome.unwrap();
+    assert!(result.unreachable.is_empty(), "{:?}", result.unreachable);
+    let retried: Vec<[i32; 3]> = events
+        .iter()
+        .filter_map(|e| match e {
+            CalibrationEvent::VertexRetried { at, failure, .. } => {
+                assert_eq!(*failure, None, "a stop, not a failure to converge");
+                Some(at.index)
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(retried, [[1, -1, -1]]);
+    let truth = truth_field_125();
+    let v = result
+        .vertices
+        .iter()
+        .find(|v| v.vertex.index == [1, -1, -1])
+        .unwrap();
+    let expected = truth.gravity_force(&v.vertex.position);
+    let error = (v.force - expected).norm() / expected.norm();
+    assert!(error < 0.01, "{v:?}: {error}");
+}
+
 #[test]
 fn a_vertex_that_needs_more_time_than_allowed_fails_with_vertex_timeout() {
     // The first vertex (−40, −40, −40) mm weighs 50 g, against 219 g at the start: its move,
-    // an update, a settle, a round of bands and the check take over a second.
+    // an update, a settle, a round of bands and the check take over a second. So do most
+    // others: each is tried twice and skipped, and with fewer than half of them measured the
+    // run fails with the first vertex's failure.
     let (outcome, events) = calibrate_fresh("[calibration]\nvertex_timeout_s = 1.0\n");
     let Err(CalibrationFailure::VertexTimeout {
         vertex, timeout, ..
@@ -404,7 +503,11 @@ fn a_vertex_that_needs_more_time_than_allowed_fails_with_vertex_timeout() {
     };
     assert_eq!(vertex.index, [-1, -1, -1]);
     assert_eq!(timeout, 1.0);
-    assert_eq!(vertices_done(&events), 0);
+    assert_eq!(
+        first_vertex_retried_then_skipped(&events),
+        outcome.unwrap_err()
+    );
+    assert!(vertices_done(&events) < 14, "{}", vertices_done(&events));
 }
 
 #[test]
@@ -418,6 +521,10 @@ fn a_sphere_smaller_than_the_noise_fails_with_vertex_timeout_not_a_panic() {
         panic!("{outcome:?}");
     };
     assert_eq!(vertex.index, [-1, -1, -1]);
+    assert_eq!(
+        first_vertex_retried_then_skipped(&events),
+        outcome.unwrap_err()
+    );
     assert_eq!(vertices_done(&events), 0);
 }
 
@@ -448,7 +555,11 @@ fn a_vertex_that_needs_more_updates_than_allowed_fails_with_too_many_iterations(
     };
     assert_eq!(vertex.index, [-1, -1, -1]);
     assert_eq!(iterations, 2);
-    assert_eq!(vertices_done(&events), 0);
+    assert_eq!(
+        first_vertex_retried_then_skipped(&events),
+        outcome.unwrap_err()
+    );
+    assert!(vertices_done(&events) < 14, "{}", vertices_done(&events));
 }
 
 #[test]

@@ -55,6 +55,14 @@ pub enum CalibrationEvent {
         vertex: usize,
         scale: f64,
     },
+    /// The vertex could not be measured (as in `VertexUnreachable`): it is approached again,
+    /// by way of the point `beside` it.
+    VertexRetried {
+        vertex: usize,
+        at: Vertex,
+        failure: Option<CalibrationFailure>,
+        beside: Vector3<f64>,
+    },
     /// `mass` is the force along the load direction found at X_C, over g (the final v_G comes
     /// from every vertex's force).
     VertexDone {
@@ -66,12 +74,15 @@ pub enum CalibrationEvent {
         /// Device time since the run began, s.
         elapsed: f64,
     },
-    /// The handle did not yield to a push toward the vertex: it stays `distance` m away.
+    /// The vertex could not be measured, twice: the handle did not yield to a push toward it
+    /// (`failure` None), or did not converge there (`failure`). It stays `distance` m away; its
+    /// values are filled from its neighbours.
     VertexUnreachable {
         vertex: usize,
         of: usize,
         at: Vertex,
         distance: f64,
+        failure: Option<CalibrationFailure>,
         /// Device time since the run began, s.
         elapsed: f64,
     },
@@ -281,10 +292,12 @@ enum Phase {
     },
     Pulse(Pulse),
     /// The PD's set point glides to the current vertex; `walked`: along an edge the
-    /// exploration's walk travelled end to end (nothing in the way).
+    /// exploration's walk travelled end to end (nothing in the way). A second attempt at a
+    /// vertex goes by way of other points first: `then`, the points still to glide to.
     Move {
         path: Glide,
         walked: bool,
+        then: [Option<Vector3<f64>>; 2],
     },
     /// The PD holds the current vertex; samples count from `since` plus the settle time.
     Settle {
@@ -362,6 +375,10 @@ pub struct Calibration {
     /// Device time of the first and of the last tick, s.
     start_time: f64,
     end_time: f64,
+    /// Whether the current vertex is being approached a second time, and where its first
+    /// approach started, m.
+    retried: bool,
+    approach: Vector3<f64>,
     /// Every reading of the initialisation, for the encoder's step once the handle has moved.
     moving: NoiseMeter,
     /// Device time of the last tick, s, and where the time went so far.
@@ -497,6 +514,8 @@ impl Calibration {
             phase: Phase::Start,
             start_time: 0.0,
             end_time: 0.0,
+            retried: false,
+            approach: Vector3::zeros(),
             moving: NoiseMeter::new(n_init),
             last_tick: None,
             time_spent: TimeSpent::default(),
@@ -602,6 +621,7 @@ impl Calibration {
                 measured_at: vertex.position,
                 duration: 0.0,
                 reached: false,
+                failure: None,
             });
         }
         let mut vertices = ordered.into_iter().collect::<Option<Vec<VertexResult>>>()?;
@@ -1053,6 +1073,7 @@ impl Calibration {
     /// Set off from `from` toward the current vertex, with a fresh vertex record.
     fn start_move(&mut self, from: Vector3<f64>, t: f64) {
         let to = self.plan.path[self.vertex].position;
+        self.approach = from;
         // An explored grid's path jumps where it skips extrapolated vertices: start from the
         // force of the closest vertex calibrated so far (Eq. 12), not of the last one.
         if self.explorer.is_some() {
@@ -1092,6 +1113,7 @@ impl Calibration {
                 duration: slowed,
             },
             walked,
+            then: [None; 2],
         };
         self.vertex_start = t + (slowed - duration);
         self.iteration = 0;
@@ -1156,7 +1178,13 @@ impl Calibration {
 
     /// Move (§3.2): the PD (with the force estimate so far) follows the glide to the vertex,
     /// then holds it.
-    fn move_to_vertex(&mut self, s: &DeviceState, path: Glide, walked: bool) -> ControlOutput {
+    fn move_to_vertex(
+        &mut self,
+        s: &DeviceState,
+        path: Glide,
+        walked: bool,
+        then: [Option<Vector3<f64>>; 2],
+    ) -> ControlOutput {
         // In an explored workspace, a handle that stops following the move has met a stop the
         // map did not know: the vertex is out of reach, and the hold stays where the handle is.
         // Along an edge the walk travelled nothing is in the way, and the faster move lags more.
@@ -1164,10 +1192,19 @@ impl Calibration {
             && !walked
             && (path.at(s.time) - s.position).norm() > explore::CONTACT_LAG
         {
-            return self.unreachable(s, (path.to - s.position).norm());
+            return self.skip(s, (path.to - s.position).norm(), None);
         }
         if path.progress(s.time) >= 1.0 {
-            self.settle_from(s.time);
+            match then {
+                [Some(next), after] => {
+                    self.phase = Phase::Move {
+                        path: self.glide(path.to, next, s.time),
+                        walked,
+                        then: [after, None],
+                    };
+                }
+                _ => self.settle_from(s.time),
+            }
         }
         ControlOutput::force(self.hold_force(&path.at(s.time), s, &self.estimate))
     }
@@ -1188,7 +1225,8 @@ impl Calibration {
             .iter()
             .all(|&kind| kind == Friction::None)
         {
-            return self.fail(failure);
+            let distance = (self.plan.path[self.vertex].position - s.position).norm();
+            return self.give_up(s, distance, Some(failure));
         }
         let vertex = self.plan.path[self.vertex];
         let error = (vertex.position - self.smoothed).norm();
@@ -1313,10 +1351,12 @@ impl Calibration {
             error,
         });
         if self.iteration >= self.params.max_iterations {
-            return self.fail(CalibrationFailure::TooManyIterations {
-                vertex: self.plan.path[self.vertex],
+            let vertex = self.plan.path[self.vertex];
+            let failure = CalibrationFailure::TooManyIterations {
+                vertex,
                 iterations: self.iteration,
-            });
+            };
+            return self.give_up(s, (vertex.position - s.position).norm(), Some(failure));
         }
         self.settle_from(s.time);
         let vertex = self.plan.path[self.vertex].position;
@@ -1419,7 +1459,7 @@ impl Calibration {
                 };
                 ControlOutput::force(force)
             }
-            Step::Blocked { .. } => self.unreachable(s, (vertex.position - self.rest).norm()),
+            Step::Blocked { .. } => self.give_up(s, (vertex.position - self.rest).norm(), None),
             Step::Done(band) => {
                 let k = probe.index();
                 // F̂ moves along the band's direction until its load on the band's pair of faces
@@ -1525,10 +1565,11 @@ impl Calibration {
             return ControlOutput::force(force);
         }
         if self.iteration >= self.params.max_iterations {
-            return self.fail(CalibrationFailure::TooManyIterations {
+            let failure = CalibrationFailure::TooManyIterations {
                 vertex,
                 iterations: self.iteration,
-            });
+            };
+            return self.give_up(s, (vertex.position - s.position).norm(), Some(failure));
         }
         // The slips of a round move the handle a little; a new estimate may move it a little
         // more: measure again where it is unless it has gone far.
@@ -1757,7 +1798,10 @@ impl Calibration {
             self.estimate = bands_force;
         }
         match run.late {
-            Some(failure) => self.fail(failure),
+            Some(failure) => {
+                let distance = (vertex.position - s.position).norm();
+                self.give_up(s, distance, Some(failure))
+            }
             None => self.vertex_done(s, vertex, run.error),
         }
     }
@@ -1889,7 +1933,7 @@ impl Calibration {
                 self.settle_from(t);
                 ControlOutput::force(force)
             }
-            Step::Blocked { .. } => self.unreachable(s, (vertex - s.position).norm()),
+            Step::Blocked { .. } => self.give_up(s, (vertex - s.position).norm(), None),
         }
     }
 
@@ -1908,6 +1952,7 @@ impl Calibration {
             measured_at: self.measured_at,
             duration: s.time - self.vertex_start,
             reached: true,
+            failure: None,
         };
         self.results[self.vertex] = Some(result);
         self.last_good = self.estimate;
@@ -1928,9 +1973,101 @@ impl Calibration {
         self.next_vertex(s, vertex.position)
     }
 
-    /// Mark the current vertex unreachable (the handle stays `distance` m away), go back to the
-    /// last vertex's force and go on.
-    fn unreachable(&mut self, s: &DeviceState, distance: f64) -> ControlOutput {
+    /// The current vertex could not be measured: the handle did not yield to a push toward it
+    /// (`failure` None), or it did not converge (`failure`). The first time, it is approached
+    /// again from beside it, from the last vertex's force, with its time and updates afresh: an
+    /// obstacle on the straight way, or a hold that rang or crept from one side, need not be in
+    /// the way of another. The second time, it is skipped.
+    fn give_up(
+        &mut self,
+        s: &DeviceState,
+        distance: f64,
+        failure: Option<CalibrationFailure>,
+    ) -> ControlOutput {
+        // An explored workspace's map already knows where the handle can go.
+        if self.retried || self.explorer.is_some() {
+            return self.skip(s, distance, failure);
+        }
+        self.retried = true;
+        let vertex = self.plan.path[self.vertex];
+        let beside = self.beside(&vertex.position, &self.approach);
+        self.emit(CalibrationEvent::VertexRetried {
+            vertex: self.vertex,
+            at: vertex,
+            failure,
+            beside,
+        });
+        self.estimate = self.last_good;
+        self.gain_scale = 1.0;
+        // Back to where the first approach began (a point the handle reached), then beside the
+        // vertex, then to it.
+        let (back, from) = (self.approach, s.position);
+        self.start_move(from, s.time);
+        let path = self.glide(from, back, s.time);
+        // The vertex's time starts once it is reached again.
+        self.vertex_start = s.time
+            + path.duration
+            + self.glide(back, beside, 0.0).duration
+            + self.glide(beside, vertex.position, 0.0).duration;
+        self.phase = Phase::Move {
+            path,
+            walked: false,
+            then: [Some(beside), Some(vertex.position)],
+        };
+        ControlOutput::force(self.hold_force(&from, s, &self.estimate))
+    }
+
+    /// A minimum-jerk glide from `from` to `to` starting at `t`, `move_time` per cell.
+    fn glide(&self, from: Vector3<f64>, to: Vector3<f64>, t: f64) -> Glide {
+        Glide {
+            from,
+            to,
+            start: t,
+            duration: self.params.move_time * ((to - from).norm() / self.params.spacing).max(1.0),
+        }
+    }
+
+    /// A point half a cell beside `vertex`, across the straight way the handle came from
+    /// `approach`: along the axis most nearly square to that way (made square to it), on the
+    /// side that stays inside the box the grid spans (toward the grid's centre if both do), and
+    /// inside the workspace, m.
+    fn beside(&self, vertex: &Vector3<f64>, approach: &Vector3<f64>) -> Vector3<f64> {
+        let way = (vertex - approach)
+            .try_normalize(1e-9)
+            .unwrap_or_else(Vector3::x);
+        let a = (0..3)
+            .min_by(|&i, &j| way[i].abs().total_cmp(&way[j].abs()))
+            .unwrap_or(0);
+        let side = (axis(a) - way * way[a])
+            .try_normalize(1e-9)
+            .unwrap_or_else(|| axis(a));
+        let step = 0.5 * self.params.spacing;
+        let lo = self.plan.origin;
+        let cells = Vector3::from(self.plan.dims.map(|n| n.saturating_sub(1) as f64));
+        let hi = lo + cells * self.params.spacing;
+        let inside =
+            |p: &Vector3<f64>| (0..3).all(|k| p[k] >= lo[k] - 1e-9 && p[k] <= hi[k] + 1e-9);
+        let (plus, minus) = (vertex + side * step, vertex - side * step);
+        let toward_centre = side.dot(&(self.params.centre - vertex)) >= 0.0;
+        let chosen = match (inside(&plus), inside(&minus)) {
+            (true, false) => plus,
+            (false, true) => minus,
+            _ if toward_centre => plus,
+            _ => minus,
+        };
+        let (min, max) = self.params.workspace;
+        chosen.zip_zip_map(&min, &max, |x, lo, hi| x.clamp(lo, hi))
+    }
+
+    /// Mark the current vertex as not measured (the handle stays `distance` m away; `failure`
+    /// None: it did not yield to a push), go back to the last vertex's force and go on. Its
+    /// values are filled from its neighbours once the run is over.
+    fn skip(
+        &mut self,
+        s: &DeviceState,
+        distance: f64,
+        failure: Option<CalibrationFailure>,
+    ) -> ControlOutput {
         let vertex = self.plan.path[self.vertex];
         self.results[self.vertex] = Some(VertexResult {
             vertex,
@@ -1944,12 +2081,14 @@ impl Calibration {
             measured_at: vertex.position,
             duration: s.time - self.vertex_start,
             reached: false,
+            failure,
         });
         self.emit(CalibrationEvent::VertexUnreachable {
             vertex: self.vertex,
             of: self.plan.path.len(),
             at: vertex,
             distance,
+            failure,
             elapsed: self.elapsed(),
         });
         self.estimate = self.last_good;
@@ -1959,12 +2098,20 @@ impl Calibration {
 
     fn next_vertex(&mut self, s: &DeviceState, from: Vector3<f64>) -> ControlOutput {
         self.vertex += 1;
-        if self.vertex == self.plan.path.len() {
+        self.retried = false;
+        let of = self.plan.path.len();
+        let read = self.results.iter().flatten().filter(|r| r.reached).count();
+        // Fewer than half of the vertices measured (or certain to be) is too few to fill in the
+        // others.
+        let missed = self.vertex - read;
+        if self.vertex == of || missed > of - of.div_ceil(2) {
             self.end_time = s.time;
-            if self.results.iter().flatten().all(|r| !r.reached) {
-                return self.fail(CalibrationFailure::NothingReached {
-                    count: self.plan.path.len(),
-                });
+            if read < of.div_ceil(2) {
+                // Why the first vertex that was not measured failed, if it was not a stop: it
+                // says what to change (a time limit, ε_M, the updates allowed).
+                let first = self.results.iter().flatten().find_map(|r| r.failure);
+                return self
+                    .fail(first.unwrap_or(CalibrationFailure::TooFewVertices { missed, of }));
             }
             self.phase = Phase::Finished;
             self.emit(CalibrationEvent::Finished);
@@ -2103,7 +2250,7 @@ impl Controller for Calibration {
                 since,
             } => self.recentre(s, axis, excess, since),
             Phase::Pulse(pulse) => self.pulse(s, pulse),
-            Phase::Move { path, walked } => self.move_to_vertex(s, path, walked),
+            Phase::Move { path, walked, then } => self.move_to_vertex(s, path, walked, then),
             Phase::Settle { since } => self.settle(s, since),
             Phase::Band {
                 probe,

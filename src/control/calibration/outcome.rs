@@ -35,6 +35,9 @@ pub struct VertexResult {
     pub duration: f64,
     /// False for a vertex the handle could not reach: its values are filled from neighbours.
     pub reached: bool,
+    /// For a vertex not reached: why, if it was not a stop (the handle did not converge there,
+    /// twice); None for a stop, and for a vertex reached.
+    pub failure: Option<CalibrationFailure>,
 }
 
 /// What the initialisation measured at the rest point X_C.
@@ -136,10 +139,11 @@ pub enum CalibrationFailure {
     #[error("{vertex} did not converge after {iterations} updates")]
     TooManyIterations { vertex: Vertex, iterations: u32 },
     #[error(
-        "the handle reached none of the {count} vertices (mechanical stops or obstacles? check \
-         device.workspace_*_mm and calibration.centre_mm)"
+        "{missed} of the {of} vertices could not be measured, each tried from two sides (at \
+         least half must be, to fill in the others); the warnings above say where (mechanical \
+         stops or obstacles? check device.workspace_*_mm and calibration.centre_mm)"
     )]
-    NothingReached { count: usize },
+    TooFewVertices { missed: usize, of: usize },
     #[error(
         "the explored workspace spans {needed} vertices along {axis} at calibration.spacing_mm; \
          at most {} fit (raise calibration.spacing_mm)",
