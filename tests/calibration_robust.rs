@@ -11,7 +11,7 @@ use nalgebra::Vector3;
 use hgcd::config::{Config, DeviceSpec};
 use hgcd::control::calibration::persist::grid_file;
 use hgcd::control::calibration::{
-    Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
+    Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
 };
 use hgcd::control::compensation::{Compensation, ForceOffset, GravityModel};
 use hgcd::control::{ControlOutput, Controller, DeviceState};
@@ -677,6 +677,33 @@ fn delta_calibrates_within_2_percent_with_handle_side_friction() {
         let worst =
             worst_vertical_with_handle_friction(Device::linkage("delta", unit), 0.0, handle);
         assert_within_2_percent(&format!("unit {unit}, {handle} N"), worst);
+    }
+}
+
+/// The delta, unit 1, noise seed 3, 0.02 N at the handle: at vertex (1, 1, −1) the rounds of
+/// bands disagreed (joint friction read through a ball at the handle) and left F̂ 2.8 N off; the
+/// hold kept the handle 4.5 mm from the vertex, the strokes were blocked, and the bands' force
+/// was kept as a stop's would be: 264 % off (issue 35). A handle held off by more than friction
+/// yields to is now measured again from beside the vertex. Every vertex within 2 % (the delta's
+/// worst is about 1 %, docs/calibration.md §7.1).
+#[test]
+fn a_force_estimate_that_holds_the_handle_far_off_is_measured_again_not_kept() {
+    let mut device = Device::linkage("delta", 1);
+    device.config.sim.seed = 3;
+    device.config.sim.coulomb_friction_n = 0.02;
+    let (result, events) = device.calibrate();
+    assert!(result.unreachable.is_empty());
+    assert!(events.iter().any(|e| matches!(
+        e,
+        CalibrationEvent::VertexRetried {
+            failure: Some(CalibrationFailure::HeldOff { .. }),
+            ..
+        }
+    )));
+    for v in &result.vertices {
+        let truth = device.truth(&v.vertex.position);
+        let error = (v.force - truth).norm() / truth.norm();
+        assert!(error <= 0.02, "{}: {:.2} % off", v.vertex, 100.0 * error);
     }
 }
 

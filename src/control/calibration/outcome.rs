@@ -139,6 +139,11 @@ pub enum CalibrationFailure {
     #[error("{vertex} did not converge after {iterations} updates")]
     TooManyIterations { vertex: Vertex, iterations: u32 },
     #[error(
+        "{vertex}: the hold kept the handle {offset_mm:.1} mm off it, further than friction can \
+         (a stop within a few millimetres of it, or a load the stick bands misread)"
+    )]
+    HeldOff { vertex: Vertex, offset_mm: f64 },
+    #[error(
         "{missed} of the {of} vertices could not be measured, each tried from two sides (at \
          least half must be, to fill in the others); the warnings above say where (mechanical \
          stops or obstacles? check device.workspace_*_mm and calibration.centre_mm)"
