@@ -119,6 +119,30 @@ pub struct CalibrateRequest {
     pub state_dir: PathBuf,
 }
 
+/// The device time a calibration has left, s, once `done` of its `of` vertices took `spent` s
+/// after the initialisation: their mean for each vertex still to come (the moves between them
+/// are alike, and so are the holds on one device). None before the first vertex.
+pub fn time_left(spent: f64, done: usize, of: usize) -> Option<f64> {
+    (done > 0).then(|| spent / done as f64 * of.saturating_sub(done) as f64)
+}
+
+/// A duration for people: "45 s", "3 min 05 s".
+pub fn duration_for_people(seconds: f64) -> String {
+    let s = seconds.max(0.0).round() as u64;
+    if s < 60 {
+        format!("{s} s")
+    } else {
+        format!("{} min {:02} s", s / 60, s % 60)
+    }
+}
+
+/// "about … of device time left" after vertex `vertex` (counted from 0) of `of`, `elapsed` s
+/// into a run whose initialisation ended at `init_end` s; None before the first vertex.
+pub fn time_left_message(init_end: f64, vertex: usize, of: usize, elapsed: f64) -> Option<String> {
+    time_left(elapsed - init_end, vertex + 1, of)
+        .map(|left| format!("about {} of device time left", duration_for_people(left)))
+}
+
 /// A finished, saved calibration.
 #[derive(Clone, Debug)]
 pub struct CalibrationRun {
@@ -266,4 +290,22 @@ pub fn calibrate_on(
         stats: report.stats,
         wall_time: started.elapsed().as_secs_f64(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_time_left_is_the_mean_vertex_times_the_vertices_to_come() {
+        assert_eq!(time_left(30.0, 0, 27), None);
+        assert_eq!(time_left(30.0, 3, 27), Some(240.0));
+        assert_eq!(time_left(270.0, 27, 27), Some(0.0));
+        assert_eq!(duration_for_people(44.6), "45 s");
+        assert_eq!(duration_for_people(185.0), "3 min 05 s");
+        assert_eq!(
+            time_left_message(10.0, 2, 27, 40.0).as_deref(),
+            Some("about 4 min 00 s of device time left")
+        );
+    }
 }

@@ -89,10 +89,12 @@ pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
                     mass_kg.unwrap_or(0.0) * 1e3
                 )),
                 CalibrationStage::VertexDone => err(&format!(
-                    "vertex {}/{}: {:.2} g\n",
+                    "vertex {}/{}: {:.2} g{}{}\n",
                     vertex.unwrap_or(0) + 1,
                     of.unwrap_or(0),
-                    mass_kg.unwrap_or(0.0) * 1e3
+                    mass_kg.unwrap_or(0.0) * 1e3,
+                    if message.is_empty() { "" } else { "; " },
+                    message
                 )),
                 CalibrationStage::Finished => {
                     return out(&format!(

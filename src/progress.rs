@@ -6,7 +6,7 @@ use std::io::IsTerminal;
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::info;
 
-use hgcd::calibrate::CalibrationRun;
+use hgcd::calibrate::{time_left_message, CalibrationRun};
 use hgcd::config::{Config, DeviceSpec};
 use hgcd::control::calibration::{CalibrationEvent, CalibrationParams, GridPlan, TimeSpent};
 use hgcd::validate::ValidateEvent;
@@ -42,11 +42,10 @@ impl Display {
     fn time_left(&self, line: String, vertex: usize, of: usize, elapsed: f64) -> String {
         let Some(left) = self
             .init_end
-            .and_then(|init| time_left(elapsed - init, vertex + 1, of))
+            .and_then(|init| time_left_message(init, vertex, of, elapsed))
         else {
             return line;
         };
-        let left = format!("about {} of device time left", duration(left));
         match &self.bar {
             Some(bar) => {
                 bar.set_prefix(left);
@@ -449,23 +448,6 @@ pub fn summary(run: &CalibrationRun) -> String {
     out
 }
 
-/// The device time a calibration has left, s, once `done` of its `of` vertices took `spent` s
-/// after the initialisation: their mean for each vertex still to come (the moves between them
-/// are alike, and so are the holds on one device). None before the first vertex.
-fn time_left(spent: f64, done: usize, of: usize) -> Option<f64> {
-    (done > 0).then(|| spent / done as f64 * of.saturating_sub(done) as f64)
-}
-
-/// A duration for people: "45 s", "3 min 05 s".
-fn duration(seconds: f64) -> String {
-    let s = seconds.max(0.0).round() as u64;
-    if s < 60 {
-        format!("{s} s")
-    } else {
-        format!("{} min {:02} s", s / 60, s % 60)
-    }
-}
-
 /// Where a calibration's device time went, one line.
 fn time_spent(t: &TimeSpent) -> String {
     let mut line = format!("time: initialisation {:.1} s", t.initialisation);
@@ -538,18 +520,4 @@ fn model_summary(run: &CalibrationRun) -> String {
         out.push_str(&format!("warning: {warning}\n"));
     }
     out
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_time_left_is_the_mean_vertex_times_the_vertices_to_come() {
-        assert_eq!(time_left(30.0, 0, 27), None);
-        assert_eq!(time_left(30.0, 3, 27), Some(240.0));
-        assert_eq!(time_left(270.0, 27, 27), Some(0.0));
-        assert_eq!(duration(44.6), "45 s");
-        assert_eq!(duration(185.0), "3 min 05 s");
-    }
 }

@@ -151,6 +151,11 @@ fn masked(line: &str, reply: &Reply) -> String {
                     | "owner"
             )
         }),
+        // The time left a vertex reports depends on how long the run took so far.
+        Reply::Calibration {
+            event: CalibrationStage::VertexDone,
+            ..
+        } => mask(line, |k| k != "mass_kg" && k != "message"),
         Reply::Calibration { .. } => mask(line, |k| k != "mass_kg"),
         Reply::Welcome { .. } | Reply::Error { .. } => line.to_string(),
     }

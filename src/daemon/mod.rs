@@ -21,6 +21,7 @@ use tracing::{error, info, warn};
 use crate::app::endpoint;
 use crate::app::protocol::{CalibrationStage, Compensating, Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
+use crate::calibrate::time_left_message;
 use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{self, grid_file};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
@@ -246,6 +247,9 @@ struct Hub {
     /// Client waiting for the calibration in progress, and the events channel of that run.
     calibration: Option<(u64, Receiver<CalibrationEvent>)>,
     abort_sent: bool,
+    /// Device time at which the running calibration's initialisation ended, s (for the time
+    /// left it reports with each vertex).
+    calibration_init_end: Option<f64>,
     log: EventLog,
     last_housekeeping: Instant,
 }
@@ -275,6 +279,7 @@ impl Hub {
             started: Instant::now(),
             calibration: None,
             abort_sent: false,
+            calibration_init_end: None,
             log: EventLog::new(),
             last_housekeeping: Instant::now(),
         }
@@ -373,6 +378,7 @@ impl Hub {
                         let start = ServoCommand::StartCalibration(Box::new(calibration));
                         if self.command(start) {
                             info!("calibration requested by application client {client}");
+                            self.calibration_init_end = None;
                             self.calibration = Some((client, rx));
                             self.status.calibrating = true;
                             self.reply(
@@ -410,31 +416,47 @@ impl Hub {
         }
     }
 
-    fn forward_calibration_events(&self) {
+    fn forward_calibration_events(&mut self) {
         let Some((client, rx)) = &self.calibration else {
             return;
         };
-        for event in rx.try_iter() {
+        let client = *client;
+        let events: Vec<CalibrationEvent> = rx.try_iter().collect();
+        for event in events {
             let reply = match event {
-                CalibrationEvent::InitDone { initial_mass, .. } => Reply::Calibration {
-                    event: CalibrationStage::InitDone,
-                    vertex: None,
-                    of: None,
-                    mass_kg: Some(initial_mass),
-                    message: String::new(),
-                },
+                CalibrationEvent::InitDone {
+                    initial_mass,
+                    elapsed,
+                    ..
+                } => {
+                    self.calibration_init_end = Some(elapsed);
+                    Reply::Calibration {
+                        event: CalibrationStage::InitDone,
+                        vertex: None,
+                        of: None,
+                        mass_kg: Some(initial_mass),
+                        message: String::new(),
+                    }
+                }
                 CalibrationEvent::VertexDone {
-                    vertex, of, mass, ..
+                    vertex,
+                    of,
+                    mass,
+                    elapsed,
+                    ..
                 } => Reply::Calibration {
                     event: CalibrationStage::VertexDone,
                     vertex: Some(vertex),
                     of: Some(of),
                     mass_kg: Some(mass),
-                    message: String::new(),
+                    message: self
+                        .calibration_init_end
+                        .and_then(|init| time_left_message(init, vertex, of, elapsed))
+                        .unwrap_or_default(),
                 },
                 _ => continue,
             };
-            self.reply(*client, reply);
+            self.reply(client, reply);
         }
     }
 
