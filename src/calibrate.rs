@@ -120,7 +120,7 @@ pub struct CalibrateRequest {
 }
 
 /// The device time a calibration has left, s, once `done` of its `of` vertices took `spent` s
-/// after the initialisation: their mean for each vertex still to come (the moves between them
+/// since the first began (after the initialisation and any exploring): their mean for each vertex still to come (the moves between them
 /// are alike, and so are the holds on one device). None before the first vertex.
 pub fn time_left(spent: f64, done: usize, of: usize) -> Option<f64> {
     (done > 0).then(|| spent / done as f64 * of.saturating_sub(done) as f64)
@@ -137,7 +137,7 @@ pub fn duration_for_people(seconds: f64) -> String {
 }
 
 /// "about … of device time left" after vertex `vertex` (counted from 0) of `of`, `elapsed` s
-/// into a run whose initialisation ended at `init_end` s; None before the first vertex.
+/// into a run whose first vertex began at `init_end` s; None before the first vertex is done.
 pub fn time_left_message(init_end: f64, vertex: usize, of: usize, elapsed: f64) -> Option<String> {
     time_left(elapsed - init_end, vertex + 1, of)
         .map(|left| format!("about {} of device time left", duration_for_people(left)))

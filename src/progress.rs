@@ -13,7 +13,8 @@ use hgcd::validate::ValidateEvent;
 
 pub struct Display {
     bar: Option<ProgressBar>,
-    /// Device time at which the initialisation ended, s.
+    /// Device time at which the first vertex's move began, s (after the initialisation and any
+    /// exploring).
     init_end: Option<f64>,
 }
 
@@ -67,9 +68,7 @@ impl Display {
                 initial_mass,
                 friction: f,
                 inertia: m,
-                elapsed,
             } => {
-                self.init_end = Some(*elapsed);
                 format!(
                 "load along ({:.4}, {:.4}, {:.4}) of {:.1} g; friction ({:.3}, {:.3}, {:.3}) N; \
                  moving mass ({:.0}, {:.0}, {:.0}) g",
@@ -85,7 +84,15 @@ impl Display {
                 m.z * 1e3
             )
             }
-            CalibrationEvent::VertexStarted { vertex, of, at } => {
+            CalibrationEvent::VertexStarted {
+                vertex,
+                of,
+                at,
+                elapsed,
+            } => {
+                if *vertex == 0 {
+                    self.init_end.get_or_insert(*elapsed);
+                }
                 // The plan the device's workspace gave (the bar began with the config's).
                 if let Some(bar) = &self.bar {
                     bar.set_length(*of as u64);

@@ -247,8 +247,8 @@ struct Hub {
     /// Client waiting for the calibration in progress, and the events channel of that run.
     calibration: Option<(u64, Receiver<CalibrationEvent>)>,
     abort_sent: bool,
-    /// Device time at which the running calibration's initialisation ended, s (for the time
-    /// left it reports with each vertex).
+    /// Device time at which the running calibration's first vertex began, s (for the time left
+    /// it reports with each vertex).
     calibration_init_end: Option<f64>,
     log: EventLog,
     last_housekeeping: Instant,
@@ -424,19 +424,18 @@ impl Hub {
         let events: Vec<CalibrationEvent> = rx.try_iter().collect();
         for event in events {
             let reply = match event {
-                CalibrationEvent::InitDone {
-                    initial_mass,
-                    elapsed,
-                    ..
+                CalibrationEvent::InitDone { initial_mass, .. } => Reply::Calibration {
+                    event: CalibrationStage::InitDone,
+                    vertex: None,
+                    of: None,
+                    mass_kg: Some(initial_mass),
+                    message: String::new(),
+                },
+                CalibrationEvent::VertexStarted {
+                    vertex: 0, elapsed, ..
                 } => {
-                    self.calibration_init_end = Some(elapsed);
-                    Reply::Calibration {
-                        event: CalibrationStage::InitDone,
-                        vertex: None,
-                        of: None,
-                        mass_kg: Some(initial_mass),
-                        message: String::new(),
-                    }
+                    self.calibration_init_end.get_or_insert(elapsed);
+                    continue;
                 }
                 CalibrationEvent::VertexDone {
                     vertex,
