@@ -120,14 +120,14 @@ pub struct CalibrateRequest {
 }
 
 /// The device time a calibration has left, s, once `done` of its `of` vertices took `spent` s
-/// since the first began (after the initialisation and any exploring): their mean for each vertex still to come (the moves between them
-/// are alike, and so are the holds on one device). None before the first vertex.
-pub fn time_left(spent: f64, done: usize, of: usize) -> Option<f64> {
+/// since the first began: their mean for each vertex still to come (the moves between them are
+/// alike, and so are the holds on one device). None before the first vertex.
+fn time_left(spent: f64, done: usize, of: usize) -> Option<f64> {
     (done > 0).then(|| spent / done as f64 * of.saturating_sub(done) as f64)
 }
 
 /// A duration for people: "45 s", "3 min 05 s".
-pub fn duration_for_people(seconds: f64) -> String {
+fn duration_for_people(seconds: f64) -> String {
     let s = seconds.max(0.0).round() as u64;
     if s < 60 {
         format!("{s} s")
@@ -136,11 +136,44 @@ pub fn duration_for_people(seconds: f64) -> String {
     }
 }
 
-/// "about … of device time left" after vertex `vertex` (counted from 0) of `of`, `elapsed` s
-/// into a run whose first vertex began at `init_end` s; None before the first vertex is done.
-pub fn time_left_message(init_end: f64, vertex: usize, of: usize, elapsed: f64) -> Option<String> {
-    time_left(elapsed - init_end, vertex + 1, of)
-        .map(|left| format!("about {} of device time left", duration_for_people(left)))
+/// The device time a calibration has left, from its events, for the progress display and the
+/// daemon's replies alike. Its base is the first vertex's start (after the initialisation and
+/// any exploring, which say nothing about the vertices' pace).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TimeLeft {
+    first_vertex: Option<f64>,
+}
+
+impl TimeLeft {
+    /// Takes in one event; after a vertex is done or skipped, "about … of device time left".
+    pub fn update(&mut self, event: &CalibrationEvent) -> Option<String> {
+        let (vertex, of, elapsed) = match *event {
+            CalibrationEvent::VertexStarted {
+                vertex: 0, elapsed, ..
+            } => {
+                self.first_vertex.get_or_insert(elapsed);
+                return None;
+            }
+            CalibrationEvent::VertexDone {
+                vertex,
+                of,
+                elapsed,
+                ..
+            }
+            | CalibrationEvent::VertexUnreachable {
+                vertex,
+                of,
+                elapsed,
+                ..
+            } => (vertex, of, elapsed),
+            _ => return None,
+        };
+        let left = time_left(elapsed - self.first_vertex?, vertex + 1, of)?;
+        Some(format!(
+            "about {} of device time left",
+            duration_for_people(left)
+        ))
+    }
 }
 
 /// A finished, saved calibration.
@@ -294,7 +327,10 @@ pub fn calibrate_on(
 
 #[cfg(test)]
 mod tests {
+    use nalgebra::Vector3;
+
     use super::*;
+    use crate::control::calibration::Vertex;
 
     #[test]
     fn the_time_left_is_the_mean_vertex_times_the_vertices_to_come() {
@@ -303,8 +339,33 @@ mod tests {
         assert_eq!(time_left(270.0, 27, 27), Some(0.0));
         assert_eq!(duration_for_people(44.6), "45 s");
         assert_eq!(duration_for_people(185.0), "3 min 05 s");
+        let mut left = TimeLeft::default();
+        let at = Vertex {
+            index: [0; 3],
+            position: Vector3::zeros(),
+        };
+        let done = |vertex, elapsed| CalibrationEvent::VertexDone {
+            vertex,
+            of: 27,
+            mass: 0.0,
+            force: Vector3::zeros(),
+            iterations: 1,
+            elapsed,
+        };
         assert_eq!(
-            time_left_message(10.0, 2, 27, 40.0).as_deref(),
+            left.update(&done(0, 20.0)),
+            None,
+            "no base before the first vertex"
+        );
+        let started = CalibrationEvent::VertexStarted {
+            vertex: 0,
+            of: 27,
+            at,
+            elapsed: 10.0,
+        };
+        assert_eq!(left.update(&started), None);
+        assert_eq!(
+            left.update(&done(2, 40.0)).as_deref(),
             Some("about 4 min 00 s of device time left")
         );
     }

@@ -6,16 +6,14 @@ use std::io::IsTerminal;
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::info;
 
-use hgcd::calibrate::{time_left_message, CalibrationRun};
+use hgcd::calibrate::{CalibrationRun, TimeLeft};
 use hgcd::config::{Config, DeviceSpec};
 use hgcd::control::calibration::{CalibrationEvent, CalibrationParams, GridPlan, TimeSpent};
 use hgcd::validate::ValidateEvent;
 
 pub struct Display {
     bar: Option<ProgressBar>,
-    /// Device time at which the first vertex's move began, s (after the initialisation and any
-    /// exploring).
-    init_end: Option<f64>,
+    time_left: TimeLeft,
 }
 
 impl Display {
@@ -34,30 +32,12 @@ impl Display {
         });
         Self {
             bar,
-            init_end: None,
-        }
-    }
-
-    /// After vertex `vertex` (counted from 0) of `of`, `elapsed` s of device time into the run:
-    /// the estimate of the time left, on the bar or appended to the log line.
-    fn time_left(&self, line: String, vertex: usize, of: usize, elapsed: f64) -> String {
-        let Some(left) = self
-            .init_end
-            .and_then(|init| time_left_message(init, vertex, of, elapsed))
-        else {
-            return line;
-        };
-        match &self.bar {
-            Some(bar) => {
-                bar.set_prefix(left);
-                line
-            }
-            None => format!("{line}; {left}"),
+            time_left: TimeLeft::default(),
         }
     }
 
     pub fn show(&mut self, event: &CalibrationEvent) {
-        let line = match event {
+        let mut line = match event {
             CalibrationEvent::InitStarted => {
                 "initialisation: holding the handle with k_init, then pushing it to measure its \
                  load, friction and moving mass"
@@ -84,15 +64,7 @@ impl Display {
                 m.z * 1e3
             )
             }
-            CalibrationEvent::VertexStarted {
-                vertex,
-                of,
-                at,
-                elapsed,
-            } => {
-                if *vertex == 0 {
-                    self.init_end.get_or_insert(*elapsed);
-                }
+            CalibrationEvent::VertexStarted { vertex, of, at, .. } => {
                 // The plan the device's workspace gave (the bar began with the config's).
                 if let Some(bar) = &self.bar {
                     bar.set_length(*of as u64);
@@ -121,21 +93,19 @@ impl Display {
                 of,
                 force: f,
                 iterations,
-                elapsed,
                 ..
             } => {
                 if let Some(bar) = &self.bar {
                     bar.set_position(*vertex as u64 + 1);
                 }
-                let line = format!(
+                format!(
                     "vertex {}/{} done: F = ({:.4}, {:.4}, {:.4}) N after {iterations} updates",
                     vertex + 1,
                     of,
                     f.x,
                     f.y,
                     f.z
-                );
-                self.time_left(line, *vertex, *of, *elapsed)
+                )
             }
             CalibrationEvent::VertexUnreachable {
                 vertex,
@@ -143,7 +113,7 @@ impl Display {
                 at,
                 distance,
                 failure,
-                elapsed,
+                ..
             } => {
                 if let Some(bar) = &self.bar {
                     bar.set_position(*vertex as u64 + 1);
@@ -156,12 +126,11 @@ impl Display {
                     ),
                     Some(failure) => format!("could not be measured, twice: {failure}"),
                 };
-                let line = format!(
+                format!(
                     "vertex {}/{}: {at} {why}; its values will be filled from its neighbours",
                     vertex + 1,
                     of,
-                );
-                self.time_left(line, *vertex, *of, *elapsed)
+                )
             }
             CalibrationEvent::VertexRetried {
                 vertex,
@@ -231,6 +200,12 @@ impl Display {
             CalibrationEvent::Finished => "calibration finished".to_string(),
             CalibrationEvent::Failed(f) => format!("calibration failed: {f}"),
         };
+        if let Some(left) = self.time_left.update(event) {
+            match &self.bar {
+                Some(bar) => bar.set_prefix(left),
+                None => line = format!("{line}; {left}"),
+            }
+        }
         match &self.bar {
             Some(bar) => bar.set_message(line),
             None => {

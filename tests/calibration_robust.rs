@@ -582,6 +582,15 @@ fn assert_within_2_percent(case: &str, worst: f64) {
     );
 }
 
+/// Every vertex's force within `share` of the plant's, |F − F_plant| / |F_plant|.
+fn assert_every_vertex_within(device: &Device, result: &CalibrationResult, share: f64) {
+    for v in &result.vertices {
+        let truth = device.truth(&v.vertex.position);
+        let error = (v.force - truth).norm() / truth.norm();
+        assert!(error <= share, "{}: {:.2} % off", v.vertex, 100.0 * error);
+    }
+}
+
 /// The largest relative error of a vertex's vertical force against the plant's.
 fn worst_vertical(device: &Device, result: &CalibrationResult) -> f64 {
     let up = Vector3::from(device.config.sim.gravity_direction).normalize();
@@ -630,11 +639,7 @@ fn a_handle_resting_on_one_encoder_reading_is_measured_with_the_step_its_slips_s
     assert!(result.unreachable.is_empty());
     let i = &result.initial;
     assert!(i.friction.min() >= 0.04, "{i:?}");
-    for v in &result.vertices {
-        let truth = device.truth(&v.vertex.position);
-        let error = (v.force - truth).norm() / truth.norm();
-        assert!(error <= 0.005, "{}: {:.2} % off", v.vertex, 100.0 * error);
-    }
+    assert_every_vertex_within(&device, &result, 0.005);
 }
 
 /// `hgcd calibrate` says where the device time went: the kinds of step add up to the run's
@@ -700,11 +705,7 @@ fn a_force_estimate_that_holds_the_handle_far_off_is_measured_again_not_kept() {
             ..
         }
     )));
-    for v in &result.vertices {
-        let truth = device.truth(&v.vertex.position);
-        let error = (v.force - truth).norm() / truth.norm();
-        assert!(error <= 0.02, "{}: {:.2} % off", v.vertex, 100.0 * error);
-    }
+    assert_every_vertex_within(&device, &result, 0.02);
 }
 
 /// Issue 14's levels of Coulomb friction at the handle (0.02, 0.04, 0.06 and 0.1 N; 0 is in

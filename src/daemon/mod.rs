@@ -21,7 +21,7 @@ use tracing::{error, info, warn};
 use crate::app::endpoint;
 use crate::app::protocol::{CalibrationStage, Compensating, Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
-use crate::calibrate::time_left_message;
+use crate::calibrate::TimeLeft;
 use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::persist::{self, grid_file};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
@@ -247,9 +247,8 @@ struct Hub {
     /// Client waiting for the calibration in progress, and the events channel of that run.
     calibration: Option<(u64, Receiver<CalibrationEvent>)>,
     abort_sent: bool,
-    /// Device time at which the running calibration's first vertex began, s (for the time left
-    /// it reports with each vertex).
-    calibration_init_end: Option<f64>,
+    /// The time the running calibration has left, reported with each vertex.
+    calibration_time_left: TimeLeft,
     log: EventLog,
     last_housekeeping: Instant,
 }
@@ -279,7 +278,7 @@ impl Hub {
             started: Instant::now(),
             calibration: None,
             abort_sent: false,
-            calibration_init_end: None,
+            calibration_time_left: TimeLeft::default(),
             log: EventLog::new(),
             last_housekeeping: Instant::now(),
         }
@@ -378,7 +377,7 @@ impl Hub {
                         let start = ServoCommand::StartCalibration(Box::new(calibration));
                         if self.command(start) {
                             info!("calibration requested by application client {client}");
-                            self.calibration_init_end = None;
+                            self.calibration_time_left = TimeLeft::default();
                             self.calibration = Some((client, rx));
                             self.status.calibrating = true;
                             self.reply(
@@ -423,6 +422,7 @@ impl Hub {
         let client = *client;
         let events: Vec<CalibrationEvent> = rx.try_iter().collect();
         for event in events {
+            let left = self.calibration_time_left.update(&event);
             let reply = match event {
                 CalibrationEvent::InitDone { initial_mass, .. } => Reply::Calibration {
                     event: CalibrationStage::InitDone,
@@ -431,27 +431,14 @@ impl Hub {
                     mass_kg: Some(initial_mass),
                     message: String::new(),
                 },
-                CalibrationEvent::VertexStarted {
-                    vertex: 0, elapsed, ..
-                } => {
-                    self.calibration_init_end.get_or_insert(elapsed);
-                    continue;
-                }
                 CalibrationEvent::VertexDone {
-                    vertex,
-                    of,
-                    mass,
-                    elapsed,
-                    ..
+                    vertex, of, mass, ..
                 } => Reply::Calibration {
                     event: CalibrationStage::VertexDone,
                     vertex: Some(vertex),
                     of: Some(of),
                     mass_kg: Some(mass),
-                    message: self
-                        .calibration_init_end
-                        .and_then(|init| time_left_message(init, vertex, of, elapsed))
-                        .unwrap_or_default(),
+                    message: left.unwrap_or_default(),
                 },
                 _ => continue,
             };

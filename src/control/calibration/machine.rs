@@ -1094,8 +1094,7 @@ impl Calibration {
                 self.estimate = r.force;
             }
         }
-        let cells = (to - from).norm() / self.params.spacing;
-        let duration = self.params.move_time * cells.max(1.0);
+        let duration = self.glide(from, to, t).duration;
         // An explored workspace may end short of a vertex the map holds: move no faster than
         // the walk's moves (minimum-jerk peak speed 1.875 d / T), so a stop met on the way is
         // met slowly; along an edge the walk travelled, as fast as its returns. The extra time
@@ -1120,18 +1119,24 @@ impl Calibration {
             then: [None; 2],
         };
         self.vertex_start = t + (slowed - duration);
-        self.iteration = 0;
-        self.rounds = 0;
-        self.previous_offset = None;
-        self.near_rests = 0;
-        self.one_sided = None;
-        self.detector = self.vertex_detector();
+        self.fresh_attempt();
         self.emit(CalibrationEvent::VertexStarted {
             vertex: self.vertex,
             of: self.plan.path.len(),
             at: self.plan.path[self.vertex],
             elapsed: self.elapsed(),
         });
+    }
+
+    /// A vertex's count of updates, rounds and rests starts afresh (a new vertex, or the second
+    /// attempt at one).
+    fn fresh_attempt(&mut self) {
+        self.iteration = 0;
+        self.rounds = 0;
+        self.previous_offset = None;
+        self.near_rests = 0;
+        self.one_sided = None;
+        self.detector = self.vertex_detector();
     }
 
     /// The steady-state test at vertices: n_M samples within ε_M, window means agreeing within
@@ -1660,18 +1665,22 @@ impl Calibration {
         gains.pd_force(&target, &relative, &self.estimate)
     }
 
-    /// The force on the hold's spring when it keeps the handle (its smoothed position) off
-    /// `target` with more than strokes tolerate in their feedforward (`STROKE_REPEAT`), but no
-    /// more than the push limit: friction yields to that much, so a handle held off by more is
-    /// on something else (a stop), or F̂ is far off, and the force there says nothing about
-    /// the load. It is read
-    /// as the strokes' home leg ends, without waiting for the handle to come to rest (requiring
-    /// rest there skipped the retry the delta at 0.02 N at the handle needs).
-    fn held_off(&self, target: &Vector3<f64>) -> Option<Vector3<f64>> {
-        let spring = self
-            .gains
+    /// The force of the hold's spring, at full gains, on the handle (its smoothed position) off
+    /// `target`, N.
+    fn spring(&self, target: &Vector3<f64>) -> Vector3<f64> {
+        self.gains
             .stiffness
-            .component_mul(&(target - self.smoothed));
+            .component_mul(&(target - self.smoothed))
+    }
+
+    /// [`Self::spring`] when it keeps the handle off `target` with more than strokes tolerate in
+    /// their feedforward (`STROKE_REPEAT`), but no more than the push limit: friction yields to
+    /// that much, so a handle held off by more is on something else (a stop), or F̂ is far off,
+    /// and the force there says nothing about the load. It is read as the strokes' home leg
+    /// ends, without waiting for the handle to come to rest (requiring rest there skipped the
+    /// retry the delta at 0.02 N at the handle needs).
+    fn held_off(&self, target: &Vector3<f64>) -> Option<Vector3<f64>> {
+        let spring = self.spring(target);
         (STROKE_REPEAT..=self.push_limit())
             .contains(&spring.norm())
             .then_some(spring)
@@ -1779,14 +1788,7 @@ impl Calibration {
             // delta at 0.02 N, unit 1, seed 3: rounds of bands that disagreed left it 2.8 N
             // off, 264 % of the holding force) or a stop is within a stroke of the vertex.
             // Either way the vertex is measured again from beside it.
-            Step::Blocked { .. }
-                if self
-                    .gains
-                    .stiffness
-                    .component_mul(&(vertex.position - self.smoothed))
-                    .norm()
-                    > self.push_limit() =>
-            {
+            Step::Blocked { .. } if self.spring(&vertex.position).norm() > self.push_limit() => {
                 let off = (vertex.position - self.smoothed).norm();
                 let failure = CalibrationFailure::HeldOff {
                     vertex,
@@ -2030,7 +2032,7 @@ impl Calibration {
         // Back to where the first approach began (a point the handle reached), then beside the
         // vertex, then to it.
         let (back, from) = (self.approach, s.position);
-        self.start_move(from, s.time);
+        self.fresh_attempt();
         let path = self.glide(from, back, s.time);
         // The vertex's time starts once it is reached again.
         self.vertex_start = s.time
@@ -2202,18 +2204,34 @@ impl Calibration {
     }
 }
 
+/// The kinds of step whose device time [`TimeSpent`] adds up.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum StepKind {
+    Initialisation,
+    Exploration,
+    Move,
+    Rest,
+    Band,
+    Stroke,
+}
+
 impl Calibration {
-    /// Whether the run is still at X_C, measuring what the holds will be built on.
-    fn initialising(&self) -> bool {
-        matches!(
-            self.phase,
+    /// The kind of step the current phase is (None once the run is over).
+    fn step_kind(&self) -> Option<StepKind> {
+        Some(match self.phase {
             Phase::Start
-                | Phase::Catch(_)
-                | Phase::InitBand(_)
-                | Phase::Recentre { .. }
-                | Phase::Pulse(_)
-                | Phase::InitStrokes(_)
-        )
+            | Phase::Catch(_)
+            | Phase::InitBand(_)
+            | Phase::Recentre { .. }
+            | Phase::Pulse(_)
+            | Phase::InitStrokes(_) => StepKind::Initialisation,
+            Phase::Explore => StepKind::Exploration,
+            Phase::Move { .. } => StepKind::Move,
+            Phase::Settle { .. } | Phase::Push(_) => StepKind::Rest,
+            Phase::Band { .. } | Phase::Check { .. } => StepKind::Band,
+            Phase::Strokes { .. } => StepKind::Stroke,
+            Phase::Finished | Phase::Failed(_) => return None,
+        })
     }
 
     /// Device time since the run began, s.
@@ -2221,26 +2239,28 @@ impl Calibration {
         self.last_tick.map_or(0.0, |t| t - self.start_time)
     }
 
-    /// Adds the device time since the last tick to the kind of step the run has been in.
-    fn account(&mut self, now: f64) {
-        let dt = self.last_tick.map_or(0.0, |last| (now - last).max(0.0));
-        self.last_tick = Some(now);
-        let spent = &mut self.time_spent;
-        let bucket = match self.phase {
-            Phase::Start
-            | Phase::Catch(_)
-            | Phase::InitBand(_)
-            | Phase::Recentre { .. }
-            | Phase::Pulse(_)
-            | Phase::InitStrokes(_) => &mut spent.initialisation,
-            Phase::Explore => &mut spent.exploration,
-            Phase::Move { .. } => &mut spent.moves,
-            Phase::Settle { .. } | Phase::Push(_) => &mut spent.rests,
-            Phase::Band { .. } | Phase::Check { .. } => &mut spent.bands,
-            Phase::Strokes { .. } => &mut spent.strokes,
-            Phase::Finished | Phase::Failed(_) => return,
+    /// Adds the device time since the last tick to the kind of step the run has been in; while
+    /// the run is at X_C, the reading also goes to the meter of the encoder's step.
+    fn account(&mut self, state: &DeviceState) {
+        let dt = self
+            .last_tick
+            .map_or(0.0, |last| (state.time - last).max(0.0));
+        self.last_tick = Some(state.time);
+        let Some(kind) = self.step_kind() else {
+            return;
         };
-        *bucket += dt;
+        let spent = &mut self.time_spent;
+        *match kind {
+            StepKind::Initialisation => &mut spent.initialisation,
+            StepKind::Exploration => &mut spent.exploration,
+            StepKind::Move => &mut spent.moves,
+            StepKind::Rest => &mut spent.rests,
+            StepKind::Band => &mut spent.bands,
+            StepKind::Stroke => &mut spent.strokes,
+        } += dt;
+        if kind == StepKind::Initialisation {
+            self.moving.push(&state.position);
+        }
     }
 }
 
@@ -2253,10 +2273,7 @@ fn axis(a: usize) -> Vector3<f64> {
 
 impl Controller for Calibration {
     fn tick(&mut self, state: &DeviceState) -> ControlOutput {
-        self.account(state.time);
-        if self.initialising() {
-            self.moving.push(&state.position);
-        }
+        self.account(state);
         let mut s = *state;
         s.velocity = self.filter.update(&s.position);
         let s = &s;
