@@ -229,7 +229,7 @@ fn holds_against_the_plant() {
 #[test]
 #[ignore = "about two minutes: the table of docs/calibration.md §13.3"]
 fn whole_workspace_after_a_default_calibration_on_every_arm() {
-    use hgcd::control::calibration::persist::grid_file;
+    use hgcd::calibrate::persist::grid_file;
     use hgcd::control::compensation::GravityModel;
     use hgcd::validate::sweep::{GridSweep, SweptGrid};
     println!("| device | unit | tilt | device time | model | held-out | p50 | p95 | p95 | max |");
@@ -277,7 +277,7 @@ fn whole_workspace_after_a_default_calibration_on_every_arm() {
 /// and nothing crashes.
 #[test]
 fn a_profile_naming_the_wrong_arm_leaves_the_lattice_with_a_warning() {
-    use hgcd::control::calibration::persist::grid_file;
+    use hgcd::calibrate::persist::grid_file;
     use hgcd::control::compensation::GravityModel;
     let mut config = Config::default();
     config.device.profile = "falcon_delta".into();

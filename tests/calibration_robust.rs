@@ -8,8 +8,8 @@ use std::sync::atomic::AtomicBool;
 
 use nalgebra::Vector3;
 
+use hgcd::calibrate::persist::grid_file;
 use hgcd::config::{Config, DeviceSpec};
-use hgcd::control::calibration::persist::grid_file;
 use hgcd::control::calibration::{
     Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
 };

@@ -8,9 +8,9 @@ use std::sync::atomic::AtomicBool;
 
 use nalgebra::Vector3;
 
+use hgcd::calibrate::persist::grid_file;
 use hgcd::config::{Config, DeviceSpec, WorkspaceMode};
 use hgcd::control::calibration::explore::{CONTACT_SPEED, MARGIN};
-use hgcd::control::calibration::persist::grid_file;
 use hgcd::control::calibration::{
     Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
 };

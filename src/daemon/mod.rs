@@ -21,9 +21,9 @@ use tracing::{error, info, warn};
 use crate::app::endpoint;
 use crate::app::protocol::{CalibrationStage, Compensating, Reply, StateSample, Status};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
+use crate::calibrate::persist::{self, grid_file};
 use crate::calibrate::TimeLeft;
 use crate::config::{Config, ConfigError, DeviceSpec};
-use crate::control::calibration::persist::{self, grid_file};
 use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
 use crate::control::compensation::{
     Compensation, ForceOffset, GravityModel, ModelError, StaticEffect,

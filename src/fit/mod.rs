@@ -14,8 +14,12 @@
 //! Some holds are kept out of every fit; each candidate is scored on them
 //! ([`choose`]) and the best is used. `control::compensation::GravityModel` evaluates the one
 //! chosen.
+//!
+//! The parts: [`lattice`] (the holds at a grid's vertices completed into the grid both lattices
+//! interpolate), [`arm`] (the arm model's fit) and this file (the held-out choice).
 
 pub mod arm;
+pub mod lattice;
 
 use nalgebra::Vector3;
 

@@ -10,8 +10,7 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::explore::{self, Explorer};
 use super::outcome::{
-    carry_to_vertices, principal_direction, CalibrationFailure, CalibrationResult,
-    InitialMeasurement, TimeSpent, VertexResult,
+    CalibrationFailure, CalibrationResult, InitialMeasurement, TimeSpent, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Stroked, Strokes};
@@ -21,7 +20,7 @@ use crate::config::WorkspaceMode;
 use crate::control::pd::{AxisGains, PointHold};
 use crate::control::{ControlOutput, Controller, DeviceState};
 use crate::estimate::Foaw;
-use crate::grid::{extrapolate_from_neighbours, fill_from_neighbours};
+use crate::fit::lattice;
 
 /// Progress, sent with `try_send` from the servo thread.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -598,7 +597,8 @@ impl Calibration {
     }
 
     /// The result once finished, the failure if it failed, None while running (or if aborted).
-    /// Works out v_G and fills unreachable vertices, so call it off the servo thread.
+    /// Completes the lattice ([`lattice::complete`]: v_G, the vertices not reached), so call it
+    /// off the servo thread.
     pub fn outcome(&self) -> Option<Result<CalibrationResult, CalibrationFailure>> {
         match self.phase {
             Phase::Failed(f) => Some(Err(f)),
@@ -629,41 +629,33 @@ impl Calibration {
             });
         }
         let mut vertices = ordered.into_iter().collect::<Option<Vec<VertexResult>>>()?;
-        let known: Vec<bool> = vertices.iter().map(|v| v.reached).collect();
-        let g = self.params.g;
         let load = self.initial.load;
-        let gravity_direction =
-            principal_direction(vertices.iter().filter(|v| v.reached).map(|v| v.force))
-                .or_else(|| (load.norm() > 0.0).then(|| load.normalize()))
-                .unwrap_or_else(Vector3::z);
-        let mut forces: Vec<Vector3<f64>> = vertices.iter().map(|v| v.force).collect();
-        let mut one_sided: Vec<Vector3<f64>> = vertices.iter().map(|v| v.one_sided_force).collect();
-        let mut friction: Vec<Vector3<f64>> = vertices.iter().map(|v| v.friction).collect();
+        let known: Vec<bool> = vertices.iter().map(|v| v.reached).collect();
         let offsets: Vec<Vector3<f64>> = vertices
             .iter()
             .map(|v| v.vertex.position - v.measured_at)
             .collect();
-        carry_to_vertices(
+        let mut forces: Vec<Vector3<f64>> = vertices.iter().map(|v| v.force).collect();
+        let mut one_sided: Vec<Vector3<f64>> = vertices.iter().map(|v| v.one_sided_force).collect();
+        let mut friction: Vec<Vector3<f64>> = vertices.iter().map(|v| v.friction).collect();
+        let gravity_direction = lattice::complete(
             self.plan.dims,
             self.params.spacing,
-            &mut forces,
-            &offsets,
-            &known,
+            self.explorer.is_some(),
+            load,
+            lattice::VertexFields {
+                known: &known,
+                offsets: &offsets,
+                forces: &mut forces,
+                one_sided: &mut one_sided,
+                friction: &mut friction,
+            },
         );
-        // An explored grid's outer vertices carry the field's trend on; friction is filled.
-        let fill_forces = if self.explorer.is_some() {
-            extrapolate_from_neighbours::<Vector3<f64>>
-        } else {
-            fill_from_neighbours::<Vector3<f64>>
-        };
-        fill_forces(self.plan.dims, &mut forces, &known);
-        fill_forces(self.plan.dims, &mut one_sided, &known);
-        fill_from_neighbours(self.plan.dims, &mut friction, &known);
         for (n, v) in vertices.iter_mut().enumerate() {
             v.force = forces[n];
             v.one_sided_force = one_sided[n];
             v.friction = friction[n];
-            v.mass = v.force.dot(&gravity_direction) / g;
+            v.mass = v.force.dot(&gravity_direction) / self.params.g;
         }
         let extrapolated: Vec<Vertex> = self.plan.extrapolated.iter().map(|e| e.0).collect();
         let unreachable = vertices
@@ -673,7 +665,7 @@ impl Calibration {
             .collect();
         Some(CalibrationResult {
             gravity_direction,
-            initial_mass: load.norm() / g,
+            initial_mass: load.norm() / self.params.g,
             rest_point: self.rest_point,
             initial: self.initial,
             vertices,

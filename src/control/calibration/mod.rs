@@ -18,20 +18,19 @@
 //!    friction band), the stick band is measured along x, y and z from both sides and F̂ becomes
 //!    its middle, until a round changes it by less than a quarter of the band. The next vertex
 //!    starts from this one's force (Eqs. 12, 14).
-//! 3. **Result**: v_G is the principal direction of the measured forces; each vertex's mass is
-//!    its force along v_G over g (of either sign); unreachable vertices are filled from their
-//!    neighbours.
+//! 3. **Result**: the holds, each where it was measured. [`crate::fit::lattice`] completes the
+//!    grid from them (v_G, each vertex's mass along it, unreachable vertices filled from their
+//!    neighbours) and `calibrate::persist` builds the grid file with the model chosen.
 //!
 //! The parts: `plan.rs` (which vertices, in which order), `steady.rs` (when the handle is at
 //! rest), `probe.rs` (the stick band and the moving mass), `machine.rs` (the controller, one
-//! method per phase) and `outcome.rs` (result or failure, v_G, the filling). The PD law is
+//! method per phase) and `outcome.rs` (result or failure). The PD law is
 //! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force).
 //! docs/calibration.md describes the method for users, beside the paper's.
 
 pub mod explore;
 mod machine;
 mod outcome;
-pub mod persist;
 mod plan;
 mod probe;
 pub(crate) mod steady;

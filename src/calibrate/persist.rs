@@ -7,8 +7,8 @@ use std::time::SystemTime;
 
 use tracing::warn;
 
-use super::{CalibrationResult, GridPlan};
 use crate::config::{CompensationMode, Config, DeviceSpec};
+use crate::control::calibration::{CalibrationResult, GridPlan};
 use crate::fit::{self, Hold, LatticeHolds};
 use crate::grid::{
     self, ArmRecord, CalibrationRecord, DeviceRecord, GridError, GridFile, HeldOutRecord, MassGrid,

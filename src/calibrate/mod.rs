@@ -1,5 +1,7 @@
 //! `hgcd calibrate`: run Algorithm 1 on a device inside the servo loop and persist the grid.
 
+pub mod persist;
+
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -9,7 +11,6 @@ use thiserror::Error;
 use tracing::{info, warn};
 
 use crate::config::{Config, ConfigError, DeviceSpec, WorkspaceMode};
-use crate::control::calibration::persist::{check_room, grid_file};
 use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
     PlanError, VertexResult,
@@ -19,6 +20,7 @@ use crate::grid::{grid_path, DeviceIdentity, GridError, GridFile};
 use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStats};
 use crate::transport::{self, Pacing, Transport, TransportError};
+use persist::{check_room, grid_file};
 
 /// A calibration rides out a silent device (the watchdog zeroes the force, then the vertex in
 /// progress goes on) for this many watchdog periods; a longer silence ends it.
