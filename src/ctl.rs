@@ -96,6 +96,13 @@ pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
                     if message.is_empty() { "" } else { "; " },
                     message
                 )),
+                CalibrationStage::VertexUnreachable => err(&format!(
+                    "vertex {}/{}: {message}\n",
+                    vertex.unwrap_or(0) + 1,
+                    of.unwrap_or(0),
+                )),
+                CalibrationStage::TimeSpent => err(&format!("time: {message}\n")),
+                CalibrationStage::Other => {}
                 CalibrationStage::Finished => {
                     return out(&format!(
                         "calibration finished; the daemon now uses {message}\n"

@@ -8,7 +8,7 @@ use tracing::info;
 
 use hgcd::calibrate::{CalibrationRun, TimeLeft};
 use hgcd::config::{Config, DeviceSpec};
-use hgcd::control::calibration::{CalibrationEvent, CalibrationParams, GridPlan, TimeSpent};
+use hgcd::control::calibration::{unreachable_note, CalibrationEvent, CalibrationParams, GridPlan};
 use hgcd::validate::ValidateEvent;
 
 pub struct Display {
@@ -118,18 +118,11 @@ impl Display {
                 if let Some(bar) = &self.bar {
                     bar.set_position(*vertex as u64 + 1);
                 }
-                let why = match failure {
-                    None => format!(
-                        "is unreachable: the handle stays {:.1} mm away and does not yield to a \
-                         push",
-                        distance * 1e3
-                    ),
-                    Some(failure) => format!("could not be measured, twice: {failure}"),
-                };
                 format!(
-                    "vertex {}/{}: {at} {why}; its values will be filled from its neighbours",
+                    "vertex {}/{}: {}",
                     vertex + 1,
                     of,
+                    unreachable_note(at, *distance, failure.as_ref()),
                 )
             }
             CalibrationEvent::VertexRetried {
@@ -388,7 +381,7 @@ pub fn summary(run: &CalibrationRun) -> String {
         r.duration,
         run.wall_time
     );
-    out.push_str(&time_spent(&r.time_spent));
+    out.push_str(&format!("time: {}\n", r.time_spent));
     out.push_str(
         "  vertex (n, m, p)   position mm              mass g   force N                       \
          friction N  updates  final error µm\n",
@@ -428,24 +421,6 @@ pub fn summary(run: &CalibrationRun) -> String {
     }
     out.push_str(&model_summary(run));
     out
-}
-
-/// Where a calibration's device time went, one line.
-fn time_spent(t: &TimeSpent) -> String {
-    let mut line = format!("time: initialisation {:.1} s", t.initialisation);
-    for (what, seconds) in [
-        ("exploration", t.exploration),
-        ("moves", t.moves),
-        ("rests", t.rests),
-        ("bands", t.bands),
-        ("strokes", t.strokes),
-    ] {
-        if seconds > 0.0 {
-            line.push_str(&format!(", {what} {seconds:.1} s"));
-        }
-    }
-    line.push('\n');
-    line
 }
 
 /// The holds and the gravity model chosen from them (docs/calibration.md §13), for a grid with

@@ -151,9 +151,10 @@ fn masked(line: &str, reply: &Reply) -> String {
                     | "owner"
             )
         }),
-        // The time left a vertex reports depends on how long the run took so far.
+        // The time left a vertex reports, and where the run's time went, depend on how long the
+        // run took.
         Reply::Calibration {
-            event: CalibrationStage::VertexDone,
+            event: CalibrationStage::VertexDone | CalibrationStage::TimeSpent,
             ..
         } => mask(line, |k| k != "mass_kg" && k != "message"),
         Reply::Calibration { .. } => mask(line, |k| k != "mass_kg"),

@@ -537,6 +537,58 @@ fn calibration_event(client: &mut Client, event: CalibrationStage) -> String {
     }
 }
 
+/// A block whose top is at z = −30 mm keeps the handle off the cube's lower layer: through the
+/// daemon as directly, each of its 9 vertices is reported unreachable (why, and that it will be
+/// filled), the calibration goes on and finishes, and the requester learns where the device time
+/// went.
+#[test]
+fn a_calibration_over_the_socket_reports_unreachable_vertices_and_its_time() {
+    let mut config = Config::default();
+    config.sim.obstacle_min_mm = Some([-80.0, -80.0, -80.0]);
+    config.sim.obstacle_max_mm = Some([80.0, 80.0, -30.0]);
+    config.calibration.centre_mm = [0.0; 3];
+    config.calibration.vertex_timeout_s = 8.0;
+    let running = start(config, None);
+    let mut c = running.client(Role::Observe, "calibrator");
+    c.request_calibration().unwrap();
+    calibration_event(&mut c, CalibrationStage::Started);
+    let mut observer = running.client(Role::Observe, "observer");
+    running.run_until("the calibration to end", BATCH, 1_000_000, || {
+        let s = observer.status().unwrap();
+        (!s.calibrating).then_some(s)
+    });
+    let (mut unreachable, mut time) = (Vec::new(), None);
+    loop {
+        let Reply::Calibration {
+            event,
+            vertex,
+            message,
+            ..
+        } = c.next_reply().unwrap()
+        else {
+            continue;
+        };
+        match event {
+            CalibrationStage::VertexUnreachable => unreachable.push((vertex.unwrap(), message)),
+            CalibrationStage::TimeSpent => time = Some(message),
+            CalibrationStage::Finished => break,
+            CalibrationStage::Failed => panic!("calibration failed: {message}"),
+            _ => {}
+        }
+    }
+    assert_eq!(unreachable.len(), 9, "{unreachable:?}");
+    for (_, message) in &unreachable {
+        assert!(message.contains("-40.0"), "{message}");
+        assert!(message.contains("filled from its neighbours"), "{message}");
+    }
+    let time = time.expect("a time_spent event");
+    assert!(
+        time.starts_with("initialisation ") && time.contains("moves"),
+        "{time}"
+    );
+    running.stop().unwrap();
+}
+
 #[test]
 fn calibration_over_the_socket_hot_swaps_the_grid_and_sighup_reloads() {
     let running = start(Config::default(), None);

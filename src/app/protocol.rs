@@ -188,10 +188,18 @@ pub enum CalibrationStage {
     InitDone,
     /// Vertex `vertex` of `of` measured (`mass_kg`).
     VertexDone,
+    /// Vertex `vertex` of `of` could not be measured (`message` says why): its values are filled
+    /// from its neighbours and the calibration goes on.
+    VertexUnreachable,
+    /// The run is over; `message` says where its device time went.
+    TimeSpent,
     /// The grid is saved (`message` is its path) and compensation uses it.
     Finished,
     /// The calibration stopped (`message` says why); the previous grid is untouched.
     Failed,
+    /// An event this client does not know (a newer daemon's): to be ignored.
+    #[serde(other)]
+    Other,
 }
 
 /// What `hgcd status` shows.
@@ -285,13 +293,19 @@ mod tests {
             (Started, "started"),
             (InitDone, "init_done"),
             (VertexDone, "vertex_done"),
+            (VertexUnreachable, "vertex_unreachable"),
+            (TimeSpent, "time_spent"),
             (Finished, "finished"),
             (Failed, "failed"),
         ] {
             assert_eq!(serde_json::to_value(stage).unwrap(), json!(name));
         }
-        let unknown = r#"{"type":"calibration","event":"halfway"}"#;
-        assert!(serde_json::from_str::<Reply>(unknown).is_err());
+        // Clients ignore the events they do not know (a newer daemon's).
+        let unknown = r#"{"type":"calibration","event":"halfway","message":"x"}"#;
+        assert!(matches!(
+            serde_json::from_str::<Reply>(unknown).unwrap(),
+            Reply::Calibration { event: Other, .. }
+        ));
     }
 
     #[test]

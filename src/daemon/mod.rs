@@ -24,7 +24,9 @@ use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::calibrate::persist::{self, grid_file};
 use crate::calibrate::TimeLeft;
 use crate::config::{Config, ConfigError, DeviceSpec};
-use crate::control::calibration::{Calibration, CalibrationEvent, CalibrationParams};
+use crate::control::calibration::{
+    unreachable_note, Calibration, CalibrationEvent, CalibrationParams,
+};
 use crate::control::compensation::{
     Compensation, ForceOffset, GravityModel, ModelError, StaticEffect,
 };
@@ -440,6 +442,26 @@ impl Hub {
                     mass_kg: Some(mass),
                     message: left.unwrap_or_default(),
                 },
+                CalibrationEvent::VertexUnreachable {
+                    vertex,
+                    of,
+                    at,
+                    distance,
+                    failure,
+                    ..
+                } => Reply::Calibration {
+                    event: CalibrationStage::VertexUnreachable,
+                    vertex: Some(vertex),
+                    of: Some(of),
+                    mass_kg: None,
+                    message: match left {
+                        Some(left) => format!(
+                            "{}; {left}",
+                            unreachable_note(&at, distance, failure.as_ref())
+                        ),
+                        None => unreachable_note(&at, distance, failure.as_ref()),
+                    },
+                },
                 _ => continue,
             };
             self.reply(client, reply);
@@ -457,6 +479,13 @@ impl Hub {
                 self.abort_sent = false;
                 let outcome = match calibration.outcome() {
                     Some(Ok(result)) => {
+                        if let Some(c) = client {
+                            let time = format!("{}", result.time_spent);
+                            self.reply(
+                                c,
+                                self.calibration_reply(CalibrationStage::TimeSpent, time),
+                            );
+                        }
                         let mut file = grid_file(&result, &self.config, &self.device.spec);
                         self.device.stamp(&mut file);
                         let c = &self.config.compensation;

@@ -37,7 +37,8 @@ pub(crate) mod steady;
 
 pub use machine::{Calibration, CalibrationEvent};
 pub use outcome::{
-    CalibrationFailure, CalibrationResult, InitialMeasurement, TimeSpent, VertexResult,
+    unreachable_note, CalibrationFailure, CalibrationResult, InitialMeasurement, TimeSpent,
+    VertexResult,
 };
 pub use plan::{GridPlan, PlanError, Vertex};
 

@@ -112,6 +112,42 @@ impl TimeSpent {
     }
 }
 
+/// `initialisation 14.0 s, moves 11.1 s, …`: the kinds of step that took any time.
+impl std::fmt::Display for TimeSpent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "initialisation {:.1} s", self.initialisation)?;
+        for (what, seconds) in [
+            ("exploration", self.exploration),
+            ("moves", self.moves),
+            ("rests", self.rests),
+            ("bands", self.bands),
+            ("strokes", self.strokes),
+        ] {
+            if seconds > 0.0 {
+                write!(f, ", {what} {seconds:.1} s")?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What became of a vertex that was not measured, for people: `at` is a stop `distance` m away
+/// (`failure` None) or a hold that did not converge there, twice; its values will be filled.
+pub fn unreachable_note(
+    at: &Vertex,
+    distance: f64,
+    failure: Option<&CalibrationFailure>,
+) -> String {
+    let why = match failure {
+        None => format!(
+            "is unreachable: the handle stays {:.1} mm away and does not yield to a push",
+            distance * 1e3
+        ),
+        Some(failure) => format!("could not be measured, twice: {failure}"),
+    };
+    format!("{at} {why}; its values will be filled from its neighbours")
+}
+
 /// Why a calibration failed.
 #[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
 pub enum CalibrationFailure {
