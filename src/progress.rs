@@ -113,6 +113,7 @@ impl Display {
                 at,
                 distance,
                 failure,
+                retried,
                 ..
             } => {
                 if let Some(bar) = &self.bar {
@@ -122,7 +123,7 @@ impl Display {
                     "vertex {}/{}: {}",
                     vertex + 1,
                     of,
-                    unreachable_note(at, *distance, failure.as_ref()),
+                    unreachable_note(at, *distance, failure.as_ref(), *retried),
                 )
             }
             CalibrationEvent::VertexRetried {

@@ -486,6 +486,22 @@ fn a_vertex_behind_an_obstacle_on_the_way_is_reached_from_beside_it() {
     let expected = truth.gravity_force(&v.vertex.position);
     let error = (v.force - expected).norm() / expected.norm();
     assert!(error < 0.01, "{v:?}: {error}");
+    // Its device time counts from its first move, detour included, up to the next vertex's.
+    let starts: Vec<([i32; 3], f64)> = events
+        .iter()
+        .filter_map(|e| match e {
+            CalibrationEvent::VertexStarted { at, elapsed, .. } => Some((at.index, *elapsed)),
+            _ => None,
+        })
+        .collect();
+    let first = starts.iter().position(|s| s.0 == [1, -1, -1]).unwrap();
+    let next = starts[first..].iter().find(|s| s.0 != [1, -1, -1]).unwrap();
+    let span = next.1 - starts[first].1;
+    assert!(
+        (v.duration - span).abs() < 0.01,
+        "{} s of {span} s",
+        v.duration
+    );
 }
 
 #[test]

@@ -291,11 +291,18 @@ pub fn calibrate_on(
         .iter()
         .filter(|v| result.unreachable.contains(&v.vertex))
         .partition(|v| v.failure.is_none());
+    // A cube's missed vertices were approached again from beside them; an explored workspace's
+    // map already knew where the handle goes, and they were not.
+    let sides = if result.workspace.is_some() {
+        ""
+    } else {
+        ", from two sides"
+    };
     if !stops.is_empty() {
         let names: Vec<String> = stops.iter().map(|v| v.vertex.to_string()).collect();
         warn!(
             "{} of {} vertices could not be reached (the handle did not yield to a push toward \
-             them, from two sides) and were filled from their neighbours: {}",
+             them{sides}) and were filled from their neighbours: {}",
             names.len(),
             result.vertices.len(),
             names.join("; ")
@@ -307,7 +314,7 @@ pub fn calibrate_on(
             .filter_map(|v| v.failure.map(|f| f.to_string()))
             .collect();
         warn!(
-            "{} of {} vertices could not be measured, from two sides, and were filled from their \
+            "{} of {} vertices could not be measured{sides}, and were filled from their \
              neighbours: {}",
             names.len(),
             result.vertices.len(),

@@ -448,6 +448,7 @@ impl Hub {
                     at,
                     distance,
                     failure,
+                    retried,
                     ..
                 } => Reply::Calibration {
                     event: CalibrationStage::VertexUnreachable,
@@ -457,9 +458,9 @@ impl Hub {
                     message: match left {
                         Some(left) => format!(
                             "{}; {left}",
-                            unreachable_note(&at, distance, failure.as_ref())
+                            unreachable_note(&at, distance, failure.as_ref(), retried)
                         ),
-                        None => unreachable_note(&at, distance, failure.as_ref()),
+                        None => unreachable_note(&at, distance, failure.as_ref(), retried),
                     },
                 },
                 _ => continue,

@@ -74,15 +74,17 @@ pub enum CalibrationEvent {
         /// Device time since the run began, s.
         elapsed: f64,
     },
-    /// The vertex could not be measured, twice: the handle did not yield to a push toward it
-    /// (`failure` None), or did not converge there (`failure`). It stays `distance` m away; its
-    /// values are filled from its neighbours.
+    /// The vertex could not be measured, twice on a cube (`retried`), once in an explored
+    /// workspace: the handle did not yield to a push toward it (`failure` None), or did not
+    /// converge there (`failure`). It stays `distance` m away; its values are filled from its
+    /// neighbours.
     VertexUnreachable {
         vertex: usize,
         of: usize,
         at: Vertex,
         distance: f64,
         failure: Option<CalibrationFailure>,
+        retried: bool,
         /// Device time since the run began, s.
         elapsed: f64,
     },
@@ -443,7 +445,10 @@ pub struct Calibration {
     // The vertex in progress.
     /// Current vertex (index into the plan's path).
     vertex: usize,
+    /// When the vertex's time limit started: its first approach's arrival, or a retry's.
     vertex_start: f64,
+    /// When its first move began, for the device time it cost (retry included).
+    vertex_began: f64,
     /// Updates of the force estimate at this vertex, and rounds of band measurements.
     iteration: u32,
     rounds: u32,
@@ -553,6 +558,7 @@ impl Calibration {
             smoothed: Vector3::zeros(),
             vertex: 0,
             vertex_start: 0.0,
+            vertex_began: 0.0,
             iteration: 0,
             rounds: 0,
             previous_offset: None,
@@ -1111,6 +1117,7 @@ impl Calibration {
             then: [None; 2],
         };
         self.vertex_start = t + (slowed - duration);
+        self.vertex_began = t;
         self.fresh_attempt();
         self.emit(CalibrationEvent::VertexStarted {
             vertex: self.vertex,
@@ -1973,7 +1980,7 @@ impl Calibration {
             iterations: self.iteration,
             final_error: error,
             measured_at: self.measured_at,
-            duration: s.time - self.vertex_start,
+            duration: s.time - self.vertex_began,
             reached: true,
             failure: None,
         };
@@ -2097,7 +2104,7 @@ impl Calibration {
             iterations: self.iteration,
             final_error: distance,
             measured_at: vertex.position,
-            duration: s.time - self.vertex_start,
+            duration: s.time - self.vertex_began,
             reached: false,
             failure,
         });
@@ -2107,6 +2114,7 @@ impl Calibration {
             at: vertex,
             distance,
             failure,
+            retried: self.retried,
             elapsed: self.elapsed(),
         });
         self.normals = self.last_normals;

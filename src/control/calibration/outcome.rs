@@ -132,18 +132,21 @@ impl std::fmt::Display for TimeSpent {
 }
 
 /// What became of a vertex that was not measured, for people: `at` is a stop `distance` m away
-/// (`failure` None) or a hold that did not converge there, twice; its values will be filled.
+/// (`failure` None) or a hold that did not converge there (twice when `retried`); its values
+/// will be filled.
 pub fn unreachable_note(
     at: &Vertex,
     distance: f64,
     failure: Option<&CalibrationFailure>,
+    retried: bool,
 ) -> String {
+    let twice = if retried { ", twice" } else { "" };
     let why = match failure {
         None => format!(
-            "is unreachable: the handle stays {:.1} mm away and does not yield to a push",
+            "is unreachable: the handle stays {:.1} mm away and does not yield to a push{twice}",
             distance * 1e3
         ),
-        Some(failure) => format!("could not be measured, twice: {failure}"),
+        Some(failure) => format!("could not be measured{twice}: {failure}"),
     };
     format!("{at} {why}; its values will be filled from its neighbours")
 }
@@ -180,9 +183,9 @@ pub enum CalibrationFailure {
     )]
     HeldOff { vertex: Vertex, offset_mm: f64 },
     #[error(
-        "{missed} of the {of} vertices could not be measured, each tried from two sides (at \
-         least half must be, to fill in the others); the warnings above say where (mechanical \
-         stops or obstacles? check device.workspace_*_mm and calibration.centre_mm)"
+        "{missed} of the {of} vertices could not be measured (at least half must be, to fill \
+         in the others); the warnings above say where (mechanical stops or obstacles? check \
+         device.workspace_*_mm and calibration.centre_mm)"
     )]
     TooFewVertices { missed: usize, of: usize },
     #[error(
@@ -196,4 +199,40 @@ pub enum CalibrationFailure {
          handle met stops close to X_C along every direction: is it free to move?)"
     )]
     NothingExplored { margin_mm: f64 },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_missed_vertex_is_said_to_be_tried_twice_only_when_it_was() {
+        let at = Vertex {
+            index: [1, -1, -1],
+            position: Vector3::new(0.04, -0.04, -0.04),
+        };
+        let timeout = CalibrationFailure::VertexTimeout {
+            vertex: at,
+            timeout: 10.0,
+            iterations: 5,
+        };
+        let stop = unreachable_note(&at, 0.01, None, true);
+        assert_eq!(
+            stop,
+            "vertex (1, -1, -1) at (40.0, -40.0, -40.0) mm is unreachable: the handle stays \
+             10.0 mm away and does not yield to a push, twice; its values will be filled from \
+             its neighbours"
+        );
+        assert!(!unreachable_note(&at, 0.01, None, false).contains("twice"));
+        let unread = unreachable_note(&at, 0.01, Some(&timeout), true);
+        assert!(
+            unread.contains("could not be measured, twice: vertex (1, -1, -1)"),
+            "{unread}"
+        );
+        let explored = unreachable_note(&at, 0.01, Some(&timeout), false);
+        assert!(
+            explored.contains("could not be measured: vertex"),
+            "{explored}"
+        );
+    }
 }
