@@ -182,6 +182,16 @@ impl Arm {
         self.frame.axes * (p - self.frame.origin)
     }
 
+    /// ∂x/∂q at `x` (device frame, per radian of each joint); None out of reach or singular.
+    pub fn jacobian(&self, x: &Vector3<f64>) -> Option<Matrix3<f64>> {
+        let p = self.frame.arm_point(x);
+        let jacobian = match &self.geometry {
+            ArmGeometry::Serial(a) => a.handle(&a.joints_at(&p)?).1,
+            ArmGeometry::Delta(a) => a.jacobian(&a.joints_at(&p)?)?,
+        };
+        Some(self.frame.axes * jacobian)
+    }
+
     /// ∂F/∂θ at `x` (device frame) for gravity `g` (m/s²) against the unit `up` (device frame):
     /// F = G θ is the force that holds the handle there. None out of reach.
     pub fn force_regressor(
@@ -672,6 +682,31 @@ pub(crate) mod tests {
             .map(|s| (s / 3.0).add_scalar(-1.0) * half)
             .filter(|x| arm.joints_at(x).is_some())
             .collect()
+    }
+
+    /// The Jacobian in the device frame is ∂x/∂q of the handle's position, by central
+    /// differences, through a frame that swaps and flips axes and moves the origin.
+    #[test]
+    fn the_jacobian_is_the_handles_derivative_in_the_device_frame() {
+        let frame = ArmFrame {
+            axes: Matrix3::new(0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+            origin: Vector3::new(0.003, -0.002, 0.001),
+        };
+        for arm in [phantom(), delta()].map(|a| Arm { frame, ..a }) {
+            let points = reached(&arm, 0.06);
+            assert!(points.len() > 100, "{}", points.len());
+            for x in points {
+                let j = arm.jacobian(&x).unwrap();
+                let q = arm.joints_at(&x).unwrap();
+                let h = 1e-6;
+                for k in 0..3 {
+                    let dq = Vector3::ith(k, h);
+                    let column = (arm.handle(&(q + dq)) - arm.handle(&(q - dq))) / (2.0 * h);
+                    let error = (column - j.column(k)).norm();
+                    assert!(error < 1e-6 * (1.0 + column.norm()), "{x}: {column} {j}");
+                }
+            }
+        }
     }
 
     #[test]

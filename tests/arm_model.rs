@@ -181,8 +181,8 @@ fn plant_force(model: &str, config: &Config, x: &Vector3<f64>) -> Vector3<f64> {
 #[test]
 #[ignore = "diagnostic: prints each hold against the plant's force"]
 fn holds_against_the_plant() {
-    // "model,unit,friction,holds[,seed];…"
-    let cases: Vec<(&str, u64, f64, &str, u64)> = std::env::var("HOLDS_CASES")
+    // "model,unit,friction,holds[,seed[,joint friction scale]];…"
+    let cases: Vec<(&str, u64, f64, &str, u64, f64)> = std::env::var("HOLDS_CASES")
         .map(|v| {
             v.split(';')
                 .map(|c| {
@@ -195,20 +195,22 @@ fn holds_against_the_plant() {
                         f[2].parse().unwrap(),
                         leak(f[3]),
                         f.get(4).map_or(0, |seed| seed.parse().unwrap()),
+                        f.get(5).map_or(1.0, |scale| scale.parse().unwrap()),
                     )
                 })
                 .collect()
         })
-        .unwrap_or_else(|_| vec![("phantom", 2, 0.04, "auto", 0)]);
-    for (model, unit, friction, holds, seed) in cases {
+        .unwrap_or_else(|_| vec![("phantom", 2, 0.04, "auto", 0, 1.0)]);
+    for (model, unit, friction, holds, seed, scale) in cases {
         let mut config = Config::default();
         config.calibration.holds = toml::Value::String(holds.into()).try_into().unwrap();
         config.sim.unit_seed = unit;
         config.sim.seed = seed;
         config.sim.coulomb_friction_n = friction;
+        config.sim.friction_scale = scale;
         let result = calibrated(model, &config);
         println!(
-            "{model} unit {unit} seed {seed} at {friction} N: {} s",
+            "{model} unit {unit} seed {seed} at {friction} N, joint friction × {scale}: {} s",
             result.duration
         );
         for v in result.vertices.iter().filter(|v| v.reached) {

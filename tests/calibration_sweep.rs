@@ -14,7 +14,7 @@
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
-use hgcd::config::Config;
+use hgcd::config::{Config, HoldPlan};
 use hgcd::control::calibration::{Calibration, CalibrationParams};
 use hgcd::servo::{self, ServoOptions};
 use hgcd::sim::SimDevice;
@@ -43,6 +43,9 @@ impl Case {
         config.sim.unit_seed = self.unit;
         config.sim.seed = self.seed;
         config.sim.coulomb_friction_n = self.friction;
+        // The paper's cube, every vertex held, as `hgcd calibrate` holds it with this setting
+        // (the strokes along the profile's arm where there is one).
+        config.calibration.holds = HoldPlan::All;
         config
     }
 }
@@ -53,7 +56,8 @@ type Outcome = Result<(f64, f64), String>;
 fn calibrate(case: &Case) -> Outcome {
     let config = case.config();
     let device = SimDevice::from_config(case.model, &config).map_err(|e| e.to_string())?;
-    let mut calibration = Calibration::new(CalibrationParams::from_config(&config), None)
+    let spec = format!("sim:{}", case.model).parse().unwrap();
+    let mut calibration = Calibration::new(CalibrationParams::for_device(&config, &spec), None)
         .map_err(|e| e.to_string())?;
     let mut transport = SimTransport::new(device, Pacing::Virtual);
     let mut options = ServoOptions::from_config(&config);

@@ -202,12 +202,14 @@ fn compensation_with_the_arm_and_residual_model_on_the_phantom() {
     assert_quiet("arm + residual compensation", &seen, 2000);
 }
 
-/// A whole calibration on `sim:MODEL` of `config` allocates nothing per tick.
+/// A whole calibration on `sim:MODEL` of `config`, as `hgcd calibrate` runs it (on an arm its
+/// strokes turn the profile's joints evenly), allocates nothing per tick.
 fn quiet_calibration_on(model: &str, config: &Config) {
     let (mut tap, seen) = counting_sim(model, config);
     let (tx, _rx) = crossbeam_channel::bounded(4096);
-    let mut calibration =
-        Calibration::new(CalibrationParams::from_config(config), Some(tx)).unwrap();
+    let spec = format!("sim:{model}").parse().unwrap();
+    let params = CalibrationParams::for_device(config, &spec);
+    let mut calibration = Calibration::new(params, Some(tx)).unwrap();
     let mut options = ServoOptions::from_config(config);
     options.stop_on_fault = true;
     run(&mut tap, &mut calibration, &options, None);

@@ -45,6 +45,7 @@ pub use plan::{GridPlan, PlanError, Vertex};
 use nalgebra::Vector3;
 
 use super::pd::LinearisedGains;
+use crate::arm::Arm;
 use crate::config::{Config, DeviceSpec, HoldPlan, WorkspaceMode};
 use crate::estimate::FoawVariant;
 use crate::profile::Profile;
@@ -93,6 +94,9 @@ pub struct CalibrationParams {
     pub workspace_mode: WorkspaceMode,
     /// Hold the cube's corners only (`calibration.holds`).
     pub sparse: bool,
+    /// The arm the device's profile gives, if any: the strokes then turn each of its joints at
+    /// the same rate ([`crate::arm::Arm::jacobian`]).
+    pub arm: Option<Arm>,
 }
 
 impl CalibrationParams {
@@ -122,6 +126,7 @@ impl CalibrationParams {
             max_window: config.estimate.max_window,
             workspace_mode: c.workspace,
             sparse: c.holds == HoldPlan::Sparse,
+            arm: None,
         }
     }
 
@@ -130,9 +135,11 @@ impl CalibrationParams {
     /// apart in joint angles; docs/calibration.md §13).
     pub fn for_device(config: &Config, device: &DeviceSpec) -> Self {
         let mut params = Self::from_config(config);
+        params.arm = Profile::for_device(device, config)
+            .ok()
+            .and_then(|p| p.gravity_arm());
         if config.calibration.holds == HoldPlan::Auto {
-            params.sparse =
-                Profile::for_device(device, config).is_ok_and(|p| p.gravity_arm().is_some());
+            params.sparse = params.arm.is_some();
         }
         params
     }

@@ -21,6 +21,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+use crate::arm::Arm;
 use crate::control::DeviceState;
 
 /// Samples averaged to tell a slip from position noise, and to read the force at the slip.
@@ -700,6 +701,28 @@ impl Strokes {
         ]
         .map(|d| d.normalize());
         Self::new(stroke, centre, directions, now)
+    }
+
+    /// Along the three directions that turn every joint of `arm` at the same rate, J (1, 1, 1),
+    /// J (1, −1, −1) and J (−1, 1, −1) normalised (J the arm's Jacobian at `centre`): none sticks
+    /// for part of a pass. None where the arm does not reach `centre`.
+    pub fn turning_each_joint(
+        stroke: Stroke,
+        arm: &Arm,
+        centre: Vector3<f64>,
+        now: f64,
+    ) -> Option<Self> {
+        let j = arm.jacobian(&centre)?;
+        let directions = [
+            Vector3::new(1.0, 1.0, 1.0),
+            Vector3::new(1.0, -1.0, -1.0),
+            Vector3::new(-1.0, 1.0, -1.0),
+        ]
+        .map(|s| (j * s).normalize());
+        directions
+            .iter()
+            .all(|d| d.iter().all(|c| c.is_finite()))
+            .then(|| Self::new(stroke, centre, directions, now))
     }
 
     pub fn centre(&self) -> Vector3<f64> {
