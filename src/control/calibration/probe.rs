@@ -594,6 +594,14 @@ impl Stroke {
     }
 }
 
+/// Three independent diagonals: of the axes for [`Strokes::through_every_joint`], of the joint
+/// rates for [`Strokes::turning_each_joint`].
+const DIAGONALS: [Vector3<f64>; 3] = [
+    Vector3::new(1.0, 1.0, 1.0),
+    Vector3::new(1.0, -1.0, -1.0),
+    Vector3::new(-1.0, 1.0, -1.0),
+];
+
 /// A window counts only with at least this many samples in it (a blocked handle gets none).
 const STROKE_MIN_SAMPLES: u32 = 50;
 
@@ -694,18 +702,14 @@ impl Strokes {
     /// bands learn on a linkage would point along its joints exactly, but a few bands' slips
     /// make noisy normals, and strokes along nearly parallel ones measured worse.)
     pub fn through_every_joint(stroke: Stroke, centre: Vector3<f64>, now: f64) -> Self {
-        let directions = [
-            Vector3::new(1.0, 1.0, 1.0),
-            Vector3::new(1.0, -1.0, -1.0),
-            Vector3::new(-1.0, 1.0, -1.0),
-        ]
-        .map(|d| d.normalize());
-        Self::new(stroke, centre, directions, now)
+        Self::new(stroke, centre, DIAGONALS.map(|d| d.normalize()), now)
     }
 
-    /// Along the three directions that turn every joint of `arm` at the same rate, J (1, 1, 1),
-    /// J (1, −1, −1) and J (−1, 1, −1) normalised (J the arm's Jacobian at `centre`): none sticks
-    /// for part of a pass. None where the arm does not reach `centre`.
+    /// Strokes at `centre` along whichever set turns the slowest joint of `arm` fastest, per unit
+    /// of the handle's speed: the diagonals of the axes ([`Strokes::through_every_joint`]) or the
+    /// directions that turn every joint at the same rate, J (1, 1, 1), J (1, −1, −1) and
+    /// J (−1, 1, −1) normalised (J the arm's Jacobian at `centre`). A joint that turns slowly
+    /// sticks for part of a pass. None where the arm does not reach `centre`.
     pub fn turning_each_joint(
         stroke: Stroke,
         arm: &Arm,
@@ -713,16 +717,21 @@ impl Strokes {
         now: f64,
     ) -> Option<Self> {
         let j = arm.jacobian(&centre)?;
-        let directions = [
-            Vector3::new(1.0, 1.0, 1.0),
-            Vector3::new(1.0, -1.0, -1.0),
-            Vector3::new(-1.0, 1.0, -1.0),
-        ]
-        .map(|s| (j * s).normalize());
-        directions
-            .iter()
-            .all(|d| d.iter().all(|c| c.is_finite()))
-            .then(|| Self::new(stroke, centre, directions, now))
+        let inverse = j.try_inverse()?;
+        let even = DIAGONALS.map(|s| (j * s).normalize());
+        let axes = DIAGONALS.map(|d| d.normalize());
+        // The slowest joint's rate over a set's three strokes, rad per metre of handle travel.
+        let slowest = |set: &[Vector3<f64>; 3]| {
+            set.iter()
+                .map(|d| (inverse * d).abs().min())
+                .fold(f64::INFINITY, f64::min)
+        };
+        let (even_rate, axes_rate) = (slowest(&even), slowest(&axes));
+        if !even_rate.is_finite() || !axes_rate.is_finite() {
+            return None;
+        }
+        let directions = if even_rate > axes_rate { even } else { axes };
+        Some(Self::new(stroke, centre, directions, now))
     }
 
     pub fn centre(&self) -> Vector3<f64> {
