@@ -103,6 +103,8 @@ fn record_and_analyze(dir: &Path, grid: &Path, hidden: Hidden, seed: u64) -> ser
     config.servo.lock_memory = false;
     hidden.apply(&mut config);
     let log = dir.join("log.csv");
+    // `hgcd record` never replaces a file: the previous case's log goes first.
+    let _ = std::fs::remove_file(&log);
     let request = RecordRequest {
         device: "sim:point-mass".parse().unwrap(),
         pacing: Pacing::Virtual,
@@ -409,4 +411,43 @@ fn a_recording_stopped_early_leaves_a_valid_shorter_log() {
         written.duration()
     );
     assert_eq!(written.len(), recording.log.len());
+}
+
+/// `hgcd record --out` onto the grid it compensates with, onto another log or onto anything
+/// else that is there is refused before the device moves, and the file is left as it was
+/// (issue 40: `--grid G --out G` replaced the grid with a log and exited 0).
+#[test]
+fn a_recording_never_replaces_a_file_that_is_there() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let other = dir.path().join("old-log.csv");
+    std::fs::write(&other, "t,x,y,z,fx,fy,fz\n").unwrap();
+    let mut config = Config::default();
+    config.servo.lock_memory = false;
+    for out in [&grid, &other] {
+        let before = std::fs::read(out).unwrap();
+        let request = RecordRequest {
+            device: "sim:point-mass".parse().unwrap(),
+            pacing: Pacing::Virtual,
+            grid: Some(grid.clone()),
+            out: out.clone(),
+            duration: 10.0,
+        };
+        let refused = discrepancy::record(
+            &config,
+            &request,
+            Arc::new(AtomicBool::new(false)),
+            &mut |_| panic!("the device must not move"),
+        )
+        .unwrap_err();
+        assert!(
+            matches!(&refused, discrepancy::RecordError::OutExists(p) if p == out),
+            "{refused}"
+        );
+        assert!(
+            refused.to_string().contains("choose another --out"),
+            "{refused}"
+        );
+        assert_eq!(std::fs::read(out).unwrap(), before);
+    }
 }

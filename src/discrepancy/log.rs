@@ -291,12 +291,26 @@ impl Log {
         out
     }
 
-    /// Write the log to `path`.
+    /// Write the log to `path`, a new file: whole or not at all, and never over a file that is
+    /// there (a grid, another log). It is written beside `path` under a temporary name, synced,
+    /// then linked to `path`, which fails if `path` exists.
     ///
     /// # Errors
-    /// [`LogError::Write`].
+    /// [`LogError::Write`]; its source is of kind `AlreadyExists` when `path` is taken.
     pub fn save(&self, path: &Path) -> Result<(), LogError> {
-        std::fs::write(path, self.to_csv()).map_err(|source| LogError::Write {
+        let name = path.file_name().unwrap_or_default().to_string_lossy();
+        let temporary = path.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
+        let written = (|| {
+            let mut file = std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&temporary)?;
+            std::io::Write::write_all(&mut file, self.to_csv().as_bytes())?;
+            file.sync_all()?;
+            std::fs::hard_link(&temporary, path)
+        })();
+        let _ = std::fs::remove_file(&temporary);
+        written.map_err(|source| LogError::Write {
             path: path.to_path_buf(),
             source,
         })
@@ -361,6 +375,24 @@ mod tests {
         assert!(close(&again.position, &log.position, 1e-9));
         assert!(close(&again.force, &log.force, 1e-6));
         assert_eq!(again.device, log.device);
+    }
+
+    /// Saving writes a new file whole, leaves no temporary behind, and replaces nothing: a file
+    /// that is at the path (one that appeared during a recording, say) stays as it was.
+    #[test]
+    fn a_log_is_saved_to_a_new_file_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let log = Log::parse(&rows(12_000, 1e-3), Path::new("l.csv")).unwrap();
+        let path = dir.path().join("log.csv");
+        log.save(&path).unwrap();
+        assert_eq!(Log::load(&path).unwrap().len(), 12_000);
+        std::fs::write(&path, "a grid, say").unwrap();
+        let LogError::Write { source, .. } = log.save(&path).unwrap_err() else {
+            panic!("a write error")
+        };
+        assert_eq!(source.kind(), std::io::ErrorKind::AlreadyExists);
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "a grid, say");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
 
     #[test]

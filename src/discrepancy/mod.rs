@@ -62,6 +62,12 @@ pub enum RecordError {
     Ended(ExitReason),
     #[error(transparent)]
     Log(#[from] LogError),
+    #[error(
+        "{} is already there: hgcd record writes a new log and replaces nothing (a grid, another \
+         log); choose another --out",
+        .0.display()
+    )]
+    OutExists(PathBuf),
 }
 
 /// A finished recording.
@@ -87,6 +93,11 @@ pub fn record(
     config.validate()?;
     if !(log::MIN_DURATION..=3600.0).contains(&request.duration) {
         return Err(RecordError::Duration(request.duration));
+    }
+    // Before the device moves: the log goes to a new file only (`Log::save` makes sure of it
+    // at the end too, should one appear meanwhile).
+    if std::fs::symlink_metadata(&request.out).is_ok() {
+        return Err(RecordError::OutExists(request.out.clone()));
     }
     let transport =
         transport::open(&request.device, config, request.pacing).map_err(RecordError::Open)?;

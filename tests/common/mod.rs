@@ -183,11 +183,7 @@ pub fn distance_mm(stdout: &str, at: &str) -> f64 {
 /// and fails the test.
 pub fn output_within(mut command: Command, limit: Duration) -> Output {
     let program = command.get_program().to_string_lossy().into_owned();
-    let child = command
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let child = spawn(command.stdout(Stdio::piped()).stderr(Stdio::piped()));
     let pid = child.id() as i32;
     let (tx, rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || tx.send(child.wait_with_output()));
@@ -201,10 +197,26 @@ pub fn output_within(mut command: Command, limit: Duration) -> Output {
     }
 }
 
+/// Spawn `command`. A program this process has just written (a copy of the binary) may be
+/// busy for a moment: a child another test thread forked while the copy was open for writing
+/// holds that descriptor until its own exec, and exec'ing the copy meanwhile fails with ETXTBSY
+/// ("Text file busy"). Try again then, for up to a second.
+pub fn spawn(command: &mut Command) -> Child {
+    for _ in 0..100 {
+        match command.spawn() {
+            Err(e) if e.kind() == std::io::ErrorKind::ExecutableFileBusy => {
+                std::thread::sleep(std::time::Duration::from_millis(10));
+            }
+            other => return other.unwrap(),
+        }
+    }
+    command.spawn().unwrap()
+}
+
 /// Spawn `command` with its stderr piped and read that until it says `ready` (failing the test
 /// if it ends first): the child, the rest of its stderr, and what it has said so far.
 pub fn spawn_until(command: &mut Command, ready: &str) -> (Child, BufReader<ChildStderr>, String) {
-    let mut child = command.stderr(Stdio::piped()).spawn().unwrap();
+    let mut child = spawn(command.stderr(Stdio::piped()));
     let mut stderr = BufReader::new(child.stderr.take().unwrap());
     let mut log = String::new();
     while !log.contains(ready) {
