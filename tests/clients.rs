@@ -557,11 +557,15 @@ fn the_python_trial_holds_still_then_its_spring_balances_a_probe_mass() {
     stop(running, &gate);
     assert!(output.status.success(), "{output:?}");
     let rows = read_trial(&csv);
-    // Every state the example received is in its CSV, in order.
+    // Every state the relay sent is in the example's CSV, in order, but for those still on
+    // their way when the example's duration ran out (it stops reading then: once 3545 of 3546).
     let ticks: Vec<u64> = relay.traffic().states.iter().map(|s| s.tick).collect();
     assert!(
-        rows.iter().map(|r| r.tick).eq(ticks.iter().copied()),
-        "the CSV has {} rows, the example received {} states",
+        rows.iter()
+            .map(|r| r.tick)
+            .eq(ticks.iter().copied().take(rows.len()))
+            && ticks.len() - rows.len() <= 10,
+        "the CSV has {} rows, the relay sent {} states",
         rows.len(),
         ticks.len()
     );
