@@ -196,8 +196,16 @@ const PROGRESS: f64 = 0.8;
 /// viscous damping up to 1 N·s/m (which holds nothing at rest and needs no band) adds at most
 /// 4 mN at their 4 mm/s.
 const STROKE_FRICTION: f64 = 0.005;
-/// Strokes that moved F̂ by more than this are measured once more, from there, N.
+/// A feedforward further than this from the load is more than strokes take without a second
+/// look: the survey's bands at X_C are measured again, a hold held off by that much is a stop or
+/// a wrong F̂, N.
 const STROKE_REPEAT: f64 = 0.03;
+/// Strokes that moved F̂ by more than `STROKE_REPEAT` and this share of the force they found
+/// are measured once more, from there. On the simulated delta, whose bands at its lower corners
+/// left F̂ 0.13–0.39 N off (of 0.75 N), the second strokes moved it by 1.1–1.9 mN (0.15–0.25 %);
+/// after an F̂ 0.086 N off (of 0.91 N), by 1.2 mN, for 9 s of device time. On the PHANToM's
+/// 65–130 mN the floor, 30 mN, decides. (`CalibrationParams::strokes_again_share`.)
+pub(super) const STROKES_AGAIN_SHARE: f64 = 0.1;
 /// The survey strokes at X_C send the initialisation back at most this many times: a band read
 /// its axis's friction under this share of the strokes' sliding friction, or the hold did not
 /// carry the handle through them. On the simulated PHANToM with a 0.1 N band, misread bands read
@@ -347,7 +355,8 @@ struct StrokeRun {
     error: f64,
     /// The failure to report if the strokes are blocked after the vertex ran out of time.
     late: Option<CalibrationFailure>,
-    /// Whether a result that moves F̂ by more than `STROKE_REPEAT` is measured once more.
+    /// Whether a result that moves F̂ by more than `STROKE_REPEAT` (or `STROKES_AGAIN_SHARE` of
+    /// the force) is measured once more.
     repeat: bool,
     /// The bands' F̂ while blocked strokes run again from the force that holds the handle where
     /// it rests: a second block puts it back (that force may be a stop's reaction).
@@ -1775,7 +1784,9 @@ impl Calibration {
                 self.estimate = stroked.force;
                 self.measured_at = strokes.centre();
                 self.iteration += 1;
-                if change > STROKE_REPEAT && run.repeat {
+                let again =
+                    STROKE_REPEAT.max(self.params.strokes_again_share * stroked.force.norm());
+                if change > again && run.repeat {
                     // A hold that far off the load kept the handle off the middle of the
                     // windows: measure again from what the strokes found.
                     let again = StrokeRun {

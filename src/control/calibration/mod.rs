@@ -35,6 +35,7 @@ mod plan;
 mod probe;
 pub(crate) mod steady;
 
+use machine::STROKES_AGAIN_SHARE;
 pub use machine::{Calibration, CalibrationEvent};
 pub use outcome::{
     unreachable_note, CalibrationFailure, CalibrationResult, InitialMeasurement, TimeSpent,
@@ -97,6 +98,9 @@ pub struct CalibrationParams {
     /// The arm the device's profile gives, if any: the strokes then turn each of its joints at
     /// the same rate ([`crate::arm::Arm::jacobian`]).
     pub arm: Option<Arm>,
+    /// Strokes that moved F̂ by more than 30 mN and this share of the force they found are
+    /// measured once more (not a config key: 0.1, see `machine.rs`).
+    pub strokes_again_share: f64,
 }
 
 impl CalibrationParams {
@@ -127,6 +131,7 @@ impl CalibrationParams {
             workspace_mode: c.workspace,
             sparse: c.holds == HoldPlan::Sparse,
             arm: None,
+            strokes_again_share: STROKES_AGAIN_SHARE,
         }
     }
 
