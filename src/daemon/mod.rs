@@ -455,12 +455,12 @@ impl Hub {
                     vertex: Some(vertex),
                     of: Some(of),
                     mass_kg: None,
-                    message: match left {
-                        Some(left) => format!(
-                            "{}; {left}",
-                            unreachable_note(&at, distance, failure.as_ref(), retried)
-                        ),
-                        None => unreachable_note(&at, distance, failure.as_ref(), retried),
+                    message: {
+                        let note = unreachable_note(&at, distance, failure.as_ref(), retried);
+                        match left {
+                            Some(left) => format!("{note}; {left}"),
+                            None => note,
+                        }
                     },
                 },
                 _ => continue,

@@ -1652,13 +1652,15 @@ impl Calibration {
     /// With friction at the vertex, the bands have brought F̂ within a few millinewtons; strokes
     /// through the vertex measure it to one ([`Strokes`]), following [`Phase::Strokes`].
     fn stroke(&mut self, s: &DeviceState, vertex: Vertex, run: StrokeRun) -> ControlOutput {
-        let strokes = match self.params.arm {
-            Some(arm) => {
+        let strokes = self
+            .params
+            .arm
+            .and_then(|arm| {
                 Strokes::turning_each_joint(Stroke::MEASURE, &arm, vertex.position, s.time)
-            }
-            None => None,
-        }
-        .unwrap_or_else(|| Strokes::through_every_joint(Stroke::MEASURE, vertex.position, s.time));
+            })
+            .unwrap_or_else(|| {
+                Strokes::through_every_joint(Stroke::MEASURE, vertex.position, s.time)
+            });
         self.phase = Phase::Strokes { strokes, run };
         ControlOutput::force(self.hold_force(&vertex.position, s, &self.estimate))
     }
