@@ -138,6 +138,12 @@ pub const RANGES: &[(&str, Range)] = &[
     ("sim.spring_n_per_m", Range::new(0.0, 10_000.0, "N/m")),
     ("sim.spring_anchor_mm", Range::new(-1000.0, 1000.0, "mm")),
     ("sim.force_delay_ms", Range::new(0.0, 100.0, "ms")),
+    ("sim.position_delay_ms", Range::new(0.0, 100.0, "ms")),
+    ("sim.force_scale", Range::new(0.1, 10.0, "")),
+    ("sim.cogging_n", Range::new(0.0, 10.0, "N")),
+    ("sim.cogging_pitch_mm", Range::new(0.1, 1000.0, "mm")),
+    ("sim.vibration_n", Range::new(0.0, 10.0, "N")),
+    ("sim.vibration_hz", Range::new(0.1, 500.0, "Hz")),
     ("sim.probe_mass_kg", Range::new(0.0, 1.0, "kg")),
     ("sim.friction_scale", Range::new(0.0, 10.0, "")),
     ("sim.substep_hz", Range::new(100.0, 1e6, "Hz")),
@@ -589,6 +595,20 @@ pub struct SimConfig {
     /// The actuators render each force command this much later, ms (whole report periods): a
     /// slow amplifier or a buffered driver.
     pub force_delay_ms: f64,
+    /// Protocol v1 devices: each input report carries the position measured this much earlier,
+    /// ms (whole report periods): a slow encoder interface or a filtering sensor.
+    pub position_delay_ms: f64,
+    /// Protocol v1 devices: each axis's actuators render this share of the commanded force (an
+    /// amplifier's gain or a motor constant off).
+    pub force_scale: [f64; 3],
+    /// Protocol v1 devices: motor cogging, a force `cogging_n` sin(2π x_i / pitch) along each axis
+    /// i, of the position alone and in no candidate of `hgcd analyze`, N.
+    pub cogging_n: f64,
+    pub cogging_pitch_mm: f64,
+    /// Protocol v1 devices: the table vibrates (a pump, a fan): a force `vibration_n` along
+    /// (1, 1, 1)/√3 at `vibration_hz`, of time alone and in no candidate of `hgcd analyze`, N.
+    pub vibration_n: f64,
+    pub vibration_hz: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
     pub probe_mass_kg: f64,
     /// Linkage plants: which unit of the model (0: the nominal published one; any other value a
@@ -629,6 +649,12 @@ impl Default for SimConfig {
             spring_n_per_m: 0.0,
             spring_anchor_mm: [0.0; 3],
             force_delay_ms: 0.0,
+            position_delay_ms: 0.0,
+            force_scale: [1.0; 3],
+            cogging_n: 0.0,
+            cogging_pitch_mm: 5.0,
+            vibration_n: 0.0,
+            vibration_hz: 7.0,
             probe_mass_kg: 0.0,
             unit_seed: 0,
             friction_scale: 1.0,
@@ -936,7 +962,6 @@ impl SimConfig {
         self.encoder_resolution_mm * 1e-3
     }
 
-    /// The obstacle box (smallest corner, largest corner), m, if both corners are given.
     pub fn spring_anchor(&self) -> Vector3<f64> {
         mm(self.spring_anchor_mm)
     }
@@ -946,6 +971,12 @@ impl SimConfig {
         self.force_delay_ms * 1e-3
     }
 
+    /// The position sensing's delay, s.
+    pub fn position_delay(&self) -> f64 {
+        self.position_delay_ms * 1e-3
+    }
+
+    /// The obstacle box (smallest corner, largest corner), m, if both corners are given.
     pub fn obstacle(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
         Some(mm_box(self.obstacle_min_mm?, self.obstacle_max_mm?))
     }
@@ -1123,6 +1154,12 @@ impl Config {
         in_range("sim.spring_n_per_m", sim.spring_n_per_m)?;
         each_in_range("sim.spring_anchor_mm", sim.spring_anchor_mm)?;
         in_range("sim.force_delay_ms", sim.force_delay_ms)?;
+        in_range("sim.position_delay_ms", sim.position_delay_ms)?;
+        each_in_range("sim.force_scale", sim.force_scale)?;
+        in_range("sim.cogging_n", sim.cogging_n)?;
+        in_range("sim.cogging_pitch_mm", sim.cogging_pitch_mm)?;
+        in_range("sim.vibration_n", sim.vibration_n)?;
+        in_range("sim.vibration_hz", sim.vibration_hz)?;
         in_range("sim.probe_mass_kg", sim.probe_mass_kg)?;
         in_range("sim.friction_scale", sim.friction_scale)?;
         in_range("sim.substep_hz", sim.substep_hz)?;

@@ -56,6 +56,18 @@ pub struct SimDevice {
     delayed: [Vector3<f64>; MAX_DELAY_PERIODS],
     delay: usize,
     delay_slot: usize,
+    /// The position sensing's delay line: the positions of the last `sensing_delay` reports,
+    /// oldest first out (filled with the first reading at the first report).
+    sensed: [Vector3<f64>; MAX_DELAY_PERIODS],
+    sensing_delay: usize,
+    sensed_slot: usize,
+    sensed_filled: bool,
+    /// What the actuators render of each axis's command (protocol v1).
+    force_scale: Vector3<f64>,
+    /// Motor cogging: amplitude, N, and pitch, m (protocol v1).
+    cogging: (f64, f64),
+    /// The table's vibration: amplitude, N, and frequency, Hz (protocol v1).
+    vibration: (f64, f64),
     enabled: bool,
     last_command_us: u64,
     saturated: bool,
@@ -101,6 +113,13 @@ impl SimDevice {
             delayed: [Vector3::zeros(); MAX_DELAY_PERIODS],
             delay: 0,
             delay_slot: 0,
+            sensed: [Vector3::zeros(); MAX_DELAY_PERIODS],
+            sensing_delay: 0,
+            sensed_slot: 0,
+            sensed_filled: false,
+            force_scale: Vector3::repeat(1.0),
+            cogging: (0.0, 1.0),
+            vibration: (0.0, 1.0),
             enabled: false,
             last_command_us: 0,
             saturated: false,
@@ -144,6 +163,11 @@ impl SimDevice {
         device.stop_reporting_after = sim.stop_reporting_after_s;
         device.delay =
             ((sim.force_delay() / device.period).round() as usize).min(MAX_DELAY_PERIODS);
+        device.sensing_delay =
+            ((sim.position_delay() / device.period).round() as usize).min(MAX_DELAY_PERIODS);
+        device.force_scale = Vector3::from(sim.force_scale);
+        device.cogging = (sim.cogging_n, sim.cogging_pitch_mm * 1e-3);
+        device.vibration = (sim.vibration_n, sim.vibration_hz);
         device.model = format!("sim-{model}");
         device.serial = sim.serial.clone();
         Ok(device)
@@ -313,10 +337,26 @@ impl SimDevice {
                 self.saturated = true;
             }
         }
+        let force = force.component_mul(&self.force_scale);
         let dt = self.period / f64::from(self.substeps);
+        let (cogging, pitch) = self.cogging;
+        let (vibration, hz) = self.vibration;
+        let start = self.time();
         if let Body::Cartesian { plant, .. } = &mut self.body {
-            for _ in 0..self.substeps {
-                plant.step(&force, dt);
+            for i in 0..self.substeps {
+                let mut disturbance = Vector3::zeros();
+                if cogging > 0.0 {
+                    disturbance += plant
+                        .position()
+                        .map(|x| cogging * (std::f64::consts::TAU * x / pitch).sin());
+                }
+                if vibration > 0.0 {
+                    let t = start + f64::from(i) * dt;
+                    disturbance += Vector3::repeat(
+                        vibration * (std::f64::consts::TAU * hz * t).sin() / 3f64.sqrt(),
+                    );
+                }
+                plant.step(&(force + disturbance), dt);
             }
         }
         self.clock_us += (self.period * 1e6).round() as u64;
@@ -343,7 +383,16 @@ impl SimDevice {
             .with(Status::FORCE_SATURATED, self.saturated)
             .with(Status::DEVICE_WATCHDOG, self.watchdog_tripped);
         let (lo, hi) = plant.workspace();
-        let measured = encoder.measure(plant.as_ref());
+        let mut measured = encoder.measure(plant.as_ref());
+        if self.sensing_delay > 0 {
+            if !self.sensed_filled {
+                self.sensed[..self.sensing_delay].fill(measured);
+                self.sensed_filled = true;
+            }
+            // The slot about to be overwritten holds the reading of `sensing_delay` reports ago.
+            measured = std::mem::replace(&mut self.sensed[self.sensed_slot], measured);
+            self.sensed_slot = (self.sensed_slot + 1) % self.sensing_delay;
+        }
         let report = InputReport {
             sequence: self.sequence,
             timestamp_us: self.clock_us as u32,
