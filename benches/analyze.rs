@@ -64,7 +64,7 @@ fn main() {
         )
         .expect("the analysis runs");
         times.push(started.elapsed().as_secs_f64());
-        assert_eq!(analysis.effect.name(), "coulomb_friction");
+        assert_eq!(analysis.effect().name(), "coulomb_friction");
     }
     times.sort_by(f64::total_cmp);
     println!(

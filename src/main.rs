@@ -515,16 +515,31 @@ fn record_here(config: &Config, request: &RecordRequest) -> Result<()> {
 fn analyze_here(request: &AnalyzeRequest) -> Result<()> {
     let analysis = discrepancy::analyze(request, &mut |stage| err(&format!("analyze: {stage}\n")))?;
     let (before, after) = analysis.errors();
-    out(&format!(
-        "effect: {}\nheld-out RMS force residual: {:.4} N nominal, {:.4} N augmented \
-         ({:+.0} %)\nreport in {} ({:.1} s wall time)\n",
-        analysis.effect.name(),
+    let mut text = format!(
+        "effects: {}\nheld-out RMS force residual: {:.4} N nominal, {:.4} N augmented \
+         ({:+.0} %), noise floor {:.4} N\n",
+        discrepancy::names(&analysis.effects),
         before,
         after,
         (after / before - 1.0) * 1e2,
+        analysis.noise_floor.force,
+    );
+    if analysis.unexplained {
+        text.push_str(&format!(
+            "unexplained: the residual stays {:.1} times the noise floor, ordered best by {}\n",
+            after / analysis.noise_floor.force,
+            analysis.ordering.by
+        ));
+    }
+    for limit in &analysis.limits {
+        text.push_str(&format!("cannot show: {}\n", limit.message));
+    }
+    text.push_str(&format!(
+        "report in {} ({:.1} s wall time)\n",
         request.out.join("report.md").display(),
         analysis.wall_time
-    ))
+    ));
+    out(&text)
 }
 
 /// `hgcd validate` in this process: prepare, confirm on hardware, run; prints the table.

@@ -31,66 +31,83 @@ pub struct GravityModel {
     /// The held-out score of this model at calibration, % (`[model] held_out_pct`; None for a
     /// grid without one).
     pub held_out_pct: Option<f64>,
-    /// A force of the position alone added to the grid's ([`StaticEffect`]).
+    /// Forces of the position alone added to the grid's ([`StaticEffect`]).
     effect: Option<StaticEffect>,
 }
 
-/// A force of the position alone that `hgcd analyze` found missing from a grid
-/// (docs/discrepancy.md §5), compensated with it.
+/// The forces of the position alone that `hgcd analyze` found missing from a grid
+/// (docs/discrepancy.md §5), compensated with it: the grid's force and a payload's weight
+/// turned by a tilt, plus a spring.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum StaticEffect {
+pub struct StaticEffect {
+    /// Gravity turned since the calibration: R (F_G + m_p g v_G).
+    pub tilt: Rotation3<f64>,
     /// A payload's weight m_p g v_G, N.
-    Weight(Vector3<f64>),
-    /// Gravity turned since the calibration: R F_G.
-    Tilt(Rotation3<f64>),
-    /// A spring k (X − X_0): the force that holds against it.
-    Spring {
-        stiffness: f64,
-        anchor: Vector3<f64>,
-    },
+    pub weight: Vector3<f64>,
+    /// A spring k (X − X_0): the force that holds against it (stiffness N/m, anchor m).
+    pub spring: Option<(f64, Vector3<f64>)>,
 }
 
 impl StaticEffect {
-    /// The effect of `record` on a grid with v_G `up` and `g`. Friction, damping and a delay are
-    /// not forces of the position: compensating them feeds energy into the handle (a negative
-    /// damping), so they are refused with the reason.
-    pub fn from_record(
-        record: &EffectRecord,
+    /// The effects of `records` on a grid with v_G `up` and `g` (None when none is a force of
+    /// the position), and for each one left out, the reason. Friction, damping and a delay
+    /// are not forces of the position: compensating them feeds energy into the handle (a
+    /// negative damping), so they are left out with the reason.
+    pub fn from_records(
+        records: &[EffectRecord],
         up: &Vector3<f64>,
         g: f64,
-    ) -> Result<Option<Self>, &'static str> {
-        match record {
-            EffectRecord::None => Ok(None),
-            EffectRecord::Payload { mass_kg } => Ok(Some(Self::Weight(up * (mass_kg * g)))),
-            EffectRecord::GravityTilt {
-                angle_rad,
-                rotation_axis,
-            } => Ok(Some(Self::Tilt(Rotation3::new(
-                Vector3::from(*rotation_axis) * *angle_rad,
-            )))),
-            EffectRecord::Spring {
-                stiffness_n_per_m,
-                anchor_m,
-            } => Ok(Some(Self::Spring {
-                stiffness: *stiffness_n_per_m,
-                anchor: Vector3::from(*anchor_m),
-            })),
-            EffectRecord::CoulombFriction { .. } | EffectRecord::ViscousDamping { .. } => Err(
-                "friction opposes the motion; compensating it feeds energy in (negative damping) \
-                 and can make the handle run away",
-            ),
-            EffectRecord::TimeDelay { .. } => {
-                Err("a delay is not a force; shorten the device's force path instead")
+    ) -> (Option<Self>, Vec<(EffectRecord, &'static str)>) {
+        let mut effect = Self {
+            tilt: Rotation3::identity(),
+            weight: Vector3::zeros(),
+            spring: None,
+        };
+        let mut any = false;
+        let mut refused = Vec::new();
+        for record in records {
+            match record {
+                EffectRecord::None => {}
+                EffectRecord::Payload { mass_kg } => {
+                    effect.weight += up * (mass_kg * g);
+                    any = true;
+                }
+                EffectRecord::GravityTilt {
+                    angle_rad,
+                    rotation_axis,
+                } => {
+                    effect.tilt = Rotation3::new(Vector3::from(*rotation_axis) * *angle_rad);
+                    any = true;
+                }
+                EffectRecord::Spring {
+                    stiffness_n_per_m,
+                    anchor_m,
+                } => {
+                    effect.spring = Some((*stiffness_n_per_m, Vector3::from(*anchor_m)));
+                    any = true;
+                }
+                EffectRecord::CoulombFriction { .. } | EffectRecord::ViscousDamping { .. } => {
+                    refused.push((
+                        record.clone(),
+                        "friction opposes the motion; compensating it feeds energy in \
+                         (negative damping) and can make the handle run away",
+                    ))
+                }
+                EffectRecord::TimeDelay { .. } => refused.push((
+                    record.clone(),
+                    "a delay is not a force; shorten the device's force path instead",
+                )),
             }
         }
+        (any.then_some(effect), refused)
     }
 
-    /// The force with this effect, at `x`, of a grid whose force there is `grid`, N.
+    /// The force with these effects, at `x`, of a grid whose force there is `grid`, N.
     fn apply(&self, x: &Vector3<f64>, grid: Vector3<f64>) -> Vector3<f64> {
-        match self {
-            Self::Weight(w) => grid + w,
-            Self::Tilt(r) => r * grid,
-            Self::Spring { stiffness, anchor } => grid + (x - anchor) * *stiffness,
+        let f = self.tilt * (grid + self.weight);
+        match self.spring {
+            Some((stiffness, anchor)) => f + (x - anchor) * stiffness,
+            None => f,
         }
     }
 }

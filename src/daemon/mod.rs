@@ -186,33 +186,27 @@ pub fn load_model(
     }
 }
 
-/// `model` with the effect of `compensation.effect_file` added, where it is a force of the position
-/// alone; a warning says why another is left out.
+/// `model` with the effects of `compensation.effect_file` added, those that are forces of the
+/// position alone; a warning says why another is left out.
 fn with_effect(model: GravityModel, config: &Config) -> Result<GravityModel, RunError> {
     let Some(path) = &config.compensation.effect_file else {
         return Ok(model);
     };
     let file = ModelFile::load(path).map_err(RunError::EffectFile)?;
     let grid = &model.grid;
-    match StaticEffect::from_record(&file.effect, &grid.gravity_direction, grid.g) {
-        Ok(None) => Ok(model),
-        Ok(Some(effect)) => {
-            info!(
-                "compensating {:?} from {} as well as the grid",
-                file.effect,
-                path.display()
-            );
-            Ok(model.with_effect(Some(effect)))
-        }
-        Err(why) => {
-            warn!(
-                "{}: {:?} is not compensated: {why}",
-                path.display(),
-                file.effect
-            );
-            Ok(model)
-        }
+    let records = file.all_effects();
+    let (effect, refused) = StaticEffect::from_records(&records, &grid.gravity_direction, grid.g);
+    for (record, why) in refused {
+        warn!("{}: {record:?} is not compensated: {why}", path.display());
     }
+    if effect.is_some() {
+        info!(
+            "compensating {:?} from {} as well as the grid",
+            records,
+            path.display()
+        );
+    }
+    Ok(model.with_effect(effect))
 }
 
 /// What to run to calibrate `device` while a daemon drives it. A simulated device is calibrated

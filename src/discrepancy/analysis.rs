@@ -13,9 +13,11 @@ pub const TRAIN_SHARE: f64 = 0.6;
 /// Half-width of the Savitzky–Golay window, s: ±15 ms passes the excitation (up to about 4 Hz)
 /// and averages out the encoder's steps in the second derivative.
 pub const SMOOTHING_HALF_WIDTH: f64 = 0.015;
-/// An effect is named only if it cuts the held-out error to at most this share of the nominal
-/// model's.
+/// Effects are named only if together they cut the held-out error to at most this share of
+/// the nominal model's.
 pub const NAMING_SHRINK: f64 = 0.5;
+/// Each effect added must cut the held-out error of those before it to at most this share.
+pub const STEP_SHRINK: f64 = 0.8;
 /// A candidate with more parameters replaces a simpler one only if its held-out error is at most
 /// this share of the simpler one's.
 pub const COMPLEXITY_MARGIN: f64 = 0.75;
@@ -39,14 +41,14 @@ pub struct Signals {
 
 /// Savitzky–Golay weights for a quadratic over k = −m..m: smoothed value, first and second
 /// derivative (per sample and per sample²).
-struct Weights {
-    value: Vec<f64>,
-    slope: Vec<f64>,
-    curvature: Vec<f64>,
+pub(super) struct Weights {
+    pub value: Vec<f64>,
+    pub slope: Vec<f64>,
+    pub curvature: Vec<f64>,
 }
 
 impl Weights {
-    fn new(m: usize) -> Self {
+    pub fn new(m: usize) -> Self {
         let mf = m as f64;
         let n = 2.0 * mf + 1.0;
         let s2 = mf * (mf + 1.0) * (2.0 * mf + 1.0) / 3.0;
@@ -143,19 +145,25 @@ impl Signals {
     }
 }
 
-/// One model fitted: the nominal one (`Effect::None`) or the nominal one with an effect.
+/// One model fitted: the nominal one (no effect) or the nominal one with a set of effects, all
+/// their parameters fitted jointly.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Fit {
-    pub effect: Effect,
-    /// Moving mass along x, y, z, kg (fitted with the effect).
+    /// The effects, in the order they were found.
+    pub effects: Vec<Effect>,
+    /// Moving mass along x, y, z, kg (fitted with the effects), and its standard error.
     pub moving_mass: Vector3<f64>,
-    /// The effect's linear parameters θ (see [`Effect`]).
-    pub theta: Vec<f64>,
-    /// The time delay beyond the sampling's half period, s (0 unless `effect` is
-    /// [`Effect::TimeDelay`]).
+    pub moving_mass_sd: Vector3<f64>,
+    /// Each effect's linear parameters θ (see [`Effect`]) and their standard errors, in
+    /// `effects` order.
+    pub theta: Vec<Vec<f64>>,
+    pub theta_sd: Vec<Vec<f64>>,
+    /// The time delay beyond the sampling's half period, s, and its standard error (zero
+    /// unless [`Effect::TimeDelay`] is in the set).
     pub delay: f64,
-    /// The rotation of gravity, rad (zero unless `effect` is [`Effect::GravityTilt`]; then
-    /// θ is the last Gauss–Newton increment on it).
+    pub delay_sd: f64,
+    /// The rotation of gravity, rad (zero unless [`Effect::GravityTilt`] is in the set; its
+    /// θ is then the last Gauss–Newton increment on it).
     pub rotation: Vector3<f64>,
     /// RMS of |residual| on the samples fitted on, and on those held out, N.
     pub train_error: f64,
@@ -163,25 +171,57 @@ pub struct Fit {
 }
 
 impl Fit {
-    /// `s` with gravity turned by the fit's rotation.
+    /// Whether `effect` is in the set.
+    pub fn has(&self, effect: Effect) -> bool {
+        self.effects.contains(&effect)
+    }
+
+    /// The linear parameters of `effect` (empty when it is not in the set).
+    pub fn theta_of(&self, effect: Effect) -> &[f64] {
+        self.effects
+            .iter()
+            .position(|e| *e == effect)
+            .map_or(&[], |i| &self.theta[i])
+    }
+
+    /// `s` with gravity (and v_G) turned by the fit's rotation.
     fn turned(&self, s: &Sample) -> Sample {
         if self.rotation == Vector3::zeros() {
             return *s;
         }
+        let r = Rotation3::new(self.rotation);
         Sample {
-            gravity: Rotation3::new(self.rotation) * s.gravity,
+            gravity: r * s.gravity,
+            up: r * s.up,
             ..*s
         }
+    }
+
+    /// The force the model needs for the motion at sample `s` (already turned), without the
+    /// Coulomb term, N.
+    fn smooth_force(&self, s: &Sample) -> Vector3<f64> {
+        let mut columns = [Vector3::zeros(); 4];
+        let mut f = s.gravity + s.acceleration.component_mul(&self.moving_mass);
+        for (effect, theta) in self.effects.iter().zip(&self.theta) {
+            if *effect == Effect::CoulombFriction {
+                continue;
+            }
+            let n = effect.columns(s, &mut columns);
+            for (c, t) in columns[..n].iter().zip(theta) {
+                f += c * *t;
+            }
+        }
+        f
     }
 
     /// The force the model says the device needs for the motion at sample `s`, N.
     pub fn model_force(&self, s: &Sample) -> Vector3<f64> {
         let s = self.turned(s);
-        let mut columns = [Vector3::zeros(); 4];
-        let n = self.effect.columns(&s, &mut columns);
-        let mut f = s.gravity + s.acceleration.component_mul(&self.moving_mass);
-        for (c, t) in columns[..n].iter().zip(&self.theta) {
-            f += c * *t;
+        let mut f = self.smooth_force(&s);
+        if let [f_c] = self.theta_of(Effect::CoulombFriction) {
+            let mut columns = [Vector3::zeros(); 4];
+            Effect::CoulombFriction.columns(&s, &mut columns);
+            f += columns[0] * *f_c;
         }
         f
     }
@@ -189,15 +229,16 @@ impl Fit {
     /// Command `f` minus what the model needs at `s`, N. A handle stuck in Coulomb friction
     /// (slower than [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual.
     pub fn residual(&self, s: &Sample, f: &Vector3<f64>) -> Vector3<f64> {
-        if self.effect == Effect::CoulombFriction && s.velocity.norm() < STICK_SPEED {
-            let t = self.turned(s);
-            let r = f - t.gravity - t.acceleration.component_mul(&self.moving_mass);
-            let excess = r.norm() - self.theta[0].max(0.0);
-            return if excess > 0.0 {
-                r * (excess / r.norm())
-            } else {
-                Vector3::zeros()
-            };
+        if let [f_c] = self.theta_of(Effect::CoulombFriction) {
+            if s.velocity.norm() < STICK_SPEED {
+                let r = f - self.smooth_force(&self.turned(s));
+                let excess = r.norm() - f_c.max(0.0);
+                return if excess > 0.0 {
+                    r * (excess / r.norm())
+                } else {
+                    Vector3::zeros()
+                };
+            }
         }
         f - self.model_force(s)
     }
@@ -217,13 +258,24 @@ impl Fit {
             .collect()
     }
 
-    /// The rotation of gravity this fit found, rad (zero but for [`Effect::GravityTilt`]).
-    pub fn tilt(&self, up: &Vector3<f64>) -> Vector3<f64> {
-        if self.effect != Effect::GravityTilt {
-            return Vector3::zeros();
-        }
+    /// The rotation of gravity this fit found, rad (zero without [`Effect::GravityTilt`]),
+    /// and the standard error of its angle.
+    pub fn tilt(&self, up: &Vector3<f64>) -> (Vector3<f64>, f64) {
+        let (theta, sd) = match self.effects.iter().position(|e| *e == Effect::GravityTilt) {
+            Some(i) => (&self.theta[i], &self.theta_sd[i]),
+            None => return (Vector3::zeros(), 0.0),
+        };
         let (e1, e2) = across(up);
-        self.rotation + e1 * self.theta[0] + e2 * self.theta[1]
+        let rotation = self.rotation + e1 * theta[0] + e2 * theta[1];
+        (rotation, sd[0].hypot(sd[1]))
+    }
+
+    /// The payload's mass, kg (zero without [`Effect::Payload`]).
+    pub fn payload(&self) -> f64 {
+        self.theta_of(Effect::Payload)
+            .first()
+            .copied()
+            .unwrap_or(0.0)
     }
 }
 
@@ -238,42 +290,61 @@ pub fn rms(residuals: &[Vector3<f64>], range: std::ops::Range<usize>) -> f64 {
         .sqrt()
 }
 
-/// Least squares for the moving mass and `effect`'s θ on the training samples, with `force` as
-/// the command and gravity turned by `rotation`. Coulomb friction is fitted on the samples in
-/// motion. None when the regressors are degenerate.
+/// Least squares for the moving mass and the effects' θ on the training samples, with `force`
+/// as the command and gravity turned by `rotation`. With Coulomb friction in the set, only the
+/// samples in motion are fitted on. The standard errors come from the covariance σ² (ΦᵀΦ)⁻¹,
+/// inflated by the smoothing window (neighbouring samples are not independent). None when the
+/// regressors are degenerate.
 fn fit_linear(
-    effect: Effect,
+    effects: &[Effect],
     signals: &Signals,
     force: &[Vector3<f64>],
     delay: f64,
     rotation: Vector3<f64>,
 ) -> Option<Fit> {
-    let p = 3 + effect.linear_parameters();
+    let p = 3 + effects.iter().map(|e| e.linear_parameters()).sum::<usize>();
     let mut fit = Fit {
-        effect,
+        effects: effects.to_vec(),
         moving_mass: Vector3::zeros(),
-        theta: vec![0.0; p - 3],
+        moving_mass_sd: Vector3::zeros(),
+        theta: effects
+            .iter()
+            .map(|e| vec![0.0; e.linear_parameters()])
+            .collect(),
+        theta_sd: effects
+            .iter()
+            .map(|e| vec![0.0; e.linear_parameters()])
+            .collect(),
         delay,
+        delay_sd: 0.0,
         rotation,
         train_error: 0.0,
         heldout_error: 0.0,
     };
+    let moving_only = effects.contains(&Effect::CoulombFriction);
     let (train, heldout) = signals.split();
     let mut normal = DMatrix::<f64>::zeros(p, p);
     let mut rhs = DVector::<f64>::zeros(p);
     let mut columns = [Vector3::zeros(); 4];
     let mut phi = vec![Vector3::zeros(); p];
+    let (mut fitted, mut yy) = (0usize, 0.0);
     for k in train.clone() {
         let s = &fit.turned(&signals.samples[k]);
-        if effect == Effect::CoulombFriction && s.velocity.norm() < STICK_SPEED {
+        if moving_only && s.velocity.norm() < STICK_SPEED {
             continue;
         }
+        fitted += 1;
         let y = force[k] - s.gravity;
+        yy += y.norm_squared();
         phi[0] = Vector3::new(s.acceleration.x, 0.0, 0.0);
         phi[1] = Vector3::new(0.0, s.acceleration.y, 0.0);
         phi[2] = Vector3::new(0.0, 0.0, s.acceleration.z);
-        let n = effect.columns(s, &mut columns);
-        phi[3..3 + n].copy_from_slice(&columns[..n]);
+        let mut at = 3;
+        for effect in effects {
+            let n = effect.columns(s, &mut columns);
+            phi[at..at + n].copy_from_slice(&columns[..n]);
+            at += n;
+        }
         for i in 0..p {
             rhs[i] += phi[i].dot(&y);
             for j in i..p {
@@ -286,9 +357,24 @@ fn fit_linear(
             normal[(i, j)] = normal[(j, i)];
         }
     }
-    let theta = normal.cholesky()?.solve(&rhs);
+    let cholesky = normal.clone().cholesky()?;
+    let theta = cholesky.solve(&rhs);
+    // Residual sum of squares on the fitted samples, σ² per component, and the covariance.
+    let rss = (yy - 2.0 * theta.dot(&rhs) + (&normal * &theta).dot(&theta)).max(0.0);
+    let dof = (3 * fitted).saturating_sub(p).max(1) as f64;
+    let variance = rss / dof * signals.window as f64;
+    let covariance = cholesky.inverse() * variance;
+    let sd = |i: usize| covariance[(i, i)].max(0.0).sqrt();
     fit.moving_mass = Vector3::new(theta[0], theta[1], theta[2]);
-    fit.theta = theta.iter().skip(3).copied().collect();
+    fit.moving_mass_sd = Vector3::new(sd(0), sd(1), sd(2));
+    let mut at = 3;
+    for (i, effect) in effects.iter().enumerate() {
+        for j in 0..effect.linear_parameters() {
+            fit.theta[i][j] = theta[at];
+            fit.theta_sd[i][j] = sd(at);
+            at += 1;
+        }
+    }
     let residuals: Vec<Vector3<f64>> = signals
         .samples
         .iter()
@@ -302,52 +388,175 @@ fn fit_linear(
 
 /// The nominal model: the grid's gravity force and a moving mass per axis.
 pub fn nominal(signals: &Signals) -> Option<Fit> {
-    fit_linear(Effect::None, signals, &signals.force, 0.0, Vector3::zeros())
+    fit_linear(&[], signals, &signals.force, 0.0, Vector3::zeros())
 }
 
 /// Gauss–Newton steps for the gravity tilt.
 const TILT_STEPS: usize = 4;
+/// The delay search: first every [`COARSE_DELAY_STEP`], then every [`DELAY_STEP`] around the
+/// best.
+const COARSE_DELAY_STEP: f64 = 1e-3;
 
-/// `effect` fitted on the training samples and scored on the held-out ones.
-pub fn fit(effect: Effect, signals: &Signals) -> Option<Fit> {
-    let zero = Vector3::zeros();
-    match effect {
-        Effect::TimeDelay => {
-            // The delay that best explains the training samples, by search.
-            let steps = (MAX_DELAY / DELAY_STEP).round() as usize;
-            (1..=steps)
-                .filter_map(|k| {
-                    let delay = k as f64 * DELAY_STEP;
-                    let force = signals.delayed_force(delay);
-                    fit_linear(effect, signals, &force, delay, zero)
-                })
-                .min_by(|a, b| a.train_error.total_cmp(&b.train_error))
-        }
-        Effect::GravityTilt => {
-            let up = signals.samples.first()?.up;
-            let mut fit = fit_linear(effect, signals, &signals.force, 0.0, zero)?;
-            for _ in 0..TILT_STEPS {
-                let rotation = fit.tilt(&up);
-                fit = fit_linear(effect, signals, &signals.force, 0.0, rotation)?;
-            }
-            Some(fit)
-        }
-        _ => fit_linear(effect, signals, &signals.force, 0.0, zero),
+/// The delay in `range` (s) that best explains the training samples, searched every `step`,
+/// with the other effects fitted at each.
+fn search_delay(
+    effects: &[Effect],
+    signals: &Signals,
+    rotation: Vector3<f64>,
+    range: (f64, f64),
+    step: f64,
+) -> Option<Fit> {
+    let steps = ((range.1 - range.0) / step).round() as usize;
+    (0..=steps)
+        .map(|k| range.0 + k as f64 * step)
+        .filter(|delay| *delay > 0.0 && *delay <= MAX_DELAY + 1e-12)
+        .filter_map(|delay| {
+            let force = signals.delayed_force(delay);
+            fit_linear(effects, signals, &force, delay, rotation)
+        })
+        .min_by(|a, b| a.train_error.total_cmp(&b.train_error))
+}
+
+/// The delay's standard error from the curvature of the training error around the best delay,
+/// inflated as the linear parameters' are.
+fn delay_sd(effects: &[Effect], signals: &Signals, best: &Fit) -> f64 {
+    let h = DELAY_STEP;
+    let sse = |delay: f64| -> Option<f64> {
+        let force = signals.delayed_force(delay);
+        let f = fit_linear(effects, signals, &force, delay, best.rotation)?;
+        Some(f.train_error.powi(2))
+    };
+    let (Some(lo), Some(hi)) = (sse(best.delay - h), sse(best.delay + h)) else {
+        return DELAY_STEP;
+    };
+    let mid = best.train_error.powi(2);
+    let curvature = (lo - 2.0 * mid + hi) / (h * h);
+    let n = signals.split().0.len() as f64;
+    if curvature > 0.0 {
+        (2.0 * mid * signals.window as f64 / (n * curvature))
+            .sqrt()
+            .max(DELAY_STEP / 2.0)
+    } else {
+        DELAY_STEP
     }
 }
 
-/// The decision: of the candidates that cut the held-out error to [`NAMING_SHRINK`] of the
-/// nominal model's or less, the simplest, unless one with more parameters does better again by
-/// [`COMPLEXITY_MARGIN`]; [`Effect::None`] if none qualifies.
-pub fn name_effect(nominal: &Fit, candidates: &[Fit]) -> Effect {
-    let mut qualified: Vec<&Fit> = candidates
+/// `effects` fitted jointly on the training samples and scored on the held-out ones: the
+/// linear parameters by least squares, a delay by search, a tilt by Gauss–Newton steps.
+pub fn fit(effects: &[Effect], signals: &Signals) -> Option<Fit> {
+    let has_delay = effects.contains(&Effect::TimeDelay);
+    let has_tilt = effects.contains(&Effect::GravityTilt);
+    let up = signals.samples.first()?.up;
+    let tilt_steps = |mut fit: Fit| -> Option<Fit> {
+        for _ in 0..TILT_STEPS {
+            let force = signals.delayed_force(fit.delay);
+            fit = fit_linear(effects, signals, &force, fit.delay, fit.tilt(&up).0)?;
+        }
+        Some(fit)
+    };
+    let mut fit = if has_delay {
+        search_delay(
+            effects,
+            signals,
+            Vector3::zeros(),
+            (0.0, MAX_DELAY),
+            COARSE_DELAY_STEP,
+        )?
+    } else {
+        fit_linear(effects, signals, &signals.force, 0.0, Vector3::zeros())?
+    };
+    if has_tilt {
+        fit = tilt_steps(fit)?;
+    }
+    if has_delay {
+        let around = (fit.delay - COARSE_DELAY_STEP, fit.delay + COARSE_DELAY_STEP);
+        fit = search_delay(effects, signals, fit.rotation, around, DELAY_STEP)?;
+        if has_tilt {
+            fit = tilt_steps(fit)?;
+        }
+        fit.delay_sd = delay_sd(effects, signals, &fit);
+    }
+    Some(fit)
+}
+
+/// One step of the selection: the set tried and its fit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Step {
+    /// The effect this step added to the previous set.
+    pub added: Effect,
+    /// The previous set with `added`, fitted jointly.
+    pub fit: Fit,
+}
+
+/// The selection (docs/discrepancy.md §2): from the nominal model, add a candidate that cuts
+/// the held-out error to [`STEP_SHRINK`] of the current error or less (of those that do, the
+/// simplest, unless one with more parameters does better again by [`COMPLEXITY_MARGIN`]),
+/// refit all jointly, and repeat; then drop any named effect the others no longer need it
+/// beside (without it the error grows by less than 1/[`STEP_SHRINK`]). The set stands only if
+/// it cuts the nominal error to [`NAMING_SHRINK`] or less; otherwise nothing is named. Returns
+/// the final fit, the steps taken and every candidate's fit at the first step. `candidates`
+/// are the effects tried.
+pub fn select(
+    nominal: &Fit,
+    signals: &Signals,
+    candidates: &[Effect],
+) -> (Fit, Vec<Step>, Vec<Fit>) {
+    let mut current = nominal.clone();
+    let mut steps = Vec::new();
+    let mut first = Vec::new();
+    loop {
+        let trials: Vec<Fit> = candidates
+            .iter()
+            .filter(|e| !current.has(**e))
+            .filter_map(|e| {
+                let mut set = current.effects.clone();
+                set.push(*e);
+                fit(&set, signals)
+            })
+            .collect();
+        if steps.is_empty() {
+            first = trials.clone();
+        }
+        let Some(chosen) = choose(&current, &trials) else {
+            break;
+        };
+        let added = *chosen.effects.last().expect("a trial adds an effect");
+        steps.push(Step {
+            added,
+            fit: chosen.clone(),
+        });
+        current = chosen.clone();
+    }
+    // Backward: an effect the others now explain is dropped.
+    while current.effects.len() > 1 {
+        let without = current.effects.iter().enumerate().find_map(|(i, _)| {
+            let mut set = current.effects.clone();
+            set.remove(i);
+            let reduced = fit(&set, signals)?;
+            (current.heldout_error > STEP_SHRINK * reduced.heldout_error).then_some(reduced)
+        });
+        match without {
+            Some(reduced) => current = reduced,
+            None => break,
+        }
+    }
+    if current.heldout_error > NAMING_SHRINK * nominal.heldout_error {
+        current = nominal.clone();
+    }
+    (current, steps, first)
+}
+
+/// Of `trials` (each `current` with one effect more), the one to add, if any.
+fn choose<'a>(current: &Fit, trials: &'a [Fit]) -> Option<&'a Fit> {
+    let added = |f: &Fit| *f.effects.last().expect("a trial adds an effect");
+    let mut qualified: Vec<&Fit> = trials
         .iter()
-        .filter(|c| c.heldout_error <= NAMING_SHRINK * nominal.heldout_error)
+        .filter(|c| c.heldout_error <= STEP_SHRINK * current.heldout_error)
         .collect();
     qualified.sort_by(|a, b| {
-        a.effect
+        added(a)
             .parameters()
-            .cmp(&b.effect.parameters())
+            .cmp(&added(b).parameters())
             .then(a.heldout_error.total_cmp(&b.heldout_error))
     });
     let mut chosen: Option<&Fit> = None;
@@ -360,7 +569,7 @@ pub fn name_effect(nominal: &Fit, candidates: &[Fit]) -> Effect {
             _ => {}
         }
     }
-    chosen.map_or(Effect::None, |c| c.effect)
+    chosen
 }
 
 /// The smallest moving mass simulated, kg (a fit that finds less is not a plant to integrate).
@@ -384,11 +593,7 @@ pub fn simulate(
     let mut pending = std::collections::VecDeque::with_capacity(delay_ticks + 1);
     let (mut x, mut v) = (log.position[0], Vector3::zeros());
     let mut positions = Vec::with_capacity(log.len());
-    let payload = if fit.effect == Effect::Payload {
-        fit.theta[0]
-    } else {
-        0.0
-    };
+    let payload = fit.payload();
     let inertia = fit.moving_mass.map(|m| m.max(MIN_SIMULATED_MASS)) + Vector3::repeat(payload);
     for k in 0..log.len() {
         positions.push(x);

@@ -1,10 +1,12 @@
 //! Where the model and the measurement disagree (docs/discrepancy.md): `hgcd record` logs an
 //! identification run with compensation on ([`record()`]); `hgcd analyze` compares the log with
-//! the calibrated model, locates the disagreement, names the physical effect the model is
-//! missing (or none), adds it and shows on held-out data that the gap shrinks ([`analyze`]).
+//! the calibrated model, locates the disagreement, names the physical effects the model is
+//! missing (a set, possibly empty), adds them, shows on held-out data that the gap shrinks and
+//! says what is left unexplained and what the log could not show ([`analyze`]).
 
 pub mod analysis;
 pub mod effects;
+pub mod evidence;
 pub mod log;
 pub mod record;
 mod report;
@@ -24,11 +26,12 @@ use crate::grid::GridFile;
 use crate::servo::thread::ThreadError;
 use crate::servo::{self, ExitReason, ServoError, ServoOptions};
 use crate::transport::{self, Pacing, TransportError};
-use analysis::{Fit, Signals};
+use analysis::{Fit, Signals, Step};
 pub use effects::Effect;
+use evidence::{Limit, NoiseFloor};
 use log::{Log, LogError};
 use record::{RecordParams, Recorder};
-pub use report::Diagnostics;
+pub use report::{names, Diagnostics};
 
 /// What `hgcd record` is asked to do.
 #[derive(Clone, Debug)]
@@ -196,13 +199,24 @@ const MAX_OUTSIDE_SHARE: f64 = 0.05;
 /// A finished analysis.
 #[derive(Debug)]
 pub struct Analysis {
-    /// The effect named ([`Effect::None`] when the model explains the log).
-    pub effect: Effect,
+    /// The effects named, in the order found (empty when the model explains the log).
+    pub effects: Vec<Effect>,
     pub nominal: Fit,
-    /// Every candidate, in [`Effect::CANDIDATES`] order.
+    /// Every candidate tried alone, in [`Effect::CANDIDATES`] order.
     pub candidates: Vec<Fit>,
-    /// The augmented model (the nominal one when nothing is named).
+    /// The selection's steps: each effect added and the joint fit then.
+    pub steps: Vec<Step>,
+    /// The augmented model: the named effects fitted jointly (the nominal one when nothing is
+    /// named).
     pub augmented: Fit,
+    /// The log's own noise floor, and whether the augmented model's held-out residual stays
+    /// above it by more than [`evidence::UNEXPLAINED_FACTOR`].
+    pub noise_floor: NoiseFloor,
+    pub unexplained: bool,
+    /// Where the augmented model's held-out residual lives.
+    pub ordering: evidence::Ordering,
+    /// What the log could not show.
+    pub limits: Vec<Limit>,
     /// Held-out RMS position error of the closed-loop simulation, nominal and augmented, m
     /// (logs with a reference and the excitation's gains).
     pub position_error: Option<(f64, f64)>,
@@ -214,6 +228,11 @@ pub struct Analysis {
 }
 
 impl Analysis {
+    /// The first effect named, or [`Effect::None`] (summary.json's `effect`).
+    pub fn effect(&self) -> Effect {
+        self.effects.first().copied().unwrap_or(Effect::None)
+    }
+
     /// Held-out RMS force residual of the nominal and the augmented model, N.
     pub fn errors(&self) -> (f64, f64) {
         (self.nominal.heldout_error, self.augmented.heldout_error)
@@ -277,19 +296,35 @@ pub fn analyze(
     progress("fitting the nominal model (grid and moving mass)");
     let nominal = analysis::nominal(&signals)
         .ok_or_else(|| AnalyzeError::NoExcitation(request.log.clone()))?;
-    let mut candidates = Vec::with_capacity(Effect::CANDIDATES.len());
-    for effect in Effect::CANDIDATES {
-        progress(&format!("fitting and scoring {}", effect.name()));
-        if let Some(fit) = analysis::fit(effect, &signals) {
-            candidates.push(fit);
-        }
+    let mut limits = evidence::excitation_limits(&signals);
+    // An effect the excitation cannot show alone is not tried; one it cannot tell from another
+    // is tried, and the limit says so.
+    let candidates: Vec<Effect> = Effect::CANDIDATES
+        .into_iter()
+        .filter(|e| {
+            !limits
+                .iter()
+                .any(|l| l.effects.len() == 1 && l.effects[0] == *e)
+        })
+        .collect();
+    progress(&format!(
+        "selecting effects from {}",
+        candidates
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(", ")
+    ));
+    let (augmented, steps, first) = analysis::select(&nominal, &signals, &candidates);
+    let effects = augmented.effects.clone();
+    if augmented.has(Effect::TimeDelay) {
+        limits.push(evidence::delay_side());
     }
-    let effect = analysis::name_effect(&nominal, &candidates);
-    let augmented = candidates
-        .iter()
-        .find(|c| c.effect == effect)
-        .unwrap_or(&nominal)
-        .clone();
+    progress("estimating the noise floor");
+    let residual = augmented.residuals(&signals);
+    let noise_floor = evidence::noise_floor(&log, &signals, &augmented.moving_mass);
+    let unexplained = augmented.heldout_error > evidence::UNEXPLAINED_FACTOR * noise_floor.force;
+    let ordering = evidence::ordering(&signals, &residual, signals.split().1);
     progress("locating the disagreement and simulating");
     let diagnostics = Diagnostics::new(&signals, &nominal, &augmented, &model);
     let position_error = log.excitation.as_ref().and_then(|e| {
@@ -304,10 +339,15 @@ pub fn analyze(
         Some((error(&nominal)?, error(&augmented)?))
     });
     let analysis = Analysis {
-        effect,
+        effects,
         nominal,
-        candidates,
+        candidates: first,
+        steps,
         augmented,
+        noise_floor,
+        unexplained,
+        ordering,
+        limits,
         position_error,
         diagnostics,
         up: model.grid.gravity_direction,

@@ -12,7 +12,7 @@ use serde_json::json;
 
 use super::analysis::{self, Fit, Signals};
 use super::effects::Effect;
-use super::{Analysis, AnalyzeError, AnalyzeRequest};
+use super::{evidence, Analysis, AnalyzeError, AnalyzeRequest};
 use crate::control::compensation::GravityModel;
 use crate::figure::{self, Figure, OutError};
 use crate::grid::{EffectRecord, GridFile, ModelFile, MODEL_FORMAT};
@@ -202,21 +202,33 @@ impl Diagnostics {
     }
 }
 
-/// The fitted parameters of `fit`, SI, as `summary.json` gives them.
-fn parameters(fit: &Fit, up: &Vector3<f64>) -> serde_json::Value {
-    let m = fit.moving_mass;
-    let mut p = json!({ "moving_mass_kg": [m.x, m.y, m.z] });
-    let t = &fit.theta;
-    match fit.effect {
+/// The fitted parameters of `effect` in `fit`, SI, as `summary.json` gives them, and their
+/// standard errors under the same keys.
+fn effect_parameters(
+    fit: &Fit,
+    effect: Effect,
+    up: &Vector3<f64>,
+) -> (serde_json::Value, serde_json::Value) {
+    let (mut p, mut sd) = (json!({}), json!({}));
+    let i = fit.effects.iter().position(|e| *e == effect);
+    let (t, e) = match i {
+        Some(i) => (fit.theta[i].as_slice(), fit.theta_sd[i].as_slice()),
+        None => return (p, sd),
+    };
+    match effect {
         Effect::None => {}
-        Effect::Payload => p["mass_kg"] = json!(t[0]),
-        Effect::CoulombFriction => p["force_n"] = json!(t[0]),
-        Effect::ViscousDamping => p["damping_n_s_per_m"] = json!(t[0]),
+        Effect::Payload => (p["mass_kg"], sd["mass_kg"]) = (json!(t[0]), json!(e[0])),
+        Effect::CoulombFriction => (p["force_n"], sd["force_n"]) = (json!(t[0]), json!(e[0])),
+        Effect::ViscousDamping => {
+            (p["damping_n_s_per_m"], sd["damping_n_s_per_m"]) = (json!(t[0]), json!(e[0]))
+        }
         Effect::GravityTilt => {
-            let delta = fit.tilt(up);
+            let (delta, angle_sd) = fit.tilt(up);
             let angle = delta.norm();
             p["angle_rad"] = json!(angle);
             p["angle_deg"] = json!(angle.to_degrees());
+            sd["angle_rad"] = json!(angle_sd);
+            sd["angle_deg"] = json!(angle_sd.to_degrees());
             let axis = if angle > 0.0 { delta / angle } else { delta };
             p["rotation_axis"] = json!([axis.x, axis.y, axis.z]);
         }
@@ -224,9 +236,28 @@ fn parameters(fit: &Fit, up: &Vector3<f64>) -> serde_json::Value {
             let k = t[0];
             let anchor = -Vector3::new(t[1], t[2], t[3]) / k;
             p["stiffness_n_per_m"] = json!(k);
+            sd["stiffness_n_per_m"] = json!(e[0]);
             p["anchor_m"] = json!([anchor.x, anchor.y, anchor.z]);
         }
-        Effect::TimeDelay => p["delay_s"] = json!(fit.delay),
+        Effect::TimeDelay => {
+            (p["delay_s"], sd["delay_s"]) = (json!(fit.delay), json!(fit.delay_sd));
+            (p["delay_ms"], sd["delay_ms"]) = (json!(fit.delay * 1e3), json!(fit.delay_sd * 1e3));
+        }
+    }
+    (p, sd)
+}
+
+/// Every parameter of `fit`, SI, as `summary.json` gives them: the moving mass and each
+/// effect's.
+fn parameters(fit: &Fit, up: &Vector3<f64>) -> serde_json::Value {
+    let m = fit.moving_mass;
+    let mut p = json!({ "moving_mass_kg": [m.x, m.y, m.z] });
+    for effect in &fit.effects {
+        if let (serde_json::Value::Object(map), Some(all)) =
+            (effect_parameters(fit, *effect, up).0, p.as_object_mut())
+        {
+            all.extend(map);
+        }
     }
     p
 }
@@ -256,18 +287,65 @@ pub(super) fn write(
         .iter()
         .map(|c| {
             json!({
-                "effect": c.effect.name(),
+                "effect": c.effects.last().map_or("none", |e| e.name()),
                 "parameters": parameters(c, &up),
                 "error_train": c.train_error,
                 "error_heldout": c.heldout_error,
             })
         })
         .collect();
+    let effects: Vec<_> = a
+        .effects
+        .iter()
+        .map(|e| {
+            let (parameters, sd) = effect_parameters(&a.augmented, *e, &up);
+            json!({ "name": e.name(), "parameters": parameters, "standard_error": sd })
+        })
+        .collect();
+    let steps: Vec<_> = a
+        .steps
+        .iter()
+        .map(|s| {
+            json!({
+                "added": s.added.name(),
+                "effects": s.fit.effects.iter().map(|e| e.name()).collect::<Vec<_>>(),
+                "error_heldout": s.fit.heldout_error,
+            })
+        })
+        .collect();
+    let limits: Vec<_> = a
+        .limits
+        .iter()
+        .map(|l| {
+            json!({
+                "check": l.check,
+                "effects": l.effects.iter().map(|e| e.name()).collect::<Vec<_>>(),
+                "message": l.message,
+            })
+        })
+        .collect();
     let summary = json!({
         "grid": request.grid.display().to_string(),
         "log": request.log.display().to_string(),
-        "effect": a.effect.name(),
+        "effect": a.effect().name(),
+        "effects": effects,
         "parameters": parameters(&a.augmented, &up),
+        "steps": steps,
+        "noise_floor_n": a.noise_floor.force,
+        "noise_floor": {
+            "from_position_n": a.noise_floor.from_position,
+            "from_command_n": a.noise_floor.from_command,
+            "position_noise_m": xyz(&a.noise_floor.position_noise),
+            "command_noise_n": xyz(&a.noise_floor.command_noise),
+        },
+        "unexplained": a.unexplained,
+        "unexplained_factor": evidence::UNEXPLAINED_FACTOR,
+        "unexplained_where": {
+            "by": a.ordering.by,
+            "share": a.ordering.share,
+            "shares": a.ordering.shares.iter().map(|(n, v)| (n.to_string(), json!(v))).collect::<serde_json::Map<_, _>>(),
+        },
+        "limits": limits,
         "metric": METRIC,
         "error_before": before,
         "error_after": after,
@@ -275,6 +353,7 @@ pub(super) fn write(
         "position_error_after_m": a.position_error.map(|p| p.1),
         "naming": {
             "shrink": analysis::NAMING_SHRINK,
+            "step_shrink": analysis::STEP_SHRINK,
             "complexity_margin": analysis::COMPLEXITY_MARGIN,
         },
         "candidates": candidates,
@@ -314,7 +393,15 @@ pub(super) fn write(
     let model = ModelFile {
         format: MODEL_FORMAT.into(),
         grid: "grid.toml".into(),
-        effect: effect_record(&a.augmented, &up),
+        effect: effect_record(&a.augmented, a.effect(), &up),
+        effects: if a.effects.len() > 1 {
+            a.effects
+                .iter()
+                .map(|e| effect_record(&a.augmented, *e, &up))
+                .collect()
+        } else {
+            vec![]
+        },
     };
     let model_path = out.join("model.toml");
     model.save(&model_path).map_err(|e| OutError {
@@ -344,10 +431,10 @@ fn strongest(series: &[(f64, f64)]) -> (f64, f64) {
         .unwrap_or((f64::NAN, f64::NAN))
 }
 
-/// The augmented model's effect as `model.toml` holds it (docs/discrepancy.md §5).
-fn effect_record(fit: &Fit, up: &Vector3<f64>) -> EffectRecord {
-    let t = &fit.theta;
-    match fit.effect {
+/// Effect `effect` of `fit` as `model.toml` holds it (docs/discrepancy.md §5).
+fn effect_record(fit: &Fit, effect: Effect, up: &Vector3<f64>) -> EffectRecord {
+    let t = fit.theta_of(effect);
+    match effect {
         Effect::None => EffectRecord::None,
         Effect::Payload => EffectRecord::Payload { mass_kg: t[0] },
         Effect::CoulombFriction => EffectRecord::CoulombFriction { force_n: t[0] },
@@ -356,7 +443,7 @@ fn effect_record(fit: &Fit, up: &Vector3<f64>) -> EffectRecord {
         },
         Effect::TimeDelay => EffectRecord::TimeDelay { delay_s: fit.delay },
         Effect::GravityTilt => {
-            let delta = fit.tilt(up);
+            let delta = fit.tilt(up).0;
             let angle = delta.norm();
             let axis = if angle > 0.0 { delta / angle } else { delta };
             EffectRecord::GravityTilt {
@@ -395,18 +482,65 @@ const FIGURES: [(&str, &str); 5] = [
     ),
 ];
 
+/// The effects' names, joined for a line of text.
+pub fn names(effects: &[Effect]) -> String {
+    if effects.is_empty() {
+        "none".into()
+    } else {
+        effects
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
 fn report_md(request: &AnalyzeRequest, a: &Analysis) -> String {
     let (before, after) = a.errors();
     let mut s = format!(
-        "# hgcd analyze\n\nLog `{}` against grid `{}`.\n\n**Effect: `{}`.** Held-out RMS force \
-         residual {:.4} N with the nominal model, {:.4} N with the augmented one ({:+.0} %).\n\n",
+        "# hgcd analyze\n\nLog `{}` against grid `{}`.\n\n**Effects: {}.** Held-out RMS force \
+         residual {:.4} N with the nominal model, {:.4} N with the augmented one ({:+.0} %); \
+         the log's noise floor {:.4} N.\n\n",
         request.log.display(),
         request.grid.display(),
-        a.effect.name(),
+        names(&a.effects),
         before,
         after,
-        (after / before - 1.0) * 1e2
+        (after / before - 1.0) * 1e2,
+        a.noise_floor.force,
     );
+    if !a.steps.is_empty() {
+        s.push_str("| step | effects | held-out error, N |\n| --- | --- | --- |\n");
+        let _ = writeln!(s, "| nominal | none | {before:.4} |");
+        for (i, step) in a.steps.iter().enumerate() {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {:.4} |",
+                i + 1,
+                names(&step.fit.effects),
+                step.fit.heldout_error
+            );
+        }
+        s.push('\n');
+    }
+    if a.unexplained {
+        let _ = writeln!(
+            s,
+            "**Unexplained:** the residual stays {:.1} times the noise floor (above {}): a force \
+             in no candidate is there. It is ordered best by {} ({:.0} % of its variance), \
+             figure `unexplained`.\n",
+            after / a.noise_floor.force,
+            evidence::UNEXPLAINED_FACTOR,
+            a.ordering.by,
+            a.ordering.share * 1e2
+        );
+    }
+    for limit in &a.limits {
+        let _ = writeln!(s, "- What the log cannot show: {}", limit.message);
+    }
+    if !a.limits.is_empty() {
+        s.push('\n');
+    }
     if let Some((pb, pa)) = a.position_error {
         let _ = writeln!(
             s,
@@ -426,7 +560,7 @@ fn report_md(request: &AnalyzeRequest, a: &Analysis) -> String {
         let _ = writeln!(
             s,
             "| {} | `{p}` | {:.4} | {:+.0} % |",
-            c.effect.name(),
+            names(&c.effects),
             c.heldout_error,
             (c.heldout_error / before - 1.0) * 1e2
         );
@@ -621,7 +755,7 @@ fn figures(out: &Path, signals: &Signals, a: &Analysis) -> Result<(), AnalyzeErr
                 Series {
                     label: format!(
                         "with {}: RMS {:.4} N",
-                        a.effect.name(),
+                        names(&a.effects),
                         a.augmented.heldout_error
                     ),
                     colour: AXIS_COLOURS[0],

@@ -10,12 +10,17 @@ use thiserror::Error;
 /// The `format` key of a model file.
 pub const MODEL_FORMAT: &str = "hgcd-model/1";
 
-/// A model file: the grid (relative to the file) and the effect with its parameters, SI.
+/// A model file: the grid (relative to the file) and the effects with their parameters, SI.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelFile {
     pub format: String,
     pub grid: PathBuf,
+    /// The first effect named (`none` for none): what a reader of one effect sees.
     pub effect: EffectRecord,
+    /// Every effect named, in the order found (the first is `effect`); absent in files of one
+    /// effect.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub effects: Vec<EffectRecord>,
 }
 
 /// The effect, named as `hgcd analyze` names it; keys as in its summary.json (others ignored).
@@ -87,27 +92,43 @@ impl ModelFile {
                 file.format
             )));
         }
-        let values: Vec<f64> = match &file.effect {
-            EffectRecord::None => vec![],
-            EffectRecord::Payload { mass_kg } => vec![*mass_kg],
-            EffectRecord::CoulombFriction { force_n } => vec![*force_n],
-            EffectRecord::ViscousDamping { damping_n_s_per_m } => vec![*damping_n_s_per_m],
-            EffectRecord::TimeDelay { delay_s } => vec![*delay_s],
-            EffectRecord::GravityTilt {
-                angle_rad,
-                rotation_axis,
-            } => [[*angle_rad].as_slice(), rotation_axis].concat(),
-            EffectRecord::Spring {
-                stiffness_n_per_m,
-                anchor_m,
-            } => [[*stiffness_n_per_m].as_slice(), anchor_m].concat(),
-        };
+        let values: Vec<f64> = file
+            .all_effects()
+            .iter()
+            .flat_map(|e| match e {
+                EffectRecord::None => vec![],
+                EffectRecord::Payload { mass_kg } => vec![*mass_kg],
+                EffectRecord::CoulombFriction { force_n } => vec![*force_n],
+                EffectRecord::ViscousDamping { damping_n_s_per_m } => vec![*damping_n_s_per_m],
+                EffectRecord::TimeDelay { delay_s } => vec![*delay_s],
+                EffectRecord::GravityTilt {
+                    angle_rad,
+                    rotation_axis,
+                } => [[*angle_rad].as_slice(), rotation_axis].concat(),
+                EffectRecord::Spring {
+                    stiffness_n_per_m,
+                    anchor_m,
+                } => [[*stiffness_n_per_m].as_slice(), anchor_m].concat(),
+            })
+            .collect();
         if values.iter().any(|v| !v.is_finite()) {
             return Err(invalid(
                 "a parameter of `[effect]` is not a finite number".into(),
             ));
         }
         Ok(file)
+    }
+
+    /// Every effect the file holds: `effects`, or `effect` alone in a file of one.
+    pub fn all_effects(&self) -> Vec<EffectRecord> {
+        if self.effects.is_empty() {
+            match self.effect {
+                EffectRecord::None => vec![],
+                ref one => vec![one.clone()],
+            }
+        } else {
+            self.effects.clone()
+        }
     }
 
     /// Write the file.
@@ -142,6 +163,7 @@ mod tests {
                 stiffness_n_per_m: 50.0,
                 anchor_m: [0.01, 0.0, -0.02],
             },
+            effects: vec![],
         };
         file.save(&path).unwrap();
         assert_eq!(ModelFile::load(&path).unwrap(), file);
