@@ -175,7 +175,7 @@ fn named(summary: &serde_json::Value) -> Vec<String> {
 fn line(hidden: &[Hidden], seed: u64, summary: &serde_json::Value) -> String {
     format!(
         "{hidden:?}, seed {seed}: named {:?}, {:.4} → {:.4} N, floor {:.4} N, unexplained \
-         {} (by {}), limits {}",
+         {} (by {}), limits {}; {}",
         named(summary),
         summary["error_before"].as_f64().unwrap(),
         summary["error_after"].as_f64().unwrap(),
@@ -186,14 +186,19 @@ fn line(hidden: &[Hidden], seed: u64, summary: &serde_json::Value) -> String {
             .as_array()
             .unwrap()
             .iter()
-            .map(|l| l["check"].as_str().unwrap())
+            .map(|l| format!(
+                "{}: {}",
+                l["check"].as_str().unwrap(),
+                l["message"].as_str().unwrap()
+            ))
             .collect::<Vec<_>>()
-            .join(",")
+            .join(" | "),
+        summary["parameters"]
     )
 }
 
 /// Every candidate alone at two magnitudes (small and large for a lab device) and two noise
-/// seeds, and four clean logs.
+/// seeds, and five clean logs.
 fn suite() -> Vec<(Hidden, u64)> {
     let hidden = [
         Hidden::Payload(0.01),
@@ -210,7 +215,7 @@ fn suite() -> Vec<(Hidden, u64)> {
         Hidden::Delay(8.0),
     ];
     let mut cases: Vec<(Hidden, u64)> = hidden.iter().flat_map(|&h| [(h, 1), (h, 2)]).collect();
-    cases.extend((1..=4).map(|seed| (Hidden::None, seed)));
+    cases.extend((1..=5).map(|seed| (Hidden::None, seed)));
     cases
 }
 
@@ -239,7 +244,12 @@ fn each_hidden_effect_is_named_measured_and_removed_and_clean_logs_name_none() {
         let case = format!("{hidden:?}, seed {seed}: named {named}, {before:.4} → {after:.4} N");
         println!("{case}");
         if hidden == Hidden::None {
+            // Clean: nothing named, nothing unexplained, the residual at the log's own floor.
             assert_eq!(named, "none", "{case}");
+            assert_eq!(summary["effects"], serde_json::json!([]), "{case}");
+            assert_eq!(summary["unexplained"], false, "{case}");
+            let floor = summary["noise_floor_n"].as_f64().unwrap();
+            assert!(after <= 2.0 * floor, "{case}: floor {floor} N");
             continue;
         }
         hidden_cases += 1;
@@ -413,12 +423,20 @@ fn hgcd_run_compensates_a_named_payload_or_spring_and_leaves_friction_alone() {
         Vector3::new(-0.035, 0.03, -0.025),
     ];
     for hidden in [
-        Hidden::Payload(0.03),
-        Hidden::Spring(40.0, [10.0, 0.0, -20.0]),
-        Hidden::Coulomb(0.05),
+        vec![Hidden::Payload(0.03)],
+        vec![Hidden::Spring(40.0, [10.0, 0.0, -20.0])],
+        vec![Hidden::Coulomb(0.05)],
+        // Two at once: the payload's weight turned with the grid's force.
+        vec![Hidden::Payload(0.03), Hidden::Tilt(3.0, true)],
+        vec![
+            Hidden::Spring(40.0, [10.0, 0.0, -20.0]),
+            Hidden::Coulomb(0.05),
+        ],
     ] {
-        let summary = record_and_analyze(dir.path(), &grid, &[hidden], 1);
-        assert_eq!(summary["effect"], hidden.effect().unwrap().name());
+        let summary = record_and_analyze(dir.path(), &grid, &hidden, 1);
+        let mut got = named(&summary);
+        got.sort();
+        assert_eq!(got, expected(&hidden).0, "{hidden:?}");
         let mut config = Config::default();
         config.compensation.effect_file = Some(dir.path().join("analysis/model.toml"));
         let model = hgcd::daemon::load_model(&config, &device, &grid)
@@ -428,7 +446,9 @@ fn hgcd_run_compensates_a_named_payload_or_spring_and_leaves_friction_alone() {
             // What holds the plant with the hidden effect still at x (friction holds nothing).
             let mut plant = Config::default();
             plant.sim.start_position_mm = (x * 1e3).into();
-            hidden.apply(&mut plant);
+            for h in &hidden {
+                h.apply(&mut plant);
+            }
             let truth = SimDevice::from_config("point-mass", &plant)
                 .unwrap()
                 .plant()
@@ -511,40 +531,321 @@ fn a_recording_never_replaces_a_file_that_is_there() {
     }
 }
 
-/// Exploration: cases from `DISCREPANCY_CASES` (indices into the pair list) printed.
-#[test]
-#[ignore]
-fn explore() {
-    let dir = tempfile::tempdir().unwrap();
-    let grid = nominal_grid(dir.path());
-    let cases: Vec<Vec<Hidden>> = vec![
-        vec![Hidden::None],
-        vec![Hidden::Payload(0.02), Hidden::Viscous(1.0)],
-        vec![Hidden::Tilt(3.0, true), Hidden::Coulomb(0.04)],
-        vec![Hidden::Spring(20.0, [0.0; 3]), Hidden::Viscous(1.0)],
-        vec![Hidden::Delay(4.0), Hidden::Payload(0.02)],
-        vec![Hidden::SensingDelay(4.0)],
-        vec![Hidden::Cogging(0.05, 5.0)],
-        vec![Hidden::ScaleX(0.9), Hidden::Coulomb(0.04)],
-        vec![Hidden::Vibration(0.05, 7.0)],
-        vec![Hidden::Vibration(0.05, 7.0), Hidden::Spring(20.0, [0.0; 3])],
-        vec![Hidden::Cogging(0.05, 5.0), Hidden::Payload(0.02)],
-    ];
-    for (i, hidden) in cases.iter().enumerate() {
-        if let Ok(only) = std::env::var("DISCREPANCY_CASES") {
-            if !only.split(',').any(|c| c.parse() == Ok(i)) {
-                continue;
+/// The seven effects of the pair table, at a small and a large magnitude for a lab device.
+fn library(large: bool) -> [Hidden; 7] {
+    let pick = |small: Hidden, big: Hidden| if large { big } else { small };
+    [
+        pick(Hidden::Payload(0.01), Hidden::Payload(0.04)),
+        pick(Hidden::Tilt(2.0, true), Hidden::Tilt(6.0, false)),
+        pick(
+            Hidden::Spring(15.0, [0.0; 3]),
+            Hidden::Spring(50.0, [30.0, -20.0, 50.0]),
+        ),
+        pick(Hidden::Coulomb(0.02), Hidden::Coulomb(0.06)),
+        pick(Hidden::Viscous(0.5), Hidden::Viscous(2.0)),
+        pick(Hidden::Delay(2.0), Hidden::Delay(6.0)),
+        pick(Hidden::SensingDelay(2.0), Hidden::SensingDelay(6.0)),
+    ]
+}
+
+/// What `hgcd analyze` must answer for `hidden`: the effects named (sorted), the parameters
+/// and their truth, and the effects a `confounded` limit must name instead. A payload's weight
+/// or a tilt beside a spring on a uniform field is a constant force the spring's anchor takes
+/// (docs/discrepancy.md §3); the two delays add up (§2).
+fn expected(
+    hidden: &[Hidden],
+) -> (
+    Vec<&'static str>,
+    Vec<(&'static str, f64)>,
+    Vec<&'static str>,
+) {
+    let spring = hidden.iter().any(|h| matches!(h, Hidden::Spring(..)));
+    let mut names = Vec::new();
+    let mut truths: Vec<(&'static str, f64)> = Vec::new();
+    let mut confounded = Vec::new();
+    for h in hidden {
+        let (Some(effect), Some((key, value))) = (h.effect(), h.truth()) else {
+            continue;
+        };
+        if spring && matches!(h, Hidden::Payload(_) | Hidden::Tilt(..)) {
+            confounded.push(effect.name());
+            continue;
+        }
+        match truths.iter_mut().find(|(k, _)| *k == key) {
+            // Both delays: their sum.
+            Some((_, v)) => *v += value,
+            None => {
+                names.push(effect.name());
+                truths.push((key, value));
             }
         }
-        for seed in [1, 2] {
-            let t = std::time::Instant::now();
-            let summary = record_and_analyze(dir.path(), &grid, hidden, seed);
-            println!(
-                "{} [{:.1} s, analyze {:.2} s]",
-                line(hidden, seed, &summary),
-                t.elapsed().as_secs_f64(),
-                summary["wall_time_s"].as_f64().unwrap()
-            );
+    }
+    names.sort();
+    (names, truths, confounded)
+}
+
+/// Checks one case's summary against what it hides; the failures, as lines.
+fn check(hidden: &[Hidden], summary: &serde_json::Value) -> Vec<String> {
+    let (names, truths, confounded) = expected(hidden);
+    let mut got = named(summary);
+    got.sort();
+    let mut failures = Vec::new();
+    if got != names {
+        failures.push(format!("named {got:?}, hidden {names:?}"));
+        return failures;
+    }
+    for (key, value) in truths {
+        let fitted = summary["parameters"][key].as_f64().unwrap();
+        if (fitted / value - 1.0).abs() > 0.2 {
+            failures.push(format!("{key} = {fitted}, truth {value}"));
         }
     }
+    let limits = summary["limits"].as_array().unwrap();
+    for effect in confounded {
+        let said = limits.iter().any(|l| {
+            l["check"] == "confounded" && l["effects"].as_array().unwrap().contains(&effect.into())
+        });
+        if !said {
+            failures.push(format!("no `confounded` limit for {effect}"));
+        }
+    }
+    let (before, after) = (
+        summary["error_before"].as_f64().unwrap(),
+        summary["error_after"].as_f64().unwrap(),
+    );
+    if !names.is_empty() && after > 0.5 * before {
+        failures.push(format!("held-out error {before} → {after} N, not halved"));
+    }
+    // A loop delay of 10 ms or more makes the excitation's loop ring, and the residual keeps
+    // a part the smoothing leaves (docs/discrepancy.md, Limitations): flagged, rightly.
+    let delay = summary["parameters"]["delay_s"].as_f64().unwrap_or(0.0);
+    if summary["unexplained"] != false && delay < 0.01 {
+        failures.push("unexplained".into());
+    }
+    failures
+}
+
+/// Every pair of the seven effects, hidden together at the small magnitudes (one seed; the
+/// ignored `every_pair_at_two_magnitudes_and_two_seeds` runs the whole table): the named set is
+/// the hidden set, each parameter within 20 %, the held-out error at least halved, nothing
+/// unexplained.
+#[test]
+fn every_pair_of_effects_is_named_as_a_set_and_measured() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let effects = library(false);
+    let mut failures = Vec::new();
+    for i in 0..effects.len() {
+        for j in i + 1..effects.len() {
+            let hidden = [effects[i], effects[j]];
+            let summary = record_and_analyze(dir.path(), &grid, &hidden, 1);
+            println!("{}", line(&hidden, 1, &summary));
+            for f in check(&hidden, &summary) {
+                failures.push(format!("{hidden:?}: {f}"));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// The table of docs/discrepancy.md §6: each effect alone and every pair, at two magnitudes and
+/// two seeds. `cargo test --release --test discrepancy -- --ignored --nocapture every_pair_at`
+#[test]
+#[ignore]
+fn every_pair_at_two_magnitudes_and_two_seeds() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let (mut cases, mut failures) = (0, Vec::new());
+    let started = std::time::Instant::now();
+    let mut slowest: f64 = 0.0;
+    for large in [false, true] {
+        let effects = library(large);
+        let mut sets: Vec<Vec<Hidden>> = effects.iter().map(|e| vec![*e]).collect();
+        for i in 0..effects.len() {
+            for j in i + 1..effects.len() {
+                sets.push(vec![effects[i], effects[j]]);
+            }
+        }
+        for hidden in &sets {
+            for seed in [1, 2] {
+                let summary = record_and_analyze(dir.path(), &grid, hidden, seed);
+                slowest = slowest.max(summary["wall_time_s"].as_f64().unwrap());
+                cases += 1;
+                let f = check(hidden, &summary);
+                println!(
+                    "{}{}",
+                    line(hidden, seed, &summary),
+                    if f.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" FAILED {f:?}")
+                    }
+                );
+                failures.extend(
+                    f.into_iter()
+                        .map(|f| format!("{hidden:?} seed {seed}: {f}")),
+                );
+            }
+        }
+    }
+    println!(
+        "{cases} cases, {} failed; slowest analysis {slowest:.2} s; {:.0} s in all",
+        failures.len(),
+        started.elapsed().as_secs_f64()
+    );
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// Effects in no candidate (motor cogging: a force of the position; a table's vibration: a
+/// force of time) are never covered by a wrong name: `unexplained` with nothing named, or with
+/// the library effect beside them named, and the residual ordered by what makes it.
+#[test]
+fn a_force_in_no_candidate_is_unexplained_and_never_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    for (hidden, names, by) in [
+        (vec![Hidden::Cogging(0.05, 5.0)], vec![], "position"),
+        (vec![Hidden::Vibration(0.05, 7.0)], vec![], "frequency"),
+        (
+            vec![Hidden::Cogging(0.05, 5.0), Hidden::Payload(0.02)],
+            vec!["payload"],
+            "position",
+        ),
+        (
+            vec![Hidden::Vibration(0.05, 7.0), Hidden::Spring(20.0, [0.0; 3])],
+            vec!["spring"],
+            "frequency",
+        ),
+    ] {
+        let summary = record_and_analyze(dir.path(), &grid, &hidden, 1);
+        let case = line(&hidden, 1, &summary);
+        println!("{case}");
+        assert_eq!(named(&summary), names, "{case}");
+        assert_eq!(summary["unexplained"], true, "{case}");
+        assert_eq!(summary["unexplained_where"]["by"], by, "{case}");
+        assert_eq!(
+            summary["effect"],
+            names.first().copied().unwrap_or("none"),
+            "{case}"
+        );
+    }
+    // An actuator gain of 0.9 along x, the axis without gravity, is a moving mass of m/0.9
+    // along x to the analysis (docs/discrepancy.md §3): nothing to name, nothing left.
+    let hidden = [Hidden::ScaleX(0.9)];
+    let summary = record_and_analyze(dir.path(), &grid, &hidden, 1);
+    let case = line(&hidden, 1, &summary);
+    assert_eq!(named(&summary), Vec::<String>::new(), "{case}");
+    assert_eq!(summary["unexplained"], false, "{case}");
+    let along_x = summary["parameters"]["moving_mass_kg"][0].as_f64().unwrap();
+    assert!((along_x / (0.12 / 0.9) - 1.0).abs() < 0.03, "{case}");
+}
+
+/// A log written the way other software would (docs/log-format.md): its own point mass (120 g
+/// under gravity, with `payload` kg more and viscous damping `damping`), its own PD controller
+/// (K = 150 N/m, D = 5 N·s/m, velocity from a 5-sample difference) on its own reference, at
+/// 500 Hz, positions quantised to 5 µm with 2 µm of noise; no reference columns, no comments.
+/// `reference(t)` is the trajectory it tracks.
+fn foreign_log(
+    path: &Path,
+    payload: f64,
+    damping: f64,
+    duration: f64,
+    reference: &dyn Fn(f64) -> Vector3<f64>,
+) {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let noise = Normal::new(0.0, 2e-6).unwrap();
+    let (period, substeps) = (2e-3, 20);
+    let (m0, g) = (0.12, 9.81);
+    let mass = m0 + payload;
+    let (mut x, mut v) = (reference(0.0), Vector3::zeros());
+    let mut measured: Vec<Vector3<f64>> = Vec::new();
+    let mut text = String::from("t,x,y,z,fx,fy,fz\n");
+    let steps = (duration / period) as usize;
+    for k in 0..steps {
+        let t = k as f64 * period;
+        let xm = x.map(|c| ((c + noise.sample(&mut rng)) / 5e-6).round() * 5e-6);
+        measured.push(xm);
+        let back = measured.len().saturating_sub(6);
+        let velocity =
+            (xm - measured[back]) / (((measured.len() - 1 - back).max(1)) as f64 * period);
+        let r = reference(t);
+        let r_dot = (reference(t + 1e-3) - reference(t - 1e-3)) / 2e-3;
+        let force = Vector3::new(0.0, 0.0, m0 * g) + (r - xm) * 150.0 + (r_dot - velocity) * 5.0;
+        text += &format!(
+            "{t:.6},{:.9},{:.9},{:.9},{:.6},{:.6},{:.6}\n",
+            xm.x, xm.y, xm.z, force.x, force.y, force.z
+        );
+        let dt = period / f64::from(substeps);
+        for _ in 0..substeps {
+            let a = (force - Vector3::new(0.0, 0.0, mass * g) - v * damping) / mass;
+            v += a * dt;
+            x += v * dt;
+        }
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+/// Logs of other software with a slower excitation than `hgcd record`'s: the same answers where
+/// the log shows the effects, and the log's limits named where it cannot.
+#[test]
+fn logs_of_other_software_with_a_slower_excitation_get_the_same_answers_or_their_limits() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = nominal_grid(dir.path());
+    let log = dir.path().join("foreign.csv");
+    // Slow sweeps up to 1.6 Hz with a 1 s hold every 5 s, 60 s.
+    let slow = |t: f64| -> Vector3<f64> {
+        // The trajectory's own time stops for the hold.
+        let t = 4.0 * (t / 5.0).floor() + (t % 5.0).min(4.0);
+        let w = std::f64::consts::TAU;
+        Vector3::new(
+            0.012 * (w * 0.23 * t).sin() + 0.004 * (w * 1.1 * t).sin(),
+            0.012 * (w * 0.31 * t + 1.0).sin() + 0.004 * (w * 1.3 * t).sin(),
+            0.012 * (w * 0.37 * t + 2.0).sin() + 0.004 * (w * 1.6 * t).sin(),
+        )
+    };
+    foreign_log(&log, 0.02, 1.0, 60.0, &slow);
+    let summary = analyze(dir.path(), &grid, &log);
+    let case = line(&[Hidden::Payload(0.02), Hidden::Viscous(1.0)], 0, &summary);
+    println!("{case}");
+    let mut got = named(&summary);
+    got.sort();
+    assert_eq!(got, ["payload", "viscous_damping"], "{case}");
+    let p = &summary["parameters"];
+    assert!(
+        (p["mass_kg"].as_f64().unwrap() / 0.02 - 1.0).abs() < 0.2,
+        "{case}"
+    );
+    assert!(
+        (p["damping_n_s_per_m"].as_f64().unwrap() - 1.0).abs() < 0.2,
+        "{case}"
+    );
+    assert_eq!(summary["unexplained"], false, "{case}");
+
+    // Only slow motion along x: no delay can show (not tried), nor a spring along y or z.
+    let _ = std::fs::remove_file(&log);
+    foreign_log(&log, 0.02, 0.0, 60.0, &|t| {
+        Vector3::new(0.015 * (std::f64::consts::TAU * 0.2 * t).sin(), 0.0, 0.0)
+    });
+    let summary = analyze(dir.path(), &grid, &log);
+    let case = line(&[Hidden::Payload(0.02)], 0, &summary);
+    println!("{case}");
+    assert_eq!(named(&summary), ["payload"], "{case}");
+    let checks: Vec<&str> = summary["limits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["check"].as_str().unwrap())
+        .collect();
+    for check in ["fast_motion", "travel_y", "travel_z", "holds"] {
+        assert!(checks.contains(&check), "{check}: {case}");
+    }
+    let tried: Vec<&str> = summary["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["effect"].as_str().unwrap())
+        .collect();
+    assert!(!tried.contains(&"time_delay"), "{tried:?}");
 }

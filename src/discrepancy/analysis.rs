@@ -18,6 +18,9 @@ pub const SMOOTHING_HALF_WIDTH: f64 = 0.015;
 pub const NAMING_SHRINK: f64 = 0.5;
 /// Each effect added must cut the held-out error of those before it to at most this share.
 pub const STEP_SHRINK: f64 = 0.8;
+/// When no one effect qualifies and the held-out error stays above this many noise floors,
+/// pairs are tried.
+pub const GAP_FOR_PAIRS: f64 = 2.0;
 /// A candidate with more parameters replaces a simpler one only if its held-out error is at most
 /// this share of the simpler one's.
 pub const COMPLEXITY_MARGIN: f64 = 0.75;
@@ -491,7 +494,9 @@ pub struct Step {
 /// The selection (docs/discrepancy.md §2): from the nominal model, add a candidate that cuts
 /// the held-out error to [`STEP_SHRINK`] of the current error or less (of those that do, the
 /// simplest, unless one with more parameters does better again by [`COMPLEXITY_MARGIN`]),
-/// refit all jointly, and repeat; then drop any named effect the others no longer need it
+/// refit all jointly, and repeat; when none qualifies while the error stays above
+/// [`GAP_FOR_PAIRS`] noise floors `floor`, a pair that cuts it to [`STEP_SHRINK`]² with both
+/// significant; then drop any named effect the others no longer need it
 /// beside (without it the error grows by less than 1/[`STEP_SHRINK`]). The set stands only if
 /// it cuts the nominal error to [`NAMING_SHRINK`] or less; otherwise nothing is named. Returns
 /// the final fit, the steps taken and every candidate's fit at the first step. `candidates`
@@ -500,10 +505,12 @@ pub fn select(
     nominal: &Fit,
     signals: &Signals,
     candidates: &[Effect],
+    floor: f64,
 ) -> (Fit, Vec<Step>, Vec<Fit>) {
     let mut current = nominal.clone();
     let mut steps = Vec::new();
     let mut first = Vec::new();
+    let up = signals.samples.first().map_or(Vector3::z(), |s| s.up);
     loop {
         let trials: Vec<Fit> = candidates
             .iter()
@@ -517,15 +524,53 @@ pub fn select(
         if steps.is_empty() {
             first = trials.clone();
         }
-        let Some(chosen) = choose(&current, &trials) else {
+        if let Some(chosen) = choose(&current, &trials, &up) {
+            let added = *chosen.effects.last().expect("a trial adds an effect");
+            steps.push(Step {
+                added,
+                fit: chosen.clone(),
+            });
+            current = chosen.clone();
+            continue;
+        }
+        // No one effect pays its way, but the gap is still wide: two that hide each other
+        // (friction and a delay both reshape the fast segments) may, added together, if both
+        // are significant and together they pay two steps' worth.
+        if current.heldout_error <= floor * GAP_FOR_PAIRS {
+            break;
+        }
+        let left: Vec<Effect> = candidates
+            .iter()
+            .copied()
+            .filter(|e| !current.has(*e))
+            .collect();
+        let pair = left
+            .iter()
+            .enumerate()
+            .flat_map(|(i, a)| left[i + 1..].iter().map(move |b| (*a, *b)))
+            .filter_map(|(a, b)| {
+                let mut set = current.effects.clone();
+                set.extend([a, b]);
+                let fit = fit(&set, signals)?;
+                let significant = [a, b].iter().all(|e| {
+                    fit.main_parameter(*e, &up)
+                        .is_some_and(|(value, sd)| value.abs() >= SIGNIFICANCE * sd)
+                });
+                (significant
+                    && fit.heldout_error <= STEP_SHRINK * STEP_SHRINK * current.heldout_error)
+                    .then_some(fit)
+            })
+            .min_by(|x, y| x.heldout_error.total_cmp(&y.heldout_error));
+        let Some(pair) = pair else {
             break;
         };
-        let added = *chosen.effects.last().expect("a trial adds an effect");
-        steps.push(Step {
-            added,
-            fit: chosen.clone(),
-        });
-        current = chosen.clone();
+        for added in &pair.effects[current.effects.len()..] {
+            steps.push(Step {
+                added: *added,
+                fit: pair.clone(),
+            });
+        }
+        current = pair;
     }
     // Backward: an effect the others now explain is dropped.
     while current.effects.len() > 1 {
@@ -546,12 +591,160 @@ pub fn select(
     (current, steps, first)
 }
 
+/// An effect whose parameter's standard error would grow this many times beside the named set
+/// cannot be told from it: its signature lies (almost) in theirs.
+pub const CONFOUNDED_INFLATION: f64 = 10.0;
+
+/// Share of `main`'s squared norm that the span of `others` leaves, over the training samples
+/// (1: independent; 1/inflation²: the parameter's standard error grows `inflation` times).
+/// `columns(k, out)` writes sample k's columns, others first, main last.
+fn independence(
+    signals: &Signals,
+    count: usize,
+    columns: &dyn Fn(usize, &mut Vec<Vector3<f64>>),
+) -> f64 {
+    let mut gram = DMatrix::<f64>::zeros(count, count);
+    let mut at = Vec::with_capacity(count);
+    for k in signals.split().0 {
+        at.clear();
+        columns(k, &mut at);
+        for i in 0..count {
+            for j in i..count {
+                gram[(i, j)] += at[i].dot(&at[j]);
+            }
+        }
+    }
+    for i in 0..count {
+        for j in 0..i {
+            gram[(i, j)] = gram[(j, i)];
+        }
+    }
+    let m = count - 1;
+    let main = gram[(m, m)];
+    if main <= 0.0 {
+        return 0.0;
+    }
+    let others = gram.view((0, 0), (m, m)).into_owned();
+    let cross = gram.view((0, m), (m, 1)).into_owned();
+    let tolerance = 1e-12 * others.amax().max(f64::MIN_POSITIVE);
+    let projected = match others.svd(true, true).solve(&cross, tolerance) {
+        Ok(b) => cross.dot(&b),
+        Err(_) => 0.0,
+    };
+    ((main - projected) / main).max(0.0)
+}
+
+/// The candidates not in `named` that the log cannot tell from it, each with the named effects
+/// whose signature holds its own: a candidate's main parameter (a spring's stiffness, a tilt's
+/// two angles, a delay, the one parameter of the others) is confounded when its column, beside
+/// the named set's (the moving mass included) and its own other columns, keeps less than
+/// 1/[`CONFOUNDED_INFLATION`]² of its norm.
+pub fn confounded(
+    named: &Fit,
+    signals: &Signals,
+    candidates: &[Effect],
+) -> Vec<(Effect, Vec<Effect>)> {
+    if named.effects.is_empty() {
+        return vec![];
+    }
+    let force_rate: Vec<Vector3<f64>> = (0..signals.len())
+        .map(|k| {
+            let (a, b) = (k.saturating_sub(1), (k + 1).min(signals.len() - 1));
+            (signals.force[b] - signals.force[a]) / ((b - a).max(1) as f64 * signals.period)
+        })
+        .collect();
+    let columns_of = |effect: Effect, s: &Sample, k: usize, out: &mut Vec<Vector3<f64>>| {
+        if effect == Effect::TimeDelay {
+            out.push(force_rate[k]);
+            return;
+        }
+        let mut c = [Vector3::zeros(); 4];
+        let n = effect.columns(s, &mut c);
+        out.extend_from_slice(&c[..n]);
+    };
+    let limit = CONFOUNDED_INFLATION.powi(-2);
+    // Whether `effect`'s main columns are held by `set`'s.
+    let held = |set: &[Effect], effect: Effect| -> bool {
+        let mains = match effect {
+            Effect::GravityTilt => 2,
+            _ => 1,
+        };
+        (0..mains).any(|main| {
+            let write = |k: usize, out: &mut Vec<Vector3<f64>>| {
+                let s = named.turned(&signals.samples[k]);
+                out.push(Vector3::new(s.acceleration.x, 0.0, 0.0));
+                out.push(Vector3::new(0.0, s.acceleration.y, 0.0));
+                out.push(Vector3::new(0.0, 0.0, s.acceleration.z));
+                for e in set {
+                    columns_of(*e, &s, k, out);
+                }
+                let first = out.len();
+                columns_of(effect, &s, k, out);
+                // Its own main column last, its others before it.
+                let last = out.len() - 1;
+                out.swap(first + main, last);
+            };
+            let mut count = Vec::new();
+            write(0, &mut count);
+            independence(signals, count.len(), &write) < limit
+        })
+    };
+    candidates
+        .iter()
+        .copied()
+        .filter(|e| !named.has(*e) && held(&named.effects, *e))
+        .map(|effect| {
+            let sharing: Vec<Effect> = named
+                .effects
+                .iter()
+                .copied()
+                .filter(|e| held(&[*e], effect))
+                .collect();
+            (
+                effect,
+                if sharing.is_empty() {
+                    named.effects.clone()
+                } else {
+                    sharing
+                },
+            )
+        })
+        .collect()
+}
+
+/// An effect is named only if its main parameter is at least this many standard errors from
+/// zero: a spring without stiffness is a constant force, not a spring.
+pub const SIGNIFICANCE: f64 = 3.0;
+
+impl Fit {
+    /// `effect`'s main parameter (a spring's stiffness, a tilt's angle, the delay, the one
+    /// parameter of the others) and its standard error.
+    pub fn main_parameter(&self, effect: Effect, up: &Vector3<f64>) -> Option<(f64, f64)> {
+        match effect {
+            Effect::None => None,
+            Effect::TimeDelay => Some((self.delay, self.delay_sd)),
+            Effect::GravityTilt => {
+                let (rotation, sd) = self.tilt(up);
+                Some((rotation.norm(), sd))
+            }
+            _ => {
+                let i = self.effects.iter().position(|e| *e == effect)?;
+                Some((self.theta[i][0], self.theta_sd[i][0]))
+            }
+        }
+    }
+}
+
 /// Of `trials` (each `current` with one effect more), the one to add, if any.
-fn choose<'a>(current: &Fit, trials: &'a [Fit]) -> Option<&'a Fit> {
+fn choose<'a>(current: &Fit, trials: &'a [Fit], up: &Vector3<f64>) -> Option<&'a Fit> {
     let added = |f: &Fit| *f.effects.last().expect("a trial adds an effect");
+    let significant = |f: &Fit| {
+        f.main_parameter(added(f), up)
+            .is_some_and(|(value, sd)| value.abs() >= SIGNIFICANCE * sd)
+    };
     let mut qualified: Vec<&Fit> = trials
         .iter()
-        .filter(|c| c.heldout_error <= STEP_SHRINK * current.heldout_error)
+        .filter(|c| c.heldout_error <= STEP_SHRINK * current.heldout_error && significant(c))
         .collect();
     qualified.sort_by(|a, b| {
         added(a)

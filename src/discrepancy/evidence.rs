@@ -94,7 +94,8 @@ pub fn noise_floor(log: &Log, signals: &Signals, moving_mass: &Vector3<f64>) -> 
 /// Something the log's excitation cannot show, and the effects it hides.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Limit {
-    /// Which check: `fast_motion`, `speed_range`, `travel_x` (y, z), `holds`, `delay_side`.
+    /// Which check: `fast_motion`, `speed_range`, `travel_x` (y, z), `holds`, `delay_side`,
+    /// `confounded`.
     pub check: &'static str,
     /// The effects the log cannot reveal or tell apart because of it.
     pub effects: Vec<Effect>,
@@ -198,6 +199,23 @@ pub fn delay_side() -> Limit {
                   late): time_delay is that sum, and which side holds it cannot be told from the \
                   log"
         .into(),
+    }
+}
+
+/// An effect the log cannot tell from the named ones `with`.
+pub fn confounded(effect: Effect, with: &[Effect]) -> Limit {
+    let names: Vec<&str> = with.iter().map(|e| e.name()).collect();
+    Limit {
+        check: "confounded",
+        effects: vec![effect],
+        message: format!(
+            "{} cannot be told from {} in this log: its signature lies in theirs (its \
+             parameter's standard error would grow over {}-fold beside them), so they may hold \
+             part of it",
+            effect.name(),
+            names.join(" and "),
+            super::analysis::CONFOUNDED_INFLATION,
+        ),
     }
 }
 

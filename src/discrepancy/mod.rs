@@ -315,10 +315,16 @@ pub fn analyze(
             .collect::<Vec<_>>()
             .join(", ")
     ));
-    let (augmented, steps, first) = analysis::select(&nominal, &signals, &candidates);
+    // The floor with the nominal moving mass guides the selection; the augmented model's is
+    // reported.
+    let floor = evidence::noise_floor(&log, &signals, &nominal.moving_mass).force;
+    let (augmented, steps, first) = analysis::select(&nominal, &signals, &candidates, floor);
     let effects = augmented.effects.clone();
     if augmented.has(Effect::TimeDelay) {
         limits.push(evidence::delay_side());
+    }
+    for (effect, with) in analysis::confounded(&augmented, &signals, &candidates) {
+        limits.push(evidence::confounded(effect, &with));
     }
     progress("estimating the noise floor");
     let residual = augmented.residuals(&signals);

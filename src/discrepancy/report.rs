@@ -459,7 +459,7 @@ fn effect_record(fit: &Fit, effect: Effect, up: &Vector3<f64>) -> EffectRecord {
 }
 
 /// The figures (SVG and PNG), names without extension.
-const FIGURES: [(&str, &str); 5] = [
+const FIGURES: [(&str, &str); 6] = [
     (
         "residual_velocity",
         "Nominal residual against velocity (held-out part)",
@@ -479,6 +479,10 @@ const FIGURES: [(&str, &str); 5] = [
     (
         "before_after",
         "Held-out force residual, nominal and augmented model",
+    ),
+    (
+        "unexplained",
+        "What is left: the augmented residual against what orders it best",
     ),
 ];
 
@@ -767,6 +771,24 @@ fn figures(out: &Path, signals: &Signals, a: &Analysis) -> Result<(), AnalyzeErr
                     dots: false,
                 },
             ],
+        },
+        Plot {
+            title: FIGURES[5].1.into(),
+            x_label: format!("{}, {}", a.ordering.by, a.ordering.unit),
+            y_label: "augmented residual, N (amplitude for frequency)".into(),
+            // The spectrum is summed over the axes: one series.
+            series: (0..if a.ordering.by == "frequency" { 1 } else { 3 })
+                .map(|axis| Series {
+                    label: if a.ordering.by == "frequency" {
+                        "all axes".into()
+                    } else {
+                        format!("along {}", axes[axis])
+                    },
+                    colour: AXIS_COLOURS[axis],
+                    points: a.ordering.points[axis].clone(),
+                    dots: a.ordering.by != "frequency",
+                })
+                .collect(),
         },
     ];
     for ((name, _), plot) in FIGURES.iter().zip(&plots) {

@@ -137,7 +137,7 @@ impl ModelFile {
     /// [`ModelFileError::Write`].
     pub fn save(&self, path: &Path) -> Result<(), ModelFileError> {
         let mut text = String::from(
-            "# The calibrated grid and the effect hgcd analyze added to it \
+            "# The calibrated grid and the effects hgcd analyze added to it \
              (docs/discrepancy.md §5).\n",
         );
         text.push_str(&toml::to_string(self).expect("a model file serialises"));
