@@ -33,6 +33,10 @@ pub struct GravityModel {
     pub held_out_pct: Option<f64>,
     /// Forces of the position alone added to the grid's ([`StaticEffect`]).
     effect: Option<StaticEffect>,
+    /// Unit direction against gravity: the arm model's v_G where the grid has one (a linkage's
+    /// lattice v_G is the direction of its holding forces, which its counterweights turn),
+    /// else the lattice's.
+    pub up: Vector3<f64>,
 }
 
 /// The forces of the position alone that `hgcd analyze` found missing from a grid
@@ -179,6 +183,12 @@ impl GravityModel {
             }
         };
         let held_out_pct = file.model.as_ref().and_then(|m| m.held_out_pct.of(mode));
+        let up = file
+            .arm
+            .as_ref()
+            .map(|a| Vector3::from(a.gravity_direction))
+            .filter(|up| (up.norm() - 1.0).abs() < 1e-6)
+            .unwrap_or(file.grid.gravity_direction);
         Ok(Self {
             grid: file.grid,
             mode,
@@ -187,13 +197,31 @@ impl GravityModel {
             arm,
             held_out_pct,
             effect: None,
+            up,
         })
     }
 
     /// This model with `effect` added to it.
+    /// An arm model turns the gravity it holds the arm against, not the handle force: a tilt
+    /// turns the arm model's v_G (and a payload's weight with it), and the lattice's residual
+    /// stays as measured.
     pub fn with_effect(mut self, effect: Option<StaticEffect>) -> Self {
-        self.effect = effect;
+        self.effect = match (effect, &mut self.arm) {
+            (Some(mut effect), Some(arm)) => {
+                arm.up = effect.tilt * arm.up;
+                self.up = arm.up;
+                effect.weight = effect.tilt * effect.weight;
+                effect.tilt = Rotation3::identity();
+                Some(effect)
+            }
+            (effect, _) => effect,
+        };
         self
+    }
+
+    /// The arm model (arm modes).
+    pub fn arm(&self) -> Option<&ArmGravity> {
+        self.arm.as_ref()
     }
 
     /// The model `compensation.mode` asks for: `mode`, or, unset, the model the calibration

@@ -195,7 +195,7 @@ fn with_effect(model: GravityModel, config: &Config) -> Result<GravityModel, Run
     let file = ModelFile::load(path).map_err(RunError::EffectFile)?;
     let grid = &model.grid;
     let records = file.all_effects();
-    let (effect, refused) = StaticEffect::from_records(&records, &grid.gravity_direction, grid.g);
+    let (effect, refused) = StaticEffect::from_records(&records, &model.up, grid.g);
     for (record, why) in refused {
         warn!("{}: {record:?} is not compensated: {why}", path.display());
     }

@@ -4,8 +4,9 @@
 
 use nalgebra::{DMatrix, DVector, Rotation3, Vector3};
 
-use super::effects::{across, Effect, Sample, STICK_SPEED};
+use super::effects::{across, arm_columns, Effect, JointSample, Sample, ARM_COLUMNS, STICK_SPEED};
 use super::log::{Excitation, Log};
+use crate::arm::Arm;
 use crate::control::compensation::GravityModel;
 
 /// Share of the log the models are fitted on; the rest is held out to score them.
@@ -13,8 +14,8 @@ pub const TRAIN_SHARE: f64 = 0.6;
 /// Half-width of the Savitzky–Golay window, s: ±15 ms passes the excitation (up to about 4 Hz)
 /// and averages out the encoder's steps in the second derivative.
 pub const SMOOTHING_HALF_WIDTH: f64 = 0.015;
-/// Effects are named only if together they cut the held-out error to at most this share of
-/// the nominal model's.
+/// Effects are named only if together they cut the held-out error's part above the noise
+/// floor ([`above_floor`]) to at most this share of the nominal model's.
 pub const NAMING_SHRINK: f64 = 0.5;
 /// Each effect added must cut the held-out error of those before it to at most this share.
 pub const STEP_SHRINK: f64 = 0.8;
@@ -40,6 +41,8 @@ pub struct Signals {
     pub first: usize,
     /// Length of the smoothing window, samples.
     pub window: usize,
+    /// The nominal model is the arm's (its samples carry their joints), not a point mass's.
+    pub arm: bool,
 }
 
 /// Savitzky–Golay weights for a quadratic over k = −m..m: smoothed value, first and second
@@ -83,12 +86,13 @@ impl Weights {
 }
 
 impl Signals {
-    /// Smooth and differentiate `log`; the gravity force from `model`.
-    pub fn new(log: &Log, model: &GravityModel) -> Self {
+    /// Smooth and differentiate `log`; the gravity force from `model`; with `arm`, the joints
+    /// too (each position's joint angles, smoothed and differentiated alike).
+    pub fn new(log: &Log, model: &GravityModel, arm: Option<&Arm>) -> Self {
         let period = log.period();
         let m = ((SMOOTHING_HALF_WIDTH / period).round() as usize).max(2);
         let w = Weights::new(m);
-        let up = model.grid.gravity_direction;
+        let up = model.up;
         let g = model.grid.g;
         let range = m..log.len().saturating_sub(m);
         let mut signals = Signals {
@@ -98,7 +102,19 @@ impl Signals {
             period,
             first: m,
             window: 2 * m + 1,
+            arm: false,
         };
+        // The joints of every logged position (a reading out of reach keeps the last ones).
+        let joints: Option<Vec<Vector3<f64>>> = arm.map(|arm| {
+            let mut last = arm.joints_at(&Vector3::zeros()).unwrap_or_default();
+            log.position
+                .iter()
+                .map(|x| {
+                    last = arm.joints_at(x).unwrap_or(last);
+                    last
+                })
+                .collect()
+        });
         for k in range {
             let position = Weights::apply(&w.value, &log.position, k);
             signals.time.push(log.time[k]);
@@ -109,8 +125,54 @@ impl Signals {
                 gravity: model.force(&position),
                 up,
                 g,
+                tilt: model.arm().and_then(|gravity| {
+                    // F_G is linear in the gravity vector: its change as v_G turns by δ e is
+                    // the arm's force for the gravity vector e × v_G.
+                    let theta = nalgebra::SMatrix::<f64, { crate::arm::MAX_PARAMETERS }, 1>::from(
+                        gravity.parameters,
+                    );
+                    let (e1, e2) = across(&gravity.up);
+                    let column = |e: Vector3<f64>| {
+                        gravity
+                            .arm
+                            .force_regressor(&position, &e.cross(&gravity.up), gravity.g)
+                            .map(|r| r * theta)
+                    };
+                    Some([column(e1)?, column(e2)?])
+                }),
+                joint: match (arm, &joints) {
+                    (Some(arm), Some(q)) => arm.jacobian(&position).and_then(|j| {
+                        Some(JointSample {
+                            offset: Weights::apply(&w.value, q, k),
+                            rate: Weights::apply(&w.slope, q, k) / period,
+                            acceleration: Weights::apply(&w.curvature, q, k) / (period * period),
+                            to_handle: j.try_inverse()?.transpose(),
+                        })
+                    }),
+                    _ => None,
+                },
             });
             signals.force.push(Weights::apply(&w.value, &log.force, k));
+        }
+        // The arm's model serves when every sample has its joints.
+        signals.arm = arm.is_some() && signals.samples.iter().all(|s| s.joint.is_some());
+        if signals.arm {
+            let n = signals.samples.len().max(1) as f64;
+            let mean: Vector3<f64> = signals
+                .samples
+                .iter()
+                .filter_map(|s| s.joint.map(|j| j.offset))
+                .sum::<Vector3<f64>>()
+                / n;
+            for s in &mut signals.samples {
+                if let Some(j) = &mut s.joint {
+                    j.offset -= mean;
+                }
+            }
+        } else {
+            for s in &mut signals.samples {
+                s.joint = None;
+            }
         }
         // Each command holds over the period after its tick: on average it acts half a period
         // after the position it answers was sampled.
@@ -120,6 +182,16 @@ impl Signals {
 
     pub fn len(&self) -> usize {
         self.samples.len()
+    }
+
+    /// How many parameters the nominal model has: a moving mass per axis, or the arm's inertia
+    /// and joint friction.
+    pub fn base_count(&self) -> usize {
+        if self.arm {
+            ARM_COLUMNS
+        } else {
+            3
+        }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -154,9 +226,14 @@ impl Signals {
 pub struct Fit {
     /// The effects, in the order they were found.
     pub effects: Vec<Effect>,
-    /// Moving mass along x, y, z, kg (fitted with the effects), and its standard error.
+    /// Moving mass along x, y, z, kg (fitted with the effects), and its standard error (zero
+    /// for an arm's nominal model).
     pub moving_mass: Vector3<f64>,
     pub moving_mass_sd: Vector3<f64>,
+    /// The nominal model's parameters and their standard errors: the moving mass, or the
+    /// arm's inertia and joint friction ([`arm_columns`]).
+    pub base: Vec<f64>,
+    pub base_sd: Vec<f64>,
     /// Each effect's linear parameters θ (see [`Effect`]) and their standard errors, in
     /// `effects` order.
     pub theta: Vec<Vec<f64>>,
@@ -165,12 +242,19 @@ pub struct Fit {
     /// unless [`Effect::TimeDelay`] is in the set).
     pub delay: f64,
     pub delay_sd: f64,
-    /// The rotation of gravity, rad (zero unless [`Effect::GravityTilt`] is in the set; its
-    /// θ is then the last Gauss–Newton increment on it).
+    /// The rotation of gravity, rad (zero unless [`Effect::GravityTilt`] is in the set; see
+    /// `linear_tilt`).
     pub rotation: Vector3<f64>,
     /// RMS of |residual| on the samples fitted on, and on those held out, N.
     pub train_error: f64,
     pub heldout_error: f64,
+    /// The tilt is a linear term of its own (an arm's, [`Sample::tilt`]): θ is the whole
+    /// rotation, and `rotation` turns only a payload's weight; otherwise the field turns whole
+    /// by `rotation` and θ is the last increment.
+    pub linear_tilt: bool,
+    /// With a linear tilt: the payload (kg) whose weight turns with it, from the previous
+    /// Gauss–Newton step (the term m_p g (δ × v_G) is linearised about it).
+    pub payload_hint: f64,
 }
 
 impl Fit {
@@ -194,9 +278,26 @@ impl Fit {
         }
         let r = Rotation3::new(self.rotation);
         Sample {
-            gravity: r * s.gravity,
+            // An arm's tilt is its own linear term; only a payload's weight turns with it.
+            gravity: if self.linear_tilt {
+                s.gravity
+            } else {
+                r * s.gravity
+            },
             up: r * s.up,
             ..*s
+        }
+    }
+
+    /// The tilt's columns at `s`: the effect's own, and with a linear tilt the turning of the
+    /// hinted payload's weight.
+    fn tilt_columns(&self, s: &Sample, out: &mut [Vector3<f64>; 4]) {
+        Effect::GravityTilt.columns(s, out);
+        if self.linear_tilt && self.payload_hint != 0.0 {
+            let (e1, e2) = across(&s.up);
+            let weight = s.up * (self.payload_hint * s.g);
+            out[0] += e1.cross(&weight);
+            out[1] += e2.cross(&weight);
         }
     }
 
@@ -204,12 +305,27 @@ impl Fit {
     /// Coulomb term, N.
     fn smooth_force(&self, s: &Sample) -> Vector3<f64> {
         let mut columns = [Vector3::zeros(); 4];
-        let mut f = s.gravity + s.acceleration.component_mul(&self.moving_mass);
+        let mut f = s.gravity;
+        match &s.joint {
+            Some(j) if self.base.len() == ARM_COLUMNS => {
+                let mut base = [Vector3::zeros(); ARM_COLUMNS];
+                arm_columns(j, &mut base);
+                for (c, t) in base.iter().zip(&self.base) {
+                    f += c * *t;
+                }
+            }
+            _ => f += s.acceleration.component_mul(&self.moving_mass),
+        }
         for (effect, theta) in self.effects.iter().zip(&self.theta) {
             if *effect == Effect::CoulombFriction {
                 continue;
             }
-            let n = effect.columns(s, &mut columns);
+            let n = if *effect == Effect::GravityTilt {
+                self.tilt_columns(s, &mut columns);
+                2
+            } else {
+                effect.columns(s, &mut columns)
+            };
             for (c, t) in columns[..n].iter().zip(theta) {
                 f += c * *t;
             }
@@ -232,6 +348,10 @@ impl Fit {
     /// Command `f` minus what the model needs at `s`, N. A handle stuck in Coulomb friction
     /// (slower than [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual.
     pub fn residual(&self, s: &Sample, f: &Vector3<f64>) -> Vector3<f64> {
+        // An arm's joint friction holds any force up to its level at rest: not scored there.
+        if self.base.len() == ARM_COLUMNS && s.velocity.norm() < STICK_SPEED {
+            return Vector3::zeros();
+        }
         if let [f_c] = self.theta_of(Effect::CoulombFriction) {
             if s.velocity.norm() < STICK_SPEED {
                 let r = f - self.smooth_force(&self.turned(s));
@@ -269,7 +389,12 @@ impl Fit {
             None => return (Vector3::zeros(), 0.0),
         };
         let (e1, e2) = across(up);
-        let rotation = self.rotation + e1 * theta[0] + e2 * theta[1];
+        let increment = e1 * theta[0] + e2 * theta[1];
+        let rotation = if self.linear_tilt {
+            increment
+        } else {
+            self.rotation + increment
+        };
         (rotation, sd[0].hypot(sd[1]))
     }
 
@@ -303,32 +428,79 @@ fn fit_linear(
     signals: &Signals,
     force: &[Vector3<f64>],
     delay: f64,
-    rotation: Vector3<f64>,
+    turn: Turn,
 ) -> Option<Fit> {
-    let p = 3 + effects.iter().map(|e| e.linear_parameters()).sum::<usize>();
-    let mut fit = Fit {
-        effects: effects.to_vec(),
-        moving_mass: Vector3::zeros(),
-        moving_mass_sd: Vector3::zeros(),
-        theta: effects
-            .iter()
-            .map(|e| vec![0.0; e.linear_parameters()])
-            .collect(),
-        theta_sd: effects
-            .iter()
-            .map(|e| vec![0.0; e.linear_parameters()])
-            .collect(),
-        delay,
-        delay_sd: 0.0,
-        rotation,
-        train_error: 0.0,
-        heldout_error: 0.0,
+    fit_on(signals.arm, effects, signals, force, delay, turn)
+}
+
+/// How gravity is turned for a fit: the rotation, and for a linear tilt the payload whose
+/// weight turns with it ([`Fit::payload_hint`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Turn {
+    pub rotation: Vector3<f64>,
+    pub payload: f64,
+}
+
+impl Fit {
+    /// The turn this fit was made in.
+    fn turn(&self) -> Turn {
+        Turn {
+            rotation: self.rotation,
+            payload: self.payload_hint,
+        }
+    }
+}
+
+/// The columns of the model at sample `s` (already turned) into `phi`: the nominal model's
+/// (the arm's, or a moving mass per axis), then each effect's.
+fn design_row(arm: bool, frame: &Fit, s: &Sample, phi: &mut [Vector3<f64>]) {
+    let effects = &frame.effects;
+    let b = match (&s.joint, arm) {
+        (Some(j), true) => arm_columns(j, phi),
+        _ => {
+            phi[0] = Vector3::new(s.acceleration.x, 0.0, 0.0);
+            phi[1] = Vector3::new(0.0, s.acceleration.y, 0.0);
+            phi[2] = Vector3::new(0.0, 0.0, s.acceleration.z);
+            3
+        }
     };
-    let moving_only = effects.contains(&Effect::CoulombFriction);
+    let mut columns = [Vector3::zeros(); 4];
+    let mut at = b;
+    for effect in effects {
+        let n = if *effect == Effect::GravityTilt {
+            frame.tilt_columns(s, &mut columns);
+            2
+        } else {
+            effect.columns(s, &mut columns)
+        };
+        phi[at..at + n].copy_from_slice(&columns[..n]);
+        at += n;
+    }
+}
+
+/// [`fit_linear`] with the arm's nominal model (`arm`) or a point mass's.
+fn fit_on(
+    arm: bool,
+    effects: &[Effect],
+    signals: &Signals,
+    force: &[Vector3<f64>],
+    delay: f64,
+    turn: Turn,
+) -> Option<Fit> {
+    let b = if arm { ARM_COLUMNS } else { 3 };
+    let p = b + effects.iter().map(|e| e.linear_parameters()).sum::<usize>();
+    let mut fit = Fit {
+        base: vec![0.0; b],
+        base_sd: vec![0.0; b],
+        delay,
+        rotation: turn.rotation,
+        payload_hint: turn.payload,
+        ..nominal_frame(effects, signals)
+    };
+    let moving_only = effects.contains(&Effect::CoulombFriction) || arm;
     let (train, heldout) = signals.split();
     let mut normal = DMatrix::<f64>::zeros(p, p);
     let mut rhs = DVector::<f64>::zeros(p);
-    let mut columns = [Vector3::zeros(); 4];
     let mut phi = vec![Vector3::zeros(); p];
     let (mut fitted, mut yy) = (0usize, 0.0);
     for k in train.clone() {
@@ -339,15 +511,7 @@ fn fit_linear(
         fitted += 1;
         let y = force[k] - s.gravity;
         yy += y.norm_squared();
-        phi[0] = Vector3::new(s.acceleration.x, 0.0, 0.0);
-        phi[1] = Vector3::new(0.0, s.acceleration.y, 0.0);
-        phi[2] = Vector3::new(0.0, 0.0, s.acceleration.z);
-        let mut at = 3;
-        for effect in effects {
-            let n = effect.columns(s, &mut columns);
-            phi[at..at + n].copy_from_slice(&columns[..n]);
-            at += n;
-        }
+        design_row(arm, &fit, s, &mut phi);
         for i in 0..p {
             rhs[i] += phi[i].dot(&y);
             for j in i..p {
@@ -368,9 +532,15 @@ fn fit_linear(
     let variance = rss / dof * signals.window as f64;
     let covariance = cholesky.inverse() * variance;
     let sd = |i: usize| covariance[(i, i)].max(0.0).sqrt();
-    fit.moving_mass = Vector3::new(theta[0], theta[1], theta[2]);
-    fit.moving_mass_sd = Vector3::new(sd(0), sd(1), sd(2));
-    let mut at = 3;
+    for i in 0..b {
+        fit.base[i] = theta[i];
+        fit.base_sd[i] = sd(i);
+    }
+    if !arm {
+        fit.moving_mass = Vector3::new(theta[0], theta[1], theta[2]);
+        fit.moving_mass_sd = Vector3::new(sd(0), sd(1), sd(2));
+    }
+    let mut at = b;
     for (i, effect) in effects.iter().enumerate() {
         for j in 0..effect.linear_parameters() {
             fit.theta[i][j] = theta[at];
@@ -389,9 +559,16 @@ fn fit_linear(
     Some(fit)
 }
 
-/// The nominal model: the grid's gravity force and a moving mass per axis.
+/// The moving mass per axis a point mass's nominal model finds, kg (the handle's effective mass
+/// for the noise floor, arm or not).
+pub fn moving_mass(signals: &Signals) -> Option<Vector3<f64>> {
+    fit_on(false, &[], signals, &signals.force, 0.0, Turn::default()).map(|f| f.moving_mass)
+}
+
+/// The nominal model: the grid's gravity force and a moving mass per axis, or for an arm its
+/// inertia and joint friction.
 pub fn nominal(signals: &Signals) -> Option<Fit> {
-    fit_linear(&[], signals, &signals.force, 0.0, Vector3::zeros())
+    fit_linear(&[], signals, &signals.force, 0.0, Turn::default())
 }
 
 /// Gauss–Newton steps for the gravity tilt.
@@ -401,23 +578,98 @@ const TILT_STEPS: usize = 4;
 const COARSE_DELAY_STEP: f64 = 1e-3;
 
 /// The delay in `range` (s) that best explains the training samples, searched every `step`,
-/// with the other effects fitted at each.
+/// with the other effects fitted at each. Only the command moves with the delay: the design and
+/// its normal matrix are built once, and each delay costs one pass over the command.
 fn search_delay(
     effects: &[Effect],
     signals: &Signals,
-    rotation: Vector3<f64>,
+    turn: Turn,
     range: (f64, f64),
     step: f64,
 ) -> Option<Fit> {
+    let arm = signals.arm;
+    let p = signals.base_count() + effects.iter().map(|e| e.linear_parameters()).sum::<usize>();
+    let frame = Fit {
+        rotation: turn.rotation,
+        payload_hint: turn.payload,
+        ..nominal_frame(effects, signals)
+    };
+    let moving_only = effects.contains(&Effect::CoulombFriction) || arm;
+    let mut rows = Vec::new();
+    let mut design: Vec<Vector3<f64>> = Vec::new();
+    let mut gravity = Vec::new();
+    let mut phi = vec![Vector3::zeros(); p];
+    let mut normal = DMatrix::<f64>::zeros(p, p);
+    for k in signals.split().0 {
+        let s = frame.turned(&signals.samples[k]);
+        if moving_only && s.velocity.norm() < STICK_SPEED {
+            continue;
+        }
+        design_row(arm, &frame, &s, &mut phi);
+        for i in 0..p {
+            for j in i..p {
+                normal[(i, j)] += phi[i].dot(&phi[j]);
+            }
+        }
+        rows.push(k);
+        gravity.push(s.gravity);
+        design.extend_from_slice(&phi);
+    }
+    for i in 0..p {
+        for j in 0..i {
+            normal[(i, j)] = normal[(j, i)];
+        }
+    }
+    let cholesky = normal.cholesky()?;
     let steps = ((range.1 - range.0) / step).round() as usize;
-    (0..=steps)
+    let best = (0..=steps)
         .map(|k| range.0 + k as f64 * step)
         .filter(|delay| *delay > 0.0 && *delay <= MAX_DELAY + 1e-12)
-        .filter_map(|delay| {
+        .map(|delay| {
             let force = signals.delayed_force(delay);
-            fit_linear(effects, signals, &force, delay, rotation)
+            let mut rhs = DVector::<f64>::zeros(p);
+            let mut yy = 0.0;
+            for (r, &k) in rows.iter().enumerate() {
+                let y = force[k] - gravity[r];
+                yy += y.norm_squared();
+                for i in 0..p {
+                    rhs[i] += design[r * p + i].dot(&y);
+                }
+            }
+            let theta = cholesky.solve(&rhs);
+            (delay, yy - theta.dot(&rhs))
         })
-        .min_by(|a, b| a.train_error.total_cmp(&b.train_error))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?
+        .0;
+    let force = signals.delayed_force(best);
+    fit_linear(effects, signals, &force, best, turn)
+}
+
+/// An unfitted fit of `effects`: the frame [`Fit::turned`] needs.
+fn nominal_frame(effects: &[Effect], signals: &Signals) -> Fit {
+    let b = signals.base_count();
+    Fit {
+        effects: effects.to_vec(),
+        moving_mass: Vector3::zeros(),
+        moving_mass_sd: Vector3::zeros(),
+        base: vec![0.0; b],
+        base_sd: vec![0.0; b],
+        theta: effects
+            .iter()
+            .map(|e| vec![0.0; e.linear_parameters()])
+            .collect(),
+        theta_sd: effects
+            .iter()
+            .map(|e| vec![0.0; e.linear_parameters()])
+            .collect(),
+        delay: 0.0,
+        delay_sd: 0.0,
+        rotation: Vector3::zeros(),
+        train_error: 0.0,
+        heldout_error: 0.0,
+        linear_tilt: signals.samples.first().is_some_and(|s| s.tilt.is_some()),
+        payload_hint: 0.0,
+    }
 }
 
 /// The delay's standard error from the curvature of the training error around the best delay,
@@ -426,7 +678,7 @@ fn delay_sd(effects: &[Effect], signals: &Signals, best: &Fit) -> f64 {
     let h = DELAY_STEP;
     let sse = |delay: f64| -> Option<f64> {
         let force = signals.delayed_force(delay);
-        let f = fit_linear(effects, signals, &force, delay, best.rotation)?;
+        let f = fit_linear(effects, signals, &force, delay, best.turn())?;
         Some(f.train_error.powi(2))
     };
     let (Some(lo), Some(hi)) = (sse(best.delay - h), sse(best.delay + h)) else {
@@ -453,7 +705,20 @@ pub fn fit(effects: &[Effect], signals: &Signals) -> Option<Fit> {
     let tilt_steps = |mut fit: Fit| -> Option<Fit> {
         for _ in 0..TILT_STEPS {
             let force = signals.delayed_force(fit.delay);
-            fit = fit_linear(effects, signals, &force, fit.delay, fit.tilt(&up).0)?;
+            // A field that turns whole turns by the tilt found; a linear tilt takes the
+            // payload found into its columns.
+            let turn = if fit.linear_tilt {
+                Turn {
+                    rotation: Vector3::zeros(),
+                    payload: fit.payload(),
+                }
+            } else {
+                Turn {
+                    rotation: fit.tilt(&up).0,
+                    payload: 0.0,
+                }
+            };
+            fit = fit_linear(effects, signals, &force, fit.delay, turn)?;
         }
         Some(fit)
     };
@@ -461,19 +726,19 @@ pub fn fit(effects: &[Effect], signals: &Signals) -> Option<Fit> {
         search_delay(
             effects,
             signals,
-            Vector3::zeros(),
+            Turn::default(),
             (0.0, MAX_DELAY),
             COARSE_DELAY_STEP,
         )?
     } else {
-        fit_linear(effects, signals, &signals.force, 0.0, Vector3::zeros())?
+        fit_linear(effects, signals, &signals.force, 0.0, Turn::default())?
     };
     if has_tilt {
         fit = tilt_steps(fit)?;
     }
     if has_delay {
         let around = (fit.delay - COARSE_DELAY_STEP, fit.delay + COARSE_DELAY_STEP);
-        fit = search_delay(effects, signals, fit.rotation, around, DELAY_STEP)?;
+        fit = search_delay(effects, signals, fit.turn(), around, DELAY_STEP)?;
         if has_tilt {
             fit = tilt_steps(fit)?;
         }
@@ -498,7 +763,8 @@ pub struct Step {
 /// [`GAP_FOR_PAIRS`] noise floors `floor`, a pair that cuts it to [`STEP_SHRINK`]² with both
 /// significant; then drop any named effect the others no longer need it
 /// beside (without it the error grows by less than 1/[`STEP_SHRINK`]). The set stands only if
-/// it cuts the nominal error to [`NAMING_SHRINK`] or less; otherwise nothing is named. Returns
+/// it cuts the nominal error's part above the floor to [`NAMING_SHRINK`] or less; otherwise
+/// nothing is named. Returns
 /// the final fit, the steps taken and every candidate's fit at the first step. `candidates`
 /// are the effects tried.
 pub fn select(
@@ -524,7 +790,25 @@ pub fn select(
         if steps.is_empty() {
             first = trials.clone();
         }
-        if let Some(chosen) = choose(&current, &trials, &up) {
+        // The best held-out error of `fit` with one more candidate, all within `budget`
+        // parameters beyond the current set.
+        let continued = |fit: &Fit, budget: usize| -> Option<f64> {
+            let used: usize = fit.effects[current.effects.len()..]
+                .iter()
+                .map(|e| e.parameters())
+                .sum();
+            candidates
+                .iter()
+                .filter(|e| !fit.has(**e) && used + e.parameters() <= budget)
+                .filter_map(|e| {
+                    let mut set = fit.effects.clone();
+                    set.push(*e);
+                    self::fit(&set, signals)
+                })
+                .map(|f| f.heldout_error)
+                .min_by(f64::total_cmp)
+        };
+        if let Some(chosen) = choose(&current, &trials, &up, &continued) {
             let added = *chosen.effects.last().expect("a trial adds an effect");
             steps.push(Step {
                 added,
@@ -585,7 +869,9 @@ pub fn select(
             None => break,
         }
     }
-    if current.heldout_error > NAMING_SHRINK * nominal.heldout_error {
+    if above_floor(current.heldout_error, floor)
+        > NAMING_SHRINK * above_floor(nominal.heldout_error, floor)
+    {
         current = nominal.clone();
     }
     (current, steps, first)
@@ -672,9 +958,18 @@ pub fn confounded(
         (0..mains).any(|main| {
             let write = |k: usize, out: &mut Vec<Vector3<f64>>| {
                 let s = named.turned(&signals.samples[k]);
-                out.push(Vector3::new(s.acceleration.x, 0.0, 0.0));
-                out.push(Vector3::new(0.0, s.acceleration.y, 0.0));
-                out.push(Vector3::new(0.0, 0.0, s.acceleration.z));
+                match &s.joint {
+                    Some(j) if signals.arm => {
+                        let mut base = [Vector3::zeros(); ARM_COLUMNS];
+                        arm_columns(j, &mut base);
+                        out.extend_from_slice(&base);
+                    }
+                    _ => {
+                        out.push(Vector3::new(s.acceleration.x, 0.0, 0.0));
+                        out.push(Vector3::new(0.0, s.acceleration.y, 0.0));
+                        out.push(Vector3::new(0.0, 0.0, s.acceleration.z));
+                    }
+                }
                 for e in set {
                     columns_of(*e, &s, k, out);
                 }
@@ -735,8 +1030,23 @@ impl Fit {
     }
 }
 
+/// The part of a held-out error `error` above the noise floor `floor` (the two add as
+/// independent), N.
+pub fn above_floor(error: f64, floor: f64) -> f64 {
+    (error * error - floor * floor).max(0.0).sqrt()
+}
+
 /// Of `trials` (each `current` with one effect more), the one to add, if any.
-fn choose<'a>(current: &Fit, trials: &'a [Fit], up: &Vector3<f64>) -> Option<&'a Fit> {
+/// A candidate with more parameters replaces a simpler one unless the simpler one, with one
+/// more effect of no more parameters in all, does as well (`continued`: the best such
+/// continuation's held-out error): two simple effects are named before one complex effect that
+/// mimics both (a spring's constant and gradient for a payload beside a tilt).
+fn choose<'a>(
+    current: &Fit,
+    trials: &'a [Fit],
+    up: &Vector3<f64>,
+    continued: &dyn Fn(&Fit, usize) -> Option<f64>,
+) -> Option<&'a Fit> {
     let added = |f: &Fit| *f.effects.last().expect("a trial adds an effect");
     let significant = |f: &Fit| {
         f.main_parameter(added(f), up)
@@ -757,7 +1067,12 @@ fn choose<'a>(current: &Fit, trials: &'a [Fit], up: &Vector3<f64>) -> Option<&'a
         match chosen {
             None => chosen = Some(c),
             Some(best) if c.heldout_error <= COMPLEXITY_MARGIN * best.heldout_error => {
-                chosen = Some(c)
+                let budget = added(c).parameters();
+                let simpler_path = continued(best, budget)
+                    .is_some_and(|e| e * COMPLEXITY_MARGIN <= c.heldout_error);
+                if !simpler_path {
+                    chosen = Some(c)
+                }
             }
             _ => {}
         }
@@ -810,8 +1125,10 @@ pub fn simulate(
                 velocity: v,
                 acceleration: Vector3::zeros(),
                 gravity: grid.force(&x),
-                up: grid.grid.gravity_direction,
+                up: grid.up,
                 g: grid.grid.g,
+                joint: None,
+                tilt: None,
             };
             let needed = fit.model_force(&s);
             let a = (applied - needed).component_div(&inertia);

@@ -5,7 +5,7 @@
 //!
 //! F(t − τ) = F_G(X) + diag(m) Ẍ + Σ θ_j φ_j(X, Ẋ, Ẍ)
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
 /// Below this speed the handle counts as stuck, m/s: Coulomb friction then holds any force up
 /// to f_c (the velocity estimate's noise is some 0.1 mm/s), and above it its direction is
@@ -94,6 +94,10 @@ impl Effect {
                 1
             }
             Effect::GravityTilt => {
+                if let Some(columns) = s.tilt {
+                    out[..2].copy_from_slice(&columns);
+                    return 2;
+                }
                 let (e1, e2) = across(&s.up);
                 out[0] = e1.cross(&s.gravity);
                 out[1] = e2.cross(&s.gravity);
@@ -110,6 +114,55 @@ impl Effect {
     }
 }
 
+/// For a device whose grid carries an arm: its joints at one sample (smoothed alike, SI).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JointSample {
+    /// q − q̄ (q̄ the log's mean), rad.
+    pub offset: Vector3<f64>,
+    /// q̇, rad/s, and q̈, rad/s².
+    pub rate: Vector3<f64>,
+    pub acceleration: Vector3<f64>,
+    /// J⁻ᵀ: a joint torque τ needs the handle force J⁻ᵀ τ.
+    pub to_handle: Matrix3<f64>,
+}
+
+/// Below this joint rate a joint's Coulomb friction is smoothed over, rad/s (about
+/// [`STICK_SPEED`] at the handle of a 0.1 m link).
+pub const STICK_RATE: f64 = 1e-2;
+
+/// The nominal model's own columns for an arm: the joint-space inertia M(q) q̈ with M(q) =
+/// M₀ + Σ_k (q_k − q̄_k) M_k (each symmetric: 6 entries, 4 matrices) and each joint's Coulomb and
+/// viscous friction, as handle forces J⁻ᵀ τ; how many (30).
+pub fn arm_columns(j: &JointSample, out: &mut [Vector3<f64>]) -> usize {
+    const PAIRS: [(usize, usize); 6] = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)];
+    let mut n = 0;
+    for scale in 0..4 {
+        let factor = if scale == 0 { 1.0 } else { j.offset[scale - 1] };
+        for (a, b) in PAIRS {
+            let mut tau = Vector3::zeros();
+            tau[a] += j.acceleration[b];
+            if a != b {
+                tau[b] += j.acceleration[a];
+            }
+            out[n] = j.to_handle * (tau * factor);
+            n += 1;
+        }
+    }
+    for joint in 0..3 {
+        let rate = j.rate[joint];
+        let mut tau = Vector3::zeros();
+        tau[joint] = rate / (rate * rate + STICK_RATE * STICK_RATE).sqrt();
+        out[n] = j.to_handle * tau;
+        tau[joint] = rate;
+        out[n + 1] = j.to_handle * tau;
+        n += 2;
+    }
+    n
+}
+
+/// How many columns [`arm_columns`] writes.
+pub const ARM_COLUMNS: usize = 30;
+
 /// What the model sees at one sample (smoothed alike, SI).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sample {
@@ -121,6 +174,12 @@ pub struct Sample {
     /// The grid's v_G and g.
     pub up: Vector3<f64>,
     pub g: f64,
+    /// The arm's joints, for a device whose grid carries an arm.
+    pub joint: Option<JointSample>,
+    /// For an arm model: ∂F_G/∂δ along the two directions across v_G of [`across`], the
+    /// gravity force's change as the arm's gravity turns (its links' weights turn, not the
+    /// handle force); None for a field that turns whole.
+    pub tilt: Option<[Vector3<f64>; 2]>,
 }
 
 pub use crate::fit::across;

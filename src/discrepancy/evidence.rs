@@ -95,7 +95,7 @@ pub fn noise_floor(log: &Log, signals: &Signals, moving_mass: &Vector3<f64>) -> 
 #[derive(Clone, Debug, PartialEq)]
 pub struct Limit {
     /// Which check: `fast_motion`, `speed_range`, `travel_x` (y, z), `holds`, `delay_side`,
-    /// `confounded`.
+    /// `confounded`, `noise_floor`.
     pub check: &'static str,
     /// The effects the log cannot reveal or tell apart because of it.
     pub effects: Vec<Effect>,
@@ -199,6 +199,19 @@ pub fn delay_side() -> Limit {
                   late): time_delay is that sum, and which side holds it cannot be told from the \
                   log"
         .into(),
+    }
+}
+
+/// What every log cannot show: a force below its noise floor `floor` (N).
+pub fn below_floor(floor: f64) -> Limit {
+    Limit {
+        check: "noise_floor",
+        effects: vec![],
+        message: format!(
+            "an effect whose force stays below the log's noise floor ({:.1} mN RMS) cannot show: \
+             none is named for it, whatever it is",
+            floor * 1e3
+        ),
     }
 }
 

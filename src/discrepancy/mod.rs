@@ -282,7 +282,9 @@ pub fn analyze(
     crate::figure::check_out_dir(&request.out, "analyze")?;
 
     progress("smoothing and differentiating the position");
-    let signals = Signals::new(&log, &model);
+    // A grid with an arm model gives the arm: the nominal model is then the arm's.
+    let arm = file.arm.as_ref().and_then(|a| a.geometry.arm().ok());
+    let signals = Signals::new(&log, &model, arm.as_ref());
     let speed = (signals
         .samples
         .iter()
@@ -317,23 +319,35 @@ pub fn analyze(
     ));
     // The floor with the nominal moving mass guides the selection; the augmented model's is
     // reported.
-    let floor = evidence::noise_floor(&log, &signals, &nominal.moving_mass).force;
+    let handle_mass = analysis::moving_mass(&signals).unwrap_or(nominal.moving_mass);
+    let floor = evidence::noise_floor(&log, &signals, &handle_mass).force;
     let (augmented, steps, first) = analysis::select(&nominal, &signals, &candidates, floor);
     let effects = augmented.effects.clone();
     if augmented.has(Effect::TimeDelay) {
         limits.push(evidence::delay_side());
     }
+    limits.push(evidence::below_floor(floor));
     for (effect, with) in analysis::confounded(&augmented, &signals, &candidates) {
         limits.push(evidence::confounded(effect, &with));
     }
     progress("estimating the noise floor");
     let residual = augmented.residuals(&signals);
-    let noise_floor = evidence::noise_floor(&log, &signals, &augmented.moving_mass);
+    let noise_floor = evidence::noise_floor(
+        &log,
+        &signals,
+        &if signals.arm {
+            handle_mass
+        } else {
+            augmented.moving_mass
+        },
+    );
     let unexplained = augmented.heldout_error > evidence::UNEXPLAINED_FACTOR * noise_floor.force;
     let ordering = evidence::ordering(&signals, &residual, signals.split().1);
     progress("locating the disagreement and simulating");
     let diagnostics = Diagnostics::new(&signals, &nominal, &augmented, &model);
-    let position_error = log.excitation.as_ref().and_then(|e| {
+    // The closed-loop simulation integrates a point mass: not for an arm.
+    let excitation = log.excitation.as_ref().filter(|_| !signals.arm);
+    let position_error = excitation.and_then(|e| {
         let (_, heldout) = signals.split();
         let error = |fit: &Fit| {
             let simulated = analysis::simulate(&log, &signals, fit, &model, e)?;
@@ -356,7 +370,7 @@ pub fn analyze(
         limits,
         position_error,
         diagnostics,
-        up: model.grid.gravity_direction,
+        up: model.up,
         wall_time: started.elapsed().as_secs_f64(),
     };
     progress("writing the report");

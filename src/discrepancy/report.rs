@@ -11,7 +11,7 @@ use plotters::prelude::*;
 use serde_json::json;
 
 use super::analysis::{self, Fit, Signals};
-use super::effects::Effect;
+use super::effects::{Effect, ARM_COLUMNS};
 use super::{evidence, Analysis, AnalyzeError, AnalyzeRequest};
 use crate::control::compensation::GravityModel;
 use crate::figure::{self, Figure, OutError};
@@ -251,7 +251,18 @@ fn effect_parameters(
 /// effect's.
 fn parameters(fit: &Fit, up: &Vector3<f64>) -> serde_json::Value {
     let m = fit.moving_mass;
-    let mut p = json!({ "moving_mass_kg": [m.x, m.y, m.z] });
+    let mut p = if fit.base.len() == ARM_COLUMNS {
+        // The arm's nominal model: M₀ (xx, yy, zz, xy, xz, yz), then each joint's Coulomb and
+        // viscous friction (docs/discrepancy.md §2).
+        let b = &fit.base;
+        json!({
+            "joint_inertia_kg_m2": &b[..6],
+            "joint_coulomb_friction_n_m": [b[24], b[26], b[28]],
+            "joint_viscous_friction_n_m_s": [b[25], b[27], b[29]],
+        })
+    } else {
+        json!({ "moving_mass_kg": [m.x, m.y, m.z] })
+    };
     for effect in &fit.effects {
         if let (serde_json::Value::Object(map), Some(all)) =
             (effect_parameters(fit, *effect, up).0, p.as_object_mut())
@@ -275,7 +286,7 @@ pub(super) fn write(
     a: &Analysis,
 ) -> Result<(), AnalyzeError> {
     let out = &request.out;
-    let up = file.grid.gravity_direction;
+    let up = a.up;
     let write = |name: &str, text: String| {
         let path = out.join(name);
         std::fs::write(&path, text).map_err(|source| OutError { path, source })
@@ -559,7 +570,14 @@ fn report_md(request: &AnalyzeRequest, a: &Analysis) -> String {
     for c in &a.candidates {
         let mut p = parameters(c, &a.up);
         if let Some(map) = p.as_object_mut() {
-            map.remove("moving_mass_kg");
+            for key in [
+                "moving_mass_kg",
+                "joint_inertia_kg_m2",
+                "joint_coulomb_friction_n_m",
+                "joint_viscous_friction_n_m_s",
+            ] {
+                map.remove(key);
+            }
         }
         let _ = writeln!(
             s,

@@ -157,17 +157,24 @@ pub struct Environment {
     /// Coulomb friction at the handle, N: the handle sticks while the Cartesian force friction
     /// must supply to hold it is at most this, and slides against this much force otherwise.
     pub handle_friction: f64,
+    /// A spring at the handle (a cable, a hose): stiffness, N/m, pulling toward the anchor,
+    /// device frame, m.
+    pub spring: (f64, Vector3<f64>),
+    /// Viscous damping at the handle, N·s/m.
+    pub handle_damping: f64,
 }
 
 impl Environment {
-    /// Gravity (`sim.g` against `sim.gravity_direction`), payload, joint friction scale and
-    /// handle friction (`sim.coulomb_friction_n`) of `[sim]`.
+    /// Gravity (`sim.g` against `sim.gravity_direction`), payload, joint friction scale, handle
+    /// friction (`sim.coulomb_friction_n`), spring and damping at the handle of `[sim]`.
     pub fn from_config(sim: &SimConfig) -> Self {
         Self {
             gravity: -Vector3::from(sim.gravity_direction).normalize() * sim.g,
             payload: sim.probe_mass_kg,
             friction_scale: sim.friction_scale,
             handle_friction: sim.coulomb_friction_n,
+            spring: (sim.spring_n_per_m, sim.spring_anchor()),
+            handle_damping: sim.damping_n_s_per_m,
         }
     }
 }
@@ -697,7 +704,14 @@ fn towards_stop(jacobian: &Matrix3<f64>, j: usize, rate: f64) -> f64 {
 impl<M: Mechanism> Plant for Linkage<M> {
     fn step(&mut self, force: &Vector3<f64>, dt: f64) {
         let handle = self.mechanism.handle(&self.q, &self.qd);
-        self.step_with(&handle, &(handle.jacobian.transpose() * force), dt);
+        let (k, anchor) = self.env.spring;
+        let external =
+            -(handle.position - anchor) * k - handle.jacobian * self.qd * self.env.handle_damping;
+        self.step_with(
+            &handle,
+            &(handle.jacobian.transpose() * (force + external)),
+            dt,
+        );
     }
 
     fn position(&self) -> Vector3<f64> {
@@ -720,11 +734,13 @@ impl<M: Mechanism> Plant for Linkage<M> {
         // NaN only at a singular pose, which the joint limits keep the mechanisms away from.
         let handle = self.mechanism.handle(&self.q, &Vector3::zeros());
         let tau = self.dynamics(&handle).gravity;
+        let (k, anchor) = self.env.spring;
         handle
             .jacobian
             .transpose()
             .lu()
             .solve(&tau)
+            .map(|f| f + (handle.position - anchor) * k)
             .unwrap_or_else(|| Vector3::repeat(f64::NAN))
     }
 
@@ -758,6 +774,8 @@ pub(crate) mod checks {
             payload,
             friction_scale,
             handle_friction: 0.0,
+            spring: (0.0, Vector3::zeros()),
+            handle_damping: 0.0,
         }
     }
 
@@ -778,6 +796,8 @@ pub(crate) mod checks {
             payload: 0.03,
             friction_scale: 1.0,
             handle_friction: 0.0,
+            spring: (0.0, Vector3::zeros()),
+            handle_damping: 0.0,
         }
     }
 
@@ -903,6 +923,8 @@ pub(crate) mod checks {
             payload: 0.0,
             friction_scale: 0.0,
             handle_friction: f_c,
+            spring: (0.0, Vector3::zeros()),
+            handle_damping: 0.0,
         };
         let dt = 1e-4;
         for direction in [

@@ -449,6 +449,8 @@ mod tests {
             payload: 0.0,
             friction_scale: 0.0,
             handle_friction: 0.0,
+            spring: (0.0, Vector3::zeros()),
+            handle_damping: 0.0,
         };
         let pushed = |fx: f64| {
             let mut plant = arm_at([0.0; 3], zero_g);
