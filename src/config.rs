@@ -583,13 +583,12 @@ pub struct SimConfig {
     pub encoder_resolution_mm: f64,
     /// Standard deviation of Gaussian position noise, mm (0 disables noise).
     pub noise_mm: f64,
-    /// Viscous friction, N·s/m.
+    /// Viscous friction at the handle, N·s/m (on top of a linkage's joint friction).
     pub damping_n_s_per_m: f64,
     /// Coulomb friction at the handle, N: the handle sticks while the net force on it is at most
     /// this, and slides against this much force otherwise.
     pub coulomb_friction_n: f64,
-    /// point-mass: an isotropic spring pulling the handle toward `spring_anchor_mm` (a cable, a
-    /// hose), N/m.
+    /// An isotropic spring pulling the handle toward `spring_anchor_mm` (a cable, a hose), N/m.
     pub spring_n_per_m: f64,
     pub spring_anchor_mm: [f64; 3],
     /// The actuators render each force command this much later, ms (whole report periods): a

@@ -4,16 +4,19 @@
 
 use nalgebra::{DMatrix, DVector, Rotation3, Vector3};
 
-use super::effects::{across, arm_columns, Effect, JointSample, Sample, ARM_COLUMNS, STICK_SPEED};
+use super::effects::{
+    across, arm_columns, Effect, JointSample, Sample, ARM_COLUMNS, STICK_RATE, STICK_SPEED,
+};
 use super::log::{Excitation, Log};
 use crate::arm::Arm;
 use crate::control::compensation::GravityModel;
 
 /// Share of the log the models are fitted on; the rest is held out to score them.
 pub const TRAIN_SHARE: f64 = 0.6;
-/// Half-width of the Savitzky–Golay window, s: ±15 ms passes the excitation (up to about 4 Hz)
-/// and averages out the encoder's steps in the second derivative.
-pub const SMOOTHING_HALF_WIDTH: f64 = 0.015;
+/// Standard deviation of the Gaussian smoothing kernel, s: 7.5 ms passes the excitation (its
+/// fastest line, 6 Hz, keeps 95 %) and averages the encoder's steps out of the second
+/// derivative.
+pub const SMOOTHING_SIGMA: f64 = 0.0075;
 /// Effects are named only if together they cut the held-out error's part above the noise
 /// floor ([`above_floor`]) to at most this share of the nominal model's.
 pub const NAMING_SHRINK: f64 = 0.5;
@@ -39,14 +42,15 @@ pub struct Signals {
     /// Sample period, s.
     pub period: f64,
     pub first: usize,
-    /// Length of the smoothing window, samples.
+    /// Samples over which the smoothing correlates white noise (√(4π) σ).
     pub window: usize,
     /// The nominal model is the arm's (its samples carry their joints), not a point mass's.
     pub arm: bool,
 }
 
-/// Savitzky–Golay weights for a quadratic over k = −m..m: smoothed value, first and second
-/// derivative (per sample and per sample²).
+/// Weights over k = −m..m for the smoothed value, first and second derivative (per sample and
+/// per sample²): a Savitzky–Golay quadratic ([`Weights::new`]) or a Gaussian
+/// ([`Weights::gaussian`]).
 pub(super) struct Weights {
     pub value: Vec<f64>,
     pub slope: Vec<f64>,
@@ -75,6 +79,40 @@ impl Weights {
         }
     }
 
+    /// A Gaussian of standard deviation `sigma` samples, to ±4σ, with its first and second
+    /// derivatives: one kernel convolved three ways, so a linear relation between the command
+    /// and the motion (F = m Ẍ) holds between the smoothed signals at every frequency.
+    /// Normalised so a constant, a ramp and a parabola come through exactly.
+    pub fn gaussian(sigma: f64) -> Self {
+        let m = (4.0 * sigma).ceil() as i64;
+        let ks: Vec<f64> = (-m..=m).map(|k| k as f64).collect();
+        let g: Vec<f64> = ks
+            .iter()
+            .map(|k| (-0.5 * (k / sigma).powi(2)).exp())
+            .collect();
+        let total: f64 = g.iter().sum();
+        let value: Vec<f64> = g.iter().map(|v| v / total).collect();
+        let slope: Vec<f64> = ks.iter().zip(&value).map(|(k, v)| k * v).collect();
+        let ramp: f64 = slope.iter().zip(&ks).map(|(w, k)| w * k).sum();
+        let slope = slope.iter().map(|w| w / ramp).collect();
+        let mut curvature: Vec<f64> = ks
+            .iter()
+            .zip(&value)
+            .map(|(k, v)| ((k / sigma).powi(2) - 1.0) * v)
+            .collect();
+        let offset: f64 = curvature.iter().sum();
+        for (c, v) in curvature.iter_mut().zip(&value) {
+            *c -= offset * v;
+        }
+        let parabola: f64 = curvature.iter().zip(&ks).map(|(c, k)| c * k * k).sum();
+        let curvature = curvature.iter().map(|c| 2.0 * c / parabola).collect();
+        Self {
+            value,
+            slope,
+            curvature,
+        }
+    }
+
     fn apply(weights: &[f64], x: &[Vector3<f64>], centre: usize) -> Vector3<f64> {
         let m = weights.len() / 2;
         weights
@@ -90,8 +128,8 @@ impl Signals {
     /// too (each position's joint angles, smoothed and differentiated alike).
     pub fn new(log: &Log, model: &GravityModel, arm: Option<&Arm>) -> Self {
         let period = log.period();
-        let m = ((SMOOTHING_HALF_WIDTH / period).round() as usize).max(2);
-        let w = Weights::new(m);
+        let w = Weights::gaussian(Signals::sigma(period));
+        let m = w.value.len() / 2;
         let up = model.up;
         let g = model.grid.g;
         let range = m..log.len().saturating_sub(m);
@@ -101,7 +139,8 @@ impl Signals {
             force: Vec::with_capacity(range.len()),
             period,
             first: m,
-            window: 2 * m + 1,
+            // Smoothed white noise stays correlated over √(4π) σ samples.
+            window: ((4.0 * std::f64::consts::PI).sqrt() * Signals::sigma(period)).ceil() as usize,
             arm: false,
         };
         // The joints of every logged position (a reading out of reach keeps the last ones).
@@ -122,6 +161,7 @@ impl Signals {
                 position,
                 velocity: Weights::apply(&w.slope, &log.position, k) / period,
                 acceleration: Weights::apply(&w.curvature, &log.position, k) / (period * period),
+                sliding: Vector3::zeros(),
                 gravity: model.force(&position),
                 up,
                 g,
@@ -147,6 +187,7 @@ impl Signals {
                             rate: Weights::apply(&w.slope, q, k) / period,
                             acceleration: Weights::apply(&w.curvature, q, k) / (period * period),
                             to_handle: j.try_inverse()?.transpose(),
+                            sliding: Vector3::zeros(),
                         })
                     }),
                     _ => None,
@@ -154,6 +195,7 @@ impl Signals {
             });
             signals.force.push(Weights::apply(&w.value, &log.force, k));
         }
+        signals.smooth_sliding(&w.value);
         // The arm's model serves when every sample has its joints.
         signals.arm = arm.is_some() && signals.samples.iter().all(|s| s.joint.is_some());
         if signals.arm {
@@ -182,6 +224,52 @@ impl Signals {
 
     pub fn len(&self) -> usize {
         self.samples.len()
+    }
+
+    /// Each sample's direction of sliding (and each joint's), smoothed by `kernel` (the ends
+    /// repeat the first and last samples').
+    fn smooth_sliding(&mut self, kernel: &[f64]) {
+        let direction = |v: Vector3<f64>, stick: f64| v / (v.norm_squared() + stick * stick).sqrt();
+        let handle: Vec<Vector3<f64>> = self
+            .samples
+            .iter()
+            .map(|s| direction(s.velocity, STICK_SPEED))
+            .collect();
+        let joints: Vec<Vector3<f64>> = self
+            .samples
+            .iter()
+            .map(|s| {
+                s.joint.map_or(Vector3::zeros(), |j| {
+                    j.rate.map(|r| r / (r * r + STICK_RATE * STICK_RATE).sqrt())
+                })
+            })
+            .collect();
+        let m = kernel.len() / 2;
+        let n = self.samples.len();
+        let smooth = |x: &[Vector3<f64>], k: usize| -> Vector3<f64> {
+            kernel
+                .iter()
+                .enumerate()
+                .map(|(i, w)| x[(k + i).saturating_sub(m).min(n - 1)] * *w)
+                .sum()
+        };
+        for k in 0..n {
+            self.samples[k].sliding = smooth(&handle, k);
+            let joint = smooth(&joints, k);
+            if let Some(j) = &mut self.samples[k].joint {
+                j.sliding = joint;
+            }
+        }
+    }
+
+    /// The smoothing kernel's standard deviation in samples of `period` s.
+    pub fn sigma(period: f64) -> f64 {
+        (SMOOTHING_SIGMA / period).max(1.0)
+    }
+
+    /// The smoothing kernel (value, first and second derivative).
+    pub(super) fn kernel(&self) -> Weights {
+        Weights::gaussian(Signals::sigma(self.period))
     }
 
     /// How many parameters the nominal model has: a moving mass per axis, or the arm's inertia
@@ -1127,6 +1215,7 @@ pub fn simulate(
                 gravity: grid.force(&x),
                 up: grid.up,
                 g: grid.grid.g,
+                sliding: v / (v.norm_squared() + STICK_SPEED.powi(2)).sqrt(),
                 joint: None,
                 tilt: None,
             };

@@ -85,8 +85,7 @@ impl Effect {
                 1
             }
             Effect::CoulombFriction => {
-                let v = s.velocity;
-                out[0] = v / (v.norm_squared() + STICK_SPEED.powi(2)).sqrt();
+                out[0] = s.sliding;
                 1
             }
             Effect::ViscousDamping => {
@@ -124,6 +123,9 @@ pub struct JointSample {
     pub acceleration: Vector3<f64>,
     /// J⁻ᵀ: a joint torque τ needs the handle force J⁻ᵀ τ.
     pub to_handle: Matrix3<f64>,
+    /// Each joint's direction of sliding, q̇_j/√(q̇_j² + ω_s²) ([`STICK_RATE`]), smoothed by the
+    /// kernel as the command is (see [`Sample::sliding`]).
+    pub sliding: Vector3<f64>,
 }
 
 /// Below this joint rate a joint's Coulomb friction is smoothed over, rad/s (about
@@ -151,7 +153,7 @@ pub fn arm_columns(j: &JointSample, out: &mut [Vector3<f64>]) -> usize {
     for joint in 0..3 {
         let rate = j.rate[joint];
         let mut tau = Vector3::zeros();
-        tau[joint] = rate / (rate * rate + STICK_RATE * STICK_RATE).sqrt();
+        tau[joint] = j.sliding[joint];
         out[n] = j.to_handle * tau;
         tau[joint] = rate;
         out[n + 1] = j.to_handle * tau;
@@ -169,6 +171,10 @@ pub struct Sample {
     pub position: Vector3<f64>,
     pub velocity: Vector3<f64>,
     pub acceleration: Vector3<f64>,
+    /// The direction of sliding, Ẋ/√(|Ẋ|² + v_s²) ([`STICK_SPEED`]), smoothed by the kernel as
+    /// the command is: the command that balances Coulomb friction switches with the velocity,
+    /// and smoothing the switch is not switching the smoothed velocity.
+    pub sliding: Vector3<f64>,
     /// The nominal model's gravity force F_G(X), N.
     pub gravity: Vector3<f64>,
     /// The grid's v_G and g.

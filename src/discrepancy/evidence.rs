@@ -33,7 +33,7 @@ pub struct NoiseFloor {
 /// a smoothing window at both ends (the filter reaches into the motion there).
 pub fn holds(signals: &Signals) -> Vec<std::ops::Range<usize>> {
     let min = (MIN_HOLD / signals.period).ceil() as usize;
-    let trim = signals.window;
+    let trim = signals.first;
     let mut runs = Vec::new();
     let mut start = None;
     for k in 0..=signals.len() {
@@ -74,7 +74,7 @@ fn white_noise(x: &[Vector3<f64>]) -> Vector3<f64> {
 /// the position's white noise through the smoother's second derivative times the mass, and the
 /// command's through its value, added as independent.
 pub fn noise_floor(log: &Log, signals: &Signals, moving_mass: &Vector3<f64>) -> NoiseFloor {
-    let w = Weights::new(signals.window / 2);
+    let w = signals.kernel();
     let norm = |weights: &[f64]| weights.iter().map(|c| c * c).sum::<f64>().sqrt();
     let position_noise = white_noise(&log.position);
     let command_noise = white_noise(&log.force);
@@ -208,8 +208,8 @@ pub fn below_floor(floor: f64) -> Limit {
         check: "noise_floor",
         effects: vec![],
         message: format!(
-            "an effect whose force stays below the log's noise floor ({:.1} mN RMS) cannot show: \
-             none is named for it, whatever it is",
+            "effects whose force stays below the log's noise floor ({:.1} mN RMS): none is \
+             named for them, whatever they are",
             floor * 1e3
         ),
     }

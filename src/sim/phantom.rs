@@ -603,4 +603,35 @@ mod tests {
     fn handle_friction_holds_below_its_level_and_takes_the_energy_of_a_slide() {
         checks::assert_handle_friction_sticks_and_slides(arm_at, [20.0, -15.0, 10.0]);
     }
+
+    /// A spring at the handle adds k (X − X_0) to the holding force, and the handle held by
+    /// that force stays put; damping at the handle takes energy from a moving handle.
+    #[test]
+    fn a_spring_at_the_handle_is_held_and_damping_slows_it() {
+        let x = [20.0, -15.0, 10.0];
+        let anchor = Vector3::new(0.05, 0.02, -0.03);
+        let mut sprung = env(0.0, 0.0);
+        sprung.spring = (40.0, anchor);
+        let plain = arm_at(x, env(0.0, 0.0)).holding_force();
+        let mut plant = arm_at(x, sprung);
+        let held = plant.holding_force();
+        let expected = plain + (plant.position() - anchor) * 40.0;
+        assert!((held - expected).norm() < 1e-9, "{held} vs {expected}");
+        let start = plant.position();
+        for _ in 0..10_000 {
+            plant.step(&held, 1e-4);
+        }
+        assert!((plant.position() - start).norm() < 1e-4);
+        // Damping: the same push, the damped handle moves less far.
+        let mut damped_env = env(0.0, 0.0);
+        damped_env.handle_damping = 5.0;
+        let push = plain + Vector3::new(0.3, 0.0, 0.0);
+        let (mut free, mut damped) = (arm_at(x, env(0.0, 0.0)), arm_at(x, damped_env));
+        for _ in 0..2_000 {
+            free.step(&push, 1e-4);
+            damped.step(&push, 1e-4);
+        }
+        let travel = |p: &Linkage<Phantom>| (p.position() - start).norm();
+        assert!(travel(&damped) < 0.8 * travel(&free));
+    }
 }
