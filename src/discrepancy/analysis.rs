@@ -46,6 +46,9 @@ pub struct Signals {
     pub window: usize,
     /// The nominal model is the arm's (its samples carry their joints), not a point mass's.
     pub arm: bool,
+    /// For an arm: ΦᵀΦ of its nominal model's columns over the training samples in motion
+    /// (the same in every fit: they neither turn nor move with a delay).
+    arm_gram: Option<DMatrix<f64>>,
 }
 
 /// Weights over k = −m..m for the smoothed value, first and second derivative (per sample and
@@ -142,6 +145,7 @@ impl Signals {
             // Smoothed white noise stays correlated over √(4π) σ samples.
             window: ((4.0 * std::f64::consts::PI).sqrt() * Signals::sigma(period)).ceil() as usize,
             arm: false,
+            arm_gram: None,
         };
         // The joints of every logged position (a reading out of reach keeps the last ones).
         let joints: Option<Vec<Vector3<f64>>> = arm.map(|arm| {
@@ -211,6 +215,15 @@ impl Signals {
                     j.offset -= mean;
                 }
             }
+            let mut gram = DMatrix::<f64>::zeros(ARM_COLUMNS, ARM_COLUMNS);
+            let mut phi = [Vector3::zeros(); ARM_COLUMNS];
+            for s in &signals.samples[signals.split().0] {
+                if let (Some(j), true) = (&s.joint, s.velocity.norm() >= STICK_SPEED) {
+                    arm_columns(j, &mut phi);
+                    accumulate(&mut gram, &phi, 0);
+                }
+            }
+            signals.arm_gram = Some(gram);
         } else {
             for s in &mut signals.samples {
                 s.joint = None;
@@ -539,6 +552,40 @@ impl Fit {
     }
 }
 
+/// Adds the upper triangle of φᵀφ for one sample's columns `phi` to `normal`, leaving out the
+/// block of the first `known` columns with each other.
+fn accumulate(normal: &mut DMatrix<f64>, phi: &[Vector3<f64>], known: usize) {
+    for i in 0..phi.len() {
+        for j in i.max(known)..phi.len() {
+            normal[(i, j)] += phi[i].dot(&phi[j]);
+        }
+    }
+}
+
+/// `normal` with the arm's cached block (upper triangle, when `arm`) and mirrored.
+fn complete(signals: &Signals, arm: bool, normal: &mut DMatrix<f64>) {
+    let known = match (&signals.arm_gram, arm) {
+        (Some(gram), true) => gram,
+        _ => &DMatrix::zeros(0, 0),
+    };
+    let b = known.nrows();
+    normal.view_mut((0, 0), (b, b)).copy_from(known);
+    let p = normal.nrows();
+    for i in 0..p {
+        for j in 0..i {
+            normal[(i, j)] = normal[(j, i)];
+        }
+    }
+}
+
+/// How many leading columns of a fit's design the cached arm block covers.
+fn cached(signals: &Signals, arm: bool) -> usize {
+    match (&signals.arm_gram, arm) {
+        (Some(gram), true) => gram.nrows(),
+        _ => 0,
+    }
+}
+
 /// The columns of the model at sample `s` (already turned) into `phi`: the nominal model's
 /// (the arm's, or a moving mass per axis), then each effect's.
 fn design_row(arm: bool, frame: &Fit, s: &Sample, phi: &mut [Vector3<f64>]) {
@@ -591,6 +638,7 @@ fn fit_on(
     let mut rhs = DVector::<f64>::zeros(p);
     let mut phi = vec![Vector3::zeros(); p];
     let (mut fitted, mut yy) = (0usize, 0.0);
+    let known = cached(signals, arm);
     for k in train.clone() {
         let s = &fit.turned(&signals.samples[k]);
         if moving_only && s.velocity.norm() < STICK_SPEED {
@@ -602,16 +650,10 @@ fn fit_on(
         design_row(arm, &fit, s, &mut phi);
         for i in 0..p {
             rhs[i] += phi[i].dot(&y);
-            for j in i..p {
-                normal[(i, j)] += phi[i].dot(&phi[j]);
-            }
         }
+        accumulate(&mut normal, &phi, known);
     }
-    for i in 0..p {
-        for j in 0..i {
-            normal[(i, j)] = normal[(j, i)];
-        }
-    }
+    complete(signals, arm, &mut normal);
     let cholesky = normal.clone().cholesky()?;
     let theta = cholesky.solve(&rhs);
     // Residual sum of squares on the fitted samples, σ² per component, and the covariance.
@@ -688,26 +730,19 @@ fn search_delay(
     let mut gravity = Vec::new();
     let mut phi = vec![Vector3::zeros(); p];
     let mut normal = DMatrix::<f64>::zeros(p, p);
+    let known = cached(signals, arm);
     for k in signals.split().0 {
         let s = frame.turned(&signals.samples[k]);
         if moving_only && s.velocity.norm() < STICK_SPEED {
             continue;
         }
         design_row(arm, &frame, &s, &mut phi);
-        for i in 0..p {
-            for j in i..p {
-                normal[(i, j)] += phi[i].dot(&phi[j]);
-            }
-        }
+        accumulate(&mut normal, &phi, known);
         rows.push(k);
         gravity.push(s.gravity);
         design.extend_from_slice(&phi);
     }
-    for i in 0..p {
-        for j in 0..i {
-            normal[(i, j)] = normal[(j, i)];
-        }
-    }
+    complete(signals, arm, &mut normal);
     let cholesky = normal.cholesky()?;
     let steps = ((range.1 - range.0) / step).round() as usize;
     let best = (0..=steps)
