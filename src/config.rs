@@ -82,7 +82,8 @@ impl fmt::Display for Range {
 }
 
 /// A number as a user would write it in TOML: `1e308` rather than 309 digits, `nan`, `inf`.
-struct Number(f64);
+/// A number as a message quotes it: `1e300` rather than three hundred digits, `nan`, `-inf`.
+pub struct Number(pub f64);
 
 impl fmt::Display for Number {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {

@@ -398,6 +398,44 @@ fn bad_logs_get_one_clear_line_and_no_report() {
             format!("# device = sim-other-unit\n{}", rows(20_000, &good)),
             "recorded on sim-other-unit",
         ),
+        // Issue 40: one absurd row became "effect: spring" with k = −1.9e298, or "the handle
+        // hardly moved"; absurd gains and a half reference were accepted.
+        (
+            rows(20_000, &|k| {
+                if k == 4000 {
+                    "4,0,0,0,1e300,0,1.18\n".into()
+                } else {
+                    good(k)
+                }
+            }),
+            "line 4002: `fx` is 1e300: beyond ±1000 N",
+        ),
+        (
+            rows(20_000, &|k| {
+                if k == 4000 {
+                    "4,1e308,0,0,0,0,1.18\n".into()
+                } else {
+                    good(k)
+                }
+            }),
+            "line 4002: `x` is 1e308: beyond ±10 m",
+        ),
+        (
+            format!("# stiffness_n_per_m = nan\n{}", rows(20_000, &good)),
+            "line 1: `stiffness_n_per_m` is `nan`: expected a number above 0, up to 100000",
+        ),
+        (
+            format!("# damping_n_s_per_m = -1e300\n{}", rows(20_000, &good)),
+            "`damping_n_s_per_m` is `-1e300`: expected a number from 0 to 1000",
+        ),
+        (
+            "t,x,y,z,fx,fy,fz,fz\n0,0,0,0,0,0,0,0\n".to_string(),
+            "the header names `fz` twice (columns 7 and 8)",
+        ),
+        (
+            "t,x,y,z,fx,fy,fz,xr\n0,0,0,0,0,0,0,0\n".to_string(),
+            "has some of `xr,yr,zr` but not all three",
+        ),
     ] {
         let mut foreign = GridFile::load(&grid).unwrap();
         if says.contains("other-unit") {

@@ -50,6 +50,10 @@ pub struct StaticEffect {
     pub weight: Vector3<f64>,
     /// A spring k (X − X_0): the force that holds against it (stiffness N/m, anchor m).
     pub spring: Option<(f64, Vector3<f64>)>,
+    /// The most force the effects may add to the grid's, N: twice the largest gravity force the
+    /// calibration measured at its vertices (set by [`GravityModel::with_effect`]). A model
+    /// file cannot make the daemon push harder than the device's own weight could.
+    pub bound: f64,
 }
 
 impl StaticEffect {
@@ -66,6 +70,7 @@ impl StaticEffect {
             tilt: Rotation3::identity(),
             weight: Vector3::zeros(),
             spring: None,
+            bound: f64::INFINITY,
         };
         let mut any = false;
         let mut refused = Vec::new();
@@ -108,10 +113,16 @@ impl StaticEffect {
 
     /// The force with these effects, at `x`, of a grid whose force there is `grid`, N.
     fn apply(&self, x: &Vector3<f64>, grid: Vector3<f64>) -> Vector3<f64> {
-        let f = self.tilt * (grid + self.weight);
-        match self.spring {
-            Some((stiffness, anchor)) => f + (x - anchor) * stiffness,
-            None => f,
+        let mut f = self.tilt * (grid + self.weight);
+        if let Some((stiffness, anchor)) = self.spring {
+            f += (x - anchor) * stiffness;
+        }
+        let added = f - grid;
+        let size = added.norm();
+        if size > self.bound {
+            grid + added * (self.bound / size)
+        } else {
+            f
         }
     }
 }
@@ -206,6 +217,18 @@ impl GravityModel {
     /// turns the arm model's v_G (and a payload's weight with it), and the lattice's residual
     /// stays as measured.
     pub fn with_effect(mut self, effect: Option<StaticEffect>) -> Self {
+        // The bound: twice the largest force the calibration measured at a vertex.
+        let g = &self.grid;
+        let largest = (0..g.vertex_count())
+            .map(|n| {
+                let (i, j, k) = g.coordinates(n);
+                self.force(&g.vertex_position(i, j, k)).norm()
+            })
+            .fold(0.0, f64::max);
+        let effect = effect.map(|e| StaticEffect {
+            bound: 2.0 * largest,
+            ..e
+        });
         self.effect = match (effect, &mut self.arm) {
             (Some(mut effect), Some(arm)) => {
                 arm.up = effect.tilt * arm.up;
@@ -356,6 +379,41 @@ impl Controller for Compensation {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 40: a model file's spring made the daemon push at the safety limit with nobody
+    /// there. What effects add is bounded by twice the largest force the calibration measured;
+    /// within the bound they pass unchanged.
+    #[test]
+    fn what_a_model_file_adds_is_bounded_by_the_calibrated_forces() {
+        let uniform = MassGrid::uniform(
+            0.12,
+            9.81,
+            Vector3::z(),
+            Vector3::repeat(-0.04),
+            0.04,
+            [3, 3, 3],
+        );
+        let weight = 0.12 * 9.81;
+        let model = |record: EffectRecord| {
+            let (effect, _) = StaticEffect::from_records(&[record], &Vector3::z(), 9.81);
+            GravityModel::configured(GridFile::from(uniform.clone()), None, OutsideGrid::Zero)
+                .unwrap()
+                .with_effect(effect)
+        };
+        let x = Vector3::new(0.02, -0.01, 0.03);
+        let stiff = model(EffectRecord::Spring {
+            stiffness_n_per_m: 10_000.0,
+            anchor_m: [-1.0, 0.0, 0.0],
+        });
+        let added = (stiff.force(&x) - Vector3::z() * weight).norm();
+        assert!((added - 2.0 * weight).abs() < 1e-9, "{added} N added");
+        let gentle = model(EffectRecord::Payload { mass_kg: 0.03 });
+        let added = gentle.force(&x) - Vector3::z() * weight;
+        assert!(
+            (added - Vector3::z() * 0.03 * 9.81).norm() < 1e-12,
+            "{added}"
+        );
+    }
 
     fn grid() -> MassGrid {
         let mut g = MassGrid::uniform(

@@ -9,6 +9,14 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector3;
 use thiserror::Error;
 
+/// The largest position a log may carry, m, and the largest force, N: a device's workspace and
+/// its actuators are far inside both. A value beyond is a corrupt row, refused.
+pub const MAX_POSITION: f64 = 10.0;
+pub const MAX_FORCE: f64 = 1000.0;
+/// The excitation gains a log's comments may give: K in (0, 1e5] N/m, D in [0, 1e3] N·s/m.
+pub const MAX_STIFFNESS: f64 = 1e5;
+pub const MAX_DAMPING: f64 = 1e3;
+
 /// The shortest log analysed, s: its held-out part must still hold several slow cycles.
 pub const MIN_DURATION: f64 = 10.0;
 /// Sample rates accepted, Hz.
@@ -32,6 +40,8 @@ pub enum LogError {
         path.display()
     )]
     MissingColumn { path: PathBuf, column: &'static str },
+    #[error("log {}: the header {problem}", path.display())]
+    Header { path: PathBuf, problem: String },
     #[error("log {} line {line}: {problem}", path.display())]
     Row {
         path: PathBuf,
@@ -156,10 +166,26 @@ impl Log {
                 if columns.is_none() {
                     if let Some((key, value)) = comment.split_once('=') {
                         let value = value.trim();
+                        let gain = |name: &str, zero: bool, max: f64| -> Result<f64, LogError> {
+                            match value.parse::<f64>() {
+                                Ok(v) if (v > 0.0 || zero && v == 0.0) && v <= max => Ok(v),
+                                _ => Err(row_error(
+                                    line,
+                                    format!(
+                                        "`{name}` is `{value}`: expected a number {} {max}",
+                                        if zero { "from 0 to" } else { "above 0, up to" }
+                                    ),
+                                )),
+                            }
+                        };
                         match key.trim() {
                             "device" => log.device = Some(value.to_string()),
-                            "stiffness_n_per_m" => gains.0 = value.parse::<f64>().ok(),
-                            "damping_n_s_per_m" => gains.1 = value.parse::<f64>().ok(),
+                            "stiffness_n_per_m" => {
+                                gains.0 = Some(gain("stiffness_n_per_m", false, MAX_STIFFNESS)?)
+                            }
+                            "damping_n_s_per_m" => {
+                                gains.1 = Some(gain("damping_n_s_per_m", true, MAX_DAMPING)?)
+                            }
                             _ => {}
                         }
                     }
@@ -187,12 +213,27 @@ impl Log {
                 }
                 Ok(v)
             };
-            let triple = |at: [usize; 3], names: [&str; 3]| -> Result<Vector3<f64>, LogError> {
-                Ok(Vector3::new(
+            let triple = |at: [usize; 3],
+                          names: [&str; 3],
+                          limit: f64,
+                          unit: &str|
+             -> Result<Vector3<f64>, LogError> {
+                let v = Vector3::new(
                     value(at[0], names[0])?,
                     value(at[1], names[1])?,
                     value(at[2], names[2])?,
-                ))
+                );
+                if let Some(i) = (0..3).find(|&i| v[i].abs() > limit) {
+                    return Err(row_error(
+                        line,
+                        format!(
+                            "`{}` is {}: beyond ±{limit} {unit}, no device's (a corrupt row)",
+                            names[i],
+                            crate::config::Number(v[i])
+                        ),
+                    ));
+                }
+                Ok(v)
             };
             let t = value(c.time, "t")?;
             if let Some(&previous) = log.time.last() {
@@ -210,10 +251,12 @@ impl Log {
                 }
             }
             log.time.push(t);
-            log.position.push(triple(c.position, ["x", "y", "z"])?);
-            log.force.push(triple(c.force, ["fx", "fy", "fz"])?);
+            log.position
+                .push(triple(c.position, ["x", "y", "z"], MAX_POSITION, "m")?);
+            log.force
+                .push(triple(c.force, ["fx", "fy", "fz"], MAX_FORCE, "N")?);
             if let (Some(at), Some(reference)) = (c.reference, log.reference.as_mut()) {
-                reference.push(triple(at, ["xr", "yr", "zr"])?);
+                reference.push(triple(at, ["xr", "yr", "zr"], MAX_POSITION, "m")?);
             }
         }
         if columns.is_none() {
@@ -328,6 +371,21 @@ struct Columns {
 impl Columns {
     fn find(header: &str, path: &Path) -> Result<Self, LogError> {
         let names: Vec<&str> = header.split(',').map(str::trim).collect();
+        let header_error = |problem: String| LogError::Header {
+            path: path.to_path_buf(),
+            problem,
+        };
+        if let Some((i, name)) = names
+            .iter()
+            .enumerate()
+            .find(|(i, n)| !n.is_empty() && names[..*i].contains(n))
+        {
+            return Err(header_error(format!(
+                "names `{name}` twice (columns {} and {}): which one holds the data?",
+                names.iter().position(|n| n == name).unwrap_or(0) + 1,
+                i + 1
+            )));
+        }
         let at = |column: &'static str| names.iter().position(|n| *n == column);
         let need = |column: &'static str| {
             at(column).ok_or_else(|| LogError::MissingColumn {
@@ -337,7 +395,14 @@ impl Columns {
         };
         let reference = match (at("xr"), at("yr"), at("zr")) {
             (Some(a), Some(b), Some(c)) => Some([a, b, c]),
-            _ => None,
+            (None, None, None) => None,
+            _ => {
+                return Err(header_error(
+                    "has some of `xr,yr,zr` but not all three: give the reference's three \
+                     columns or none"
+                        .into(),
+                ))
+            }
         };
         Ok(Self {
             time: need("t")?,

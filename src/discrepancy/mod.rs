@@ -184,6 +184,12 @@ pub enum AnalyzeError {
         .0.display()
     )]
     NoExcitation(PathBuf),
+    #[error(
+        "log {}: the fitted {why}; no model written: a log that gives such a value holds a \
+         fault (a stuck sensor, a force the device never rendered)",
+        log.display()
+    )]
+    AbsurdParameter { why: String, log: PathBuf },
     #[error(transparent)]
     Out(#[from] OutError),
     #[error(transparent)]

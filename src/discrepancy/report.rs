@@ -287,6 +287,15 @@ pub(super) fn write(
 ) -> Result<(), AnalyzeError> {
     let out = &request.out;
     let up = a.up;
+    // Nothing is written for a parameter no device shows (the model file's ranges).
+    for effect in &a.effects {
+        effect_record(&a.augmented, *effect, &up)
+            .check()
+            .map_err(|why| AnalyzeError::AbsurdParameter {
+                why,
+                log: request.log.clone(),
+            })?;
+    }
     let write = |name: &str, text: String| {
         let path = out.join(name);
         std::fs::write(&path, text).map_err(|source| OutError { path, source })

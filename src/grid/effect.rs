@@ -69,12 +69,89 @@ pub enum ModelFileError {
     },
 }
 
+/// The range of each parameter of a model effect (docs/discrepancy.md §5): what a device with
+/// a handle, not a fault, can show.
+pub const MASS_RANGE: (f64, f64) = (-1.0, 1.0);
+pub const FRICTION_RANGE: (f64, f64) = (0.0, 10.0);
+pub const DAMPING_RANGE: (f64, f64) = (0.0, 100.0);
+pub const DELAY_RANGE: (f64, f64) = (0.0, 0.1);
+pub const TILT_RANGE: (f64, f64) = (0.0, 0.5);
+pub const STIFFNESS_RANGE: (f64, f64) = (-1000.0, 10_000.0);
+pub const ANCHOR_RANGE: (f64, f64) = (-10.0, 10.0);
+
+impl EffectRecord {
+    /// Every parameter finite and in its range, a rotation axis of unit length.
+    ///
+    /// # Errors
+    /// One line naming the effect, the key, the value and the range.
+    pub fn check(&self) -> Result<(), String> {
+        let within = |name: &str, key: &str, value: f64, (lo, hi): (f64, f64), unit: &str| {
+            if value.is_finite() && (lo..=hi).contains(&value) {
+                Ok(())
+            } else {
+                Err(format!(
+                    "`{name}` `{key}` is {}, out of range ({lo} to {hi} {unit})",
+                    crate::config::Number(value)
+                ))
+            }
+        };
+        match self {
+            EffectRecord::None => Ok(()),
+            EffectRecord::Payload { mass_kg } => {
+                within("payload", "mass_kg", *mass_kg, MASS_RANGE, "kg")
+            }
+            EffectRecord::CoulombFriction { force_n } => {
+                within("coulomb_friction", "force_n", *force_n, FRICTION_RANGE, "N")
+            }
+            EffectRecord::ViscousDamping { damping_n_s_per_m } => within(
+                "viscous_damping",
+                "damping_n_s_per_m",
+                *damping_n_s_per_m,
+                DAMPING_RANGE,
+                "N*s/m",
+            ),
+            EffectRecord::TimeDelay { delay_s } => {
+                within("time_delay", "delay_s", *delay_s, DELAY_RANGE, "s")
+            }
+            EffectRecord::GravityTilt {
+                angle_rad,
+                rotation_axis,
+            } => {
+                within("gravity_tilt", "angle_rad", *angle_rad, TILT_RANGE, "rad")?;
+                let norm = nalgebra::Vector3::from(*rotation_axis).norm();
+                if (norm - 1.0).abs() <= 1e-3 {
+                    Ok(())
+                } else {
+                    Err(format!(
+                        "`gravity_tilt` `rotation_axis` has length {norm}: expected a unit vector"
+                    ))
+                }
+            }
+            EffectRecord::Spring {
+                stiffness_n_per_m,
+                anchor_m,
+            } => {
+                within(
+                    "spring",
+                    "stiffness_n_per_m",
+                    *stiffness_n_per_m,
+                    STIFFNESS_RANGE,
+                    "N/m",
+                )?;
+                anchor_m
+                    .iter()
+                    .try_for_each(|a| within("spring", "anchor_m", *a, ANCHOR_RANGE, "m"))
+            }
+        }
+    }
+}
+
 impl ModelFile {
     /// Read and check a model file.
     ///
     /// # Errors
     /// [`ModelFileError`]: unreadable, not TOML, not `hgcd-model/1`, an unknown effect, or a
-    /// parameter that is not finite.
+    /// parameter that is not finite or out of its range ([`EffectRecord::check`]).
     pub fn load(path: &Path) -> Result<Self, ModelFileError> {
         let invalid = |message: String| ModelFileError::Invalid {
             path: path.to_path_buf(),
@@ -92,29 +169,8 @@ impl ModelFile {
                 file.format
             )));
         }
-        let values: Vec<f64> = file
-            .all_effects()
-            .iter()
-            .flat_map(|e| match e {
-                EffectRecord::None => vec![],
-                EffectRecord::Payload { mass_kg } => vec![*mass_kg],
-                EffectRecord::CoulombFriction { force_n } => vec![*force_n],
-                EffectRecord::ViscousDamping { damping_n_s_per_m } => vec![*damping_n_s_per_m],
-                EffectRecord::TimeDelay { delay_s } => vec![*delay_s],
-                EffectRecord::GravityTilt {
-                    angle_rad,
-                    rotation_axis,
-                } => [[*angle_rad].as_slice(), rotation_axis].concat(),
-                EffectRecord::Spring {
-                    stiffness_n_per_m,
-                    anchor_m,
-                } => [[*stiffness_n_per_m].as_slice(), anchor_m].concat(),
-            })
-            .collect();
-        if values.iter().any(|v| !v.is_finite()) {
-            return Err(invalid(
-                "a parameter of `[effect]` is not a finite number".into(),
-            ));
+        for effect in file.all_effects() {
+            effect.check().map_err(invalid)?;
         }
         Ok(file)
     }
@@ -172,11 +228,18 @@ mod tests {
         for (bad, says) in [
             ("format = \"x\"\ngrid = \"g\"\n[effect]\nname = \"none\"\n", "expected \"hgcd-model/1\""),
             ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"magic\"\n", "unknown variant"),
-            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"payload\"\nmass_kg = nan\n", "not a finite"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"payload\"\nmass_kg = nan\n", "`payload` `mass_kg` is nan, out of range (-1 to 1 kg)"),
+            // Issue 40: a spring of −1e6 N/m was accepted and pushed the handle at the limit.
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"spring\"\nstiffness_n_per_m = -1e6\nanchor_m = [0.0, 0.0, 0.0]\n", "`spring` `stiffness_n_per_m` is -1000000, out of range (-1000 to 10000 N/m)"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"spring\"\nstiffness_n_per_m = 10.0\nanchor_m = [0.0, 1e300, 0.0]\n", "`anchor_m` is 1e300"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"gravity_tilt\"\nangle_rad = 0.1\nrotation_axis = [0.0, 2.0, 0.0]\n", "expected a unit vector"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"time_delay\"\ndelay_s = -0.01\n", "`time_delay` `delay_s` is -0.01"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"none\"\n[[effects]]\nname = \"coulomb_friction\"\nforce_n = 1e9\n", "`coulomb_friction` `force_n` is 1e9"),
         ] {
             std::fs::write(&path, bad).unwrap();
             let e = ModelFile::load(&path).unwrap_err().to_string();
             assert!(e.contains(says), "{e}");
+            assert_eq!(e.lines().count(), 1, "{e}");
         }
     }
 }
