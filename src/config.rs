@@ -1078,7 +1078,7 @@ impl Config {
     /// Errors: [`ConfigError::Read`] when the file cannot be read, then as
     /// [`Config::from_toml_str`].
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
+        let text = crate::sys::read_text(path).map_err(|error| ConfigError::Read {
             path: path.to_path_buf(),
             error,
         })?;

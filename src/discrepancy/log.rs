@@ -139,7 +139,7 @@ impl Log {
     /// unparsable or non-finite value, times that repeat or go back, a gap, too short, or a rate
     /// out of range.
     pub fn load(path: &Path) -> Result<Self, LogError> {
-        let text = std::fs::read_to_string(path).map_err(|source| LogError::Read {
+        let text = crate::sys::read_text(path).map_err(|source| LogError::Read {
             path: path.to_path_buf(),
             source,
         })?;

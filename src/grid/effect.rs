@@ -157,7 +157,7 @@ impl ModelFile {
             path: path.to_path_buf(),
             message,
         };
-        let text = std::fs::read_to_string(path).map_err(|source| ModelFileError::Read {
+        let text = crate::sys::read_text(path).map_err(|source| ModelFileError::Read {
             path: path.to_path_buf(),
             source,
         })?;

@@ -364,7 +364,7 @@ impl Profile {
                 dir: dir.to_path_buf(),
             });
         }
-        let text = std::fs::read_to_string(&path).map_err(|source| ProfileError::Read {
+        let text = crate::sys::read_text(&path).map_err(|source| ProfileError::Read {
             path: path.clone(),
             source,
         })?;
