@@ -394,12 +394,13 @@ impl DeltaArm {
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum ArmTable {
     Serial {
+        #[serde(deserialize_with = "crate::profile::exact")]
         shoulder_m: [f64; 3],
         upper_m: f64,
         fore_m: f64,
-        #[serde(default = "same_axes")]
+        #[serde(default = "same_axes", deserialize_with = "crate::profile::exact")]
         axes: [String; 3],
-        #[serde(default)]
+        #[serde(default, deserialize_with = "crate::profile::exact")]
         origin_m: [f64; 3],
     },
     Delta {
@@ -408,10 +409,11 @@ pub enum ArmTable {
         base_radius_m: f64,
         platform_radius_m: f64,
         pivot_height_m: f64,
+        #[serde(deserialize_with = "crate::profile::exact")]
         legs_deg: [f64; 3],
-        #[serde(default = "same_axes")]
+        #[serde(default = "same_axes", deserialize_with = "crate::profile::exact")]
         axes: [String; 3],
-        #[serde(default)]
+        #[serde(default, deserialize_with = "crate::profile::exact")]
         origin_m: [f64; 3],
     },
 }

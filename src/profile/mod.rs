@@ -142,6 +142,20 @@ pub const RANGES: &[(&str, f64, f64, &str)] = &[
     ("bodies.centres_of_mass_m", -1.0, 1.0, "m"),
 ];
 
+/// A fixed-length array that refuses any other length: serde's own arrays read the first N
+/// values of a longer list and drop the rest silently.
+pub(crate) fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    let values: Vec<T> = Vec::deserialize(d)?;
+    let found = values.len();
+    values
+        .try_into()
+        .map_err(|_| serde::de::Error::custom(format!("expected {N} values, found {found}")))
+}
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ProfileFile {
@@ -159,15 +173,23 @@ struct ProfileFile {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct KinematicsFile {
+    #[serde(deserialize_with = "exact")]
     lengths_m: [f64; 3],
+    #[serde(deserialize_with = "exact")]
     capstan_diameters_m: [f64; 3],
+    #[serde(deserialize_with = "exact")]
     drum_diameters_m: [f64; 3],
+    #[serde(deserialize_with = "exact")]
     motor_and_body_aligned: [bool; 3],
+    #[serde(deserialize_with = "exact")]
     counts_per_rev: [f64; 3],
+    #[serde(deserialize_with = "exact")]
     torque_constants_nm_per_a: [f64; 3],
     max_current_a: f64,
+    #[serde(deserialize_with = "exact")]
     workspace_origin_m: [f64; 3],
     workspace_radius_m: f64,
+    #[serde(deserialize_with = "exact")]
     home_counts: [i16; 3],
 }
 
@@ -175,8 +197,10 @@ struct KinematicsFile {
 #[serde(deny_unknown_fields)]
 pub struct BodiesFile {
     /// Masses of the upper arm and the forearm, kg.
+    #[serde(deserialize_with = "exact")]
     pub masses_kg: [f64; 2],
     /// Distance of each one's centre of mass from its joint, m.
+    #[serde(deserialize_with = "exact")]
     pub centres_of_mass_m: [f64; 2],
 }
 
@@ -208,8 +232,22 @@ impl Profile {
             origin: origin.to_string(),
             message,
         };
-        let file: ProfileFile =
-            toml::from_str(text).map_err(|e| invalid(e.message().replace('\n', " ")))?;
+        let file: ProfileFile = toml::from_str(text).map_err(|e| {
+            let message = e.message().replace('\n', " ");
+            // Where it is: the line and its key, when the parser knows.
+            match e.span() {
+                Some(span) => {
+                    let line = text[..span.start.min(text.len())].lines().count().max(1);
+                    let key = text
+                        .lines()
+                        .nth(line - 1)
+                        .and_then(|l| l.split_once('='))
+                        .map_or("", |(k, _)| k.trim());
+                    invalid(format!("line {line} (`{key}`): {message}"))
+                }
+                None => invalid(message),
+            }
+        })?;
         let check = |key: &'static str, values: &[f64]| {
             let &(_, min, max, unit) = RANGES.iter().find(|r| r.0 == key).expect("a ranged key");
             match values.iter().find(|v| !(min..=max).contains(*v)) {
@@ -257,6 +295,11 @@ impl Profile {
                 check("kinematics.capstan_diameters_m", &k.capstan_diameters_m)?;
                 check("kinematics.drum_diameters_m", &k.drum_diameters_m)?;
                 check("kinematics.counts_per_rev", &k.counts_per_rev)?;
+                if let Some(c) = k.counts_per_rev.iter().find(|c| c.fract() != 0.0) {
+                    return Err(invalid(format!(
+                        "kinematics.counts_per_rev: {c} is not a whole number of counts"
+                    )));
+                }
                 check(
                     "kinematics.torque_constants_nm_per_a",
                     &k.torque_constants_nm_per_a,
@@ -638,6 +681,38 @@ impl JointCodec {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 40: `lengths_m` with four elements and `counts_per_rev = [2000.5, …]` were
+    /// accepted. An array has the length its key documents; counts are whole.
+    #[test]
+    fn arrays_have_their_documented_length_and_counts_are_whole() {
+        let shipped = include_str!("../../config/profiles/woodenhaptics_v2015.toml");
+        assert!(Profile::parse(shipped, "t").is_ok());
+        for (from, to, says) in [
+            (
+                "lengths_m = [0.080, 0.205, 0.245]",
+                "lengths_m = [0.080, 0.205, 0.245, 0.1]",
+                "lengths_m",
+            ),
+            (
+                "lengths_m = [0.080, 0.205, 0.245]",
+                "lengths_m = [0.080, 0.205]",
+                "lengths_m",
+            ),
+            (
+                "counts_per_rev = [2000, 2000, 2000]",
+                "counts_per_rev = [2000.5, 2000, 2000]",
+                "kinematics.counts_per_rev: 2000.5 is not a whole number of counts",
+            ),
+        ] {
+            assert!(shipped.contains(from), "{from}");
+            let e = Profile::parse(&shipped.replace(from, to), "t")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(says), "{to}: {e}");
+            assert_eq!(e.lines().count(), 1, "{e}");
+        }
+    }
 
     fn wooden() -> Profile {
         Profile::built_in("woodenhaptics_v2015").unwrap()
