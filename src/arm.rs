@@ -387,6 +387,21 @@ impl DeltaArm {
 
 /// The `[arm]` table: an arm's geometry and where it sits in the device frame, as a device
 /// profile gives it and a grid file records it (docs/devices.md §4, docs/grid-format.md §4).
+/// A fixed-length array that refuses any other length: serde's own arrays read the first N
+/// values of a longer list and drop the rest silently. For the arm tables here and the
+/// profiles' arrays.
+pub fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    let values: Vec<T> = Vec::deserialize(d)?;
+    let found = values.len();
+    values
+        .try_into()
+        .map_err(|_| serde::de::Error::custom(format!("expected {N} values, found {found}")))
+}
+
 /// Lengths in metres, leg directions in degrees; `axes` names, for each device axis, the arm
 /// axis it is, with a sign ("x", "-y", …); `origin_m` is the arm-frame point at the device's
 /// origin.
@@ -394,13 +409,13 @@ impl DeltaArm {
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum ArmTable {
     Serial {
-        #[serde(deserialize_with = "crate::profile::exact")]
+        #[serde(deserialize_with = "exact")]
         shoulder_m: [f64; 3],
         upper_m: f64,
         fore_m: f64,
-        #[serde(default = "same_axes", deserialize_with = "crate::profile::exact")]
+        #[serde(default = "same_axes", deserialize_with = "exact")]
         axes: [String; 3],
-        #[serde(default, deserialize_with = "crate::profile::exact")]
+        #[serde(default, deserialize_with = "exact")]
         origin_m: [f64; 3],
     },
     Delta {
@@ -409,11 +424,11 @@ pub enum ArmTable {
         base_radius_m: f64,
         platform_radius_m: f64,
         pivot_height_m: f64,
-        #[serde(deserialize_with = "crate::profile::exact")]
+        #[serde(deserialize_with = "exact")]
         legs_deg: [f64; 3],
-        #[serde(default = "same_axes", deserialize_with = "crate::profile::exact")]
+        #[serde(default = "same_axes", deserialize_with = "exact")]
         axes: [String; 3],
-        #[serde(default, deserialize_with = "crate::profile::exact")]
+        #[serde(default, deserialize_with = "exact")]
         origin_m: [f64; 3],
     },
 }

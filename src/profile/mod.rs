@@ -142,20 +142,6 @@ pub const RANGES: &[(&str, f64, f64, &str)] = &[
     ("bodies.centres_of_mass_m", -1.0, 1.0, "m"),
 ];
 
-/// A fixed-length array that refuses any other length: serde's own arrays read the first N
-/// values of a longer list and drop the rest silently.
-pub(crate) fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
-where
-    D: serde::Deserializer<'de>,
-    T: Deserialize<'de>,
-{
-    let values: Vec<T> = Vec::deserialize(d)?;
-    let found = values.len();
-    values
-        .try_into()
-        .map_err(|_| serde::de::Error::custom(format!("expected {N} values, found {found}")))
-}
-
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ProfileFile {
@@ -173,23 +159,23 @@ struct ProfileFile {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct KinematicsFile {
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     lengths_m: [f64; 3],
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     capstan_diameters_m: [f64; 3],
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     drum_diameters_m: [f64; 3],
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     motor_and_body_aligned: [bool; 3],
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     counts_per_rev: [f64; 3],
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     torque_constants_nm_per_a: [f64; 3],
     max_current_a: f64,
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     workspace_origin_m: [f64; 3],
     workspace_radius_m: f64,
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     home_counts: [i16; 3],
 }
 
@@ -197,10 +183,10 @@ struct KinematicsFile {
 #[serde(deny_unknown_fields)]
 pub struct BodiesFile {
     /// Masses of the upper arm and the forearm, kg.
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     pub masses_kg: [f64; 2],
     /// Distance of each one's centre of mass from its joint, m.
-    #[serde(deserialize_with = "exact")]
+    #[serde(deserialize_with = "crate::arm::exact")]
     pub centres_of_mass_m: [f64; 2],
 }
 
