@@ -707,6 +707,13 @@ fn every_pair_of_effects_is_named_as_a_set_and_measured() {
 fn every_pair_at_two_magnitudes_and_two_seeds() {
     let dir = tempfile::tempdir().unwrap();
     let grid = nominal_grid(dir.path());
+    let failures = sweep("point-mass", dir.path(), &grid, library);
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// Each effect of `library(large)` alone and every pair of them, small and large, two seeds,
+/// on `sim:MODEL` against `grid`; a line per case and a summary printed; the failures.
+fn sweep(model: &str, dir: &Path, grid: &Path, library: fn(bool) -> [Hidden; 7]) -> Vec<String> {
     let (mut cases, mut failures) = (0, Vec::new());
     let started = std::time::Instant::now();
     let mut slowest: f64 = 0.0;
@@ -720,7 +727,7 @@ fn every_pair_at_two_magnitudes_and_two_seeds() {
         }
         for hidden in &sets {
             for seed in [1, 2] {
-                let summary = record_and_analyze(dir.path(), &grid, hidden, seed);
+                let summary = record_and_analyze_on(model, dir, grid, hidden, seed);
                 slowest = slowest.max(summary["wall_time_s"].as_f64().unwrap());
                 cases += 1;
                 let f = check(hidden, &summary);
@@ -745,7 +752,7 @@ fn every_pair_at_two_magnitudes_and_two_seeds() {
         failures.len(),
         started.elapsed().as_secs_f64()
     );
-    assert!(failures.is_empty(), "{failures:#?}");
+    failures
 }
 
 /// Effects in no candidate (motor cogging: a force of the position; a table's vibration: a
@@ -1057,44 +1064,7 @@ fn on_the_phantom_hgcd_run_compensates_a_named_payload_on_a_tilted_table() {
 fn every_pair_on_the_phantom() {
     let dir = tempfile::tempdir().unwrap();
     let grid = calibrated("phantom", dir.path());
-    let (mut cases, mut failures) = (0, Vec::new());
-    let started = std::time::Instant::now();
-    let mut slowest: f64 = 0.0;
-    for large in [false, true] {
-        let effects = linkage_library(large);
-        let mut sets: Vec<Vec<Hidden>> = effects.iter().map(|e| vec![*e]).collect();
-        for i in 0..effects.len() {
-            for j in i + 1..effects.len() {
-                sets.push(vec![effects[i], effects[j]]);
-            }
-        }
-        for hidden in &sets {
-            for seed in [1, 2] {
-                let summary = record_and_analyze_on("phantom", dir.path(), &grid, hidden, seed);
-                slowest = slowest.max(summary["wall_time_s"].as_f64().unwrap());
-                cases += 1;
-                let f = check(hidden, &summary);
-                println!(
-                    "{}{}",
-                    line(hidden, seed, &summary),
-                    if f.is_empty() {
-                        String::new()
-                    } else {
-                        format!(" FAILED {f:?}")
-                    }
-                );
-                failures.extend(
-                    f.into_iter()
-                        .map(|f| format!("{hidden:?} seed {seed}: {f}")),
-                );
-            }
-        }
-    }
-    println!(
-        "{cases} cases, {} failed; slowest analysis {slowest:.2} s; {:.0} s in all",
-        failures.len(),
-        started.elapsed().as_secs_f64()
-    );
+    let failures = sweep("phantom", dir.path(), &grid, linkage_library);
     // The PHANToM's loop rings with a loop delay of 10 ms or more, or 6 ms beside a 60 N/m
     // spring: 8 cases fail there (docs/discrepancy.md §6 lists them). No more may.
     assert!(failures.len() <= 8, "{failures:#?}");

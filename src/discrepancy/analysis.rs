@@ -390,16 +390,17 @@ impl Fit {
         }
     }
 
-    /// The tilt's columns at `s`: the effect's own, and with a linear tilt the turning of the
-    /// hinted payload's weight.
-    fn tilt_columns(&self, s: &Sample, out: &mut [Vector3<f64>; 4]) {
-        Effect::GravityTilt.columns(s, out);
-        if self.linear_tilt && self.payload_hint != 0.0 {
+    /// `effect`'s columns at `s` in this fit ([`Effect::columns`]; a linear tilt's with the
+    /// turning of the hinted payload's weight); how many.
+    fn effect_columns(&self, effect: Effect, s: &Sample, out: &mut [Vector3<f64>; 4]) -> usize {
+        let n = effect.columns(s, out);
+        if effect == Effect::GravityTilt && self.linear_tilt && self.payload_hint != 0.0 {
             let (e1, e2) = across(&s.up);
             let weight = s.up * (self.payload_hint * s.g);
             out[0] += e1.cross(&weight);
             out[1] += e2.cross(&weight);
         }
+        n
     }
 
     /// The force the model needs for the motion at sample `s` (already turned), without the
@@ -421,12 +422,7 @@ impl Fit {
             if *effect == Effect::CoulombFriction {
                 continue;
             }
-            let n = if *effect == Effect::GravityTilt {
-                self.tilt_columns(s, &mut columns);
-                2
-            } else {
-                effect.columns(s, &mut columns)
-            };
+            let n = self.effect_columns(*effect, s, &mut columns);
             for (c, t) in columns[..n].iter().zip(theta) {
                 f += c * *t;
             }
@@ -602,12 +598,7 @@ fn design_row(arm: bool, frame: &Fit, s: &Sample, phi: &mut [Vector3<f64>]) {
     let mut columns = [Vector3::zeros(); 4];
     let mut at = b;
     for effect in effects {
-        let n = if *effect == Effect::GravityTilt {
-            frame.tilt_columns(s, &mut columns);
-            2
-        } else {
-            effect.columns(s, &mut columns)
-        };
+        let n = frame.effect_columns(*effect, s, &mut columns);
         phi[at..at + n].copy_from_slice(&columns[..n]);
         at += n;
     }
