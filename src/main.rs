@@ -17,7 +17,7 @@ use hgcd::discrepancy::{self, AnalyzeRequest, RecordError, RecordRequest};
 mod ctl;
 mod progress;
 use hgcd::profile::Profile;
-use hgcd::servo::ServoError;
+use hgcd::servo::{ExitReason, ServoError};
 use hgcd::transport::{hid, Pacing, TransportError};
 use hgcd::validate::{self, Mode, ValidateError, ValidateRequest};
 
@@ -446,7 +446,11 @@ fn run(config: &Config, args: &RunArgs) -> Result<()> {
     };
     let signals = install_signal_handlers()?;
     let report = daemon::run(config, &request, signals)?;
-    out(&format!("{}\n", report.stats))
+    out(&format!("{}\n", report.stats))?;
+    match report.exit {
+        ExitReason::Fault(fault) => anyhow::bail!("the servo loop ended: {fault}"),
+        _ => Ok(()),
+    }
 }
 
 /// `hgcd calibrate` on a device this process opens itself; prints the summary.

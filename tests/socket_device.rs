@@ -406,3 +406,136 @@ fn a_real_time_socket_calibration_rides_out_late_ticks_and_resumes_its_vertex() 
     }
     assert!(done.path.exists());
 }
+
+/// How a hostile lock-step device behaves after its device-info answer.
+#[derive(Clone, Copy)]
+enum Hostile {
+    /// Frames as fast as the socket takes them, none a valid report: one byte, a wrong length,
+    /// a whole report with positions beyond the protocol's range.
+    Babbles,
+    /// Valid reports, each answered in lock-step, whose clock runs backwards a period at a time.
+    ClockBackwards,
+}
+
+/// A lock-step device at `dir/hostile.sock` that behaves as `how` until the host leaves.
+fn hostile(dir: &Path, how: Hostile) -> (PathBuf, JoinHandle<()>) {
+    let path = dir.join("hostile.sock");
+    let listener = UnixListener::bind(&path).unwrap();
+    let device = std::thread::spawn(move || {
+        let (mut stream, _) = listener.accept().unwrap();
+        let mut request = [0u8; 2];
+        stream.read_exact(&mut request).unwrap();
+        let sim = SimDevice::from_config("point-mass", &Config::default()).unwrap();
+        let mut info = [0u8; DEVICE_INFO_LEN];
+        sim.device_info_report(true, &mut info);
+        stream.write_all(&[DEVICE_INFO_LEN as u8]).unwrap();
+        stream.write_all(&info).unwrap();
+        let mut report = [0u8; INPUT_REPORT_LEN];
+        let mut frame = [0u8; 1 + MAX_REPORT_LEN];
+        for k in 0u32.. {
+            let encoded = InputReport {
+                sequence: k as u16,
+                timestamp_us: 1_000_000u32.wrapping_sub(k.wrapping_mul(1000)),
+                position: Vector3::zeros(),
+                status: Status::default(),
+            }
+            .encode(&mut report);
+            encoded.unwrap();
+            let sent = match how {
+                Hostile::Babbles => {
+                    let garbage: &[u8] = match k % 3 {
+                        0 => &[1, 0x01],
+                        1 => &[10, 0x01, 1, 2, 3, 4, 5, 6, 7, 8, 9],
+                        _ => {
+                            // x = i32::MAX nm: beyond the range a report may carry.
+                            report[8..12].copy_from_slice(&i32::MAX.to_le_bytes());
+                            frame[0] = INPUT_REPORT_LEN as u8;
+                            frame[1..=INPUT_REPORT_LEN].copy_from_slice(&report);
+                            &frame[..=INPUT_REPORT_LEN]
+                        }
+                    };
+                    stream.write_all(garbage)
+                }
+                Hostile::ClockBackwards => {
+                    let sent = stream
+                        .write_all(&[INPUT_REPORT_LEN as u8])
+                        .and_then(|()| stream.write_all(&report));
+                    // The host's reply: a length byte and that many bytes.
+                    let mut n = [0u8; 1];
+                    sent.and_then(|()| stream.read_exact(&mut n))
+                        .and_then(|()| stream.read_exact(&mut frame[..usize::from(n[0])]))
+                }
+            };
+            if sent.is_err() {
+                return; // The host left.
+            }
+        }
+    });
+    (path, device)
+}
+
+/// The servo loop on the hostile device `how`, as `hgcd run --duration 2` runs it, on a thread
+/// of its own; what it reported, or a panic if it is still running after a minute of wall time.
+fn run_against(how: Hostile) -> (servo::ServoReport, Vec<ServoEvent>) {
+    let dir = tempfile::tempdir().unwrap();
+    let (path, device) = hostile(dir.path(), how);
+    let (done, result) = crossbeam_channel::bounded(1);
+    let (tx, events) = crossbeam_channel::unbounded();
+    std::thread::spawn(move || {
+        let mut transport = SocketTransport::connect(&path, Speaks::default()).unwrap();
+        let mut options = ServoOptions::from_config(&Config::default());
+        options.duration = Some(2.0);
+        let report = servo::run(
+            &mut transport,
+            &mut ZeroForce,
+            &options,
+            &AtomicBool::new(false),
+            Some(&tx),
+        );
+        let _ = done.send(report);
+    });
+    let report = result
+        .recv_timeout(Duration::from_secs(60))
+        .expect("the run did not end within a minute of wall time")
+        .unwrap();
+    device.join().unwrap();
+    (report, events.try_iter().collect())
+}
+
+/// hid-protocol.md §6.2: a device that sends only garbled reports trips the host watchdog, in
+/// lock-step as in real time (each frame counts a period of the device's time), and
+/// `--duration` ends the run.
+#[test]
+fn a_lock_step_device_that_only_babbles_trips_the_watchdog_and_the_run_ends() {
+    let (report, events) = run_against(Hostile::Babbles);
+    assert_eq!(report.exit, servo::ExitReason::DurationReached);
+    assert_eq!(report.stats.watchdog_faults, 1, "{}", report.stats);
+    assert!(report.stats.garbled > 1000, "{}", report.stats);
+    assert_eq!(report.stats.ticks, 0);
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, ServoEvent::WatchdogFault { .. })));
+}
+
+/// A device clock that runs backwards is counted, said once, and ends the run with a fault
+/// naming it after `CLOCK_BACKWARDS_LIMIT` reports in a row.
+#[test]
+fn a_device_clock_that_runs_backwards_is_counted_said_once_and_ends_the_run() {
+    let (report, events) = run_against(Hostile::ClockBackwards);
+    assert_eq!(
+        report.exit,
+        servo::ExitReason::Fault(servo::Fault::ClockBackwards)
+    );
+    assert_eq!(
+        report.stats.clock_jumps_back,
+        u64::from(servo::CLOCK_BACKWARDS_LIMIT)
+    );
+    let said = events
+        .iter()
+        .filter(|e| matches!(e, ServoEvent::ClockJumpedBack))
+        .count();
+    assert_eq!(said, 1);
+    assert!(servo::Fault::ClockBackwards
+        .to_string()
+        .contains("ran backwards"));
+}

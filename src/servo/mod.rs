@@ -89,6 +89,9 @@ pub enum ServoEvent {
     GarbledReport(ProtocolError),
     /// The controller produced a non-finite force; zero was sent.
     NonFiniteForce,
+    /// The device clock stepped back (sent once per run; [`TimingStats::clock_jumps_back`]
+    /// counts them all).
+    ClockJumpedBack,
     /// The loop fell behind and skipped `missed` reports.
     Overrun {
         missed: u16,
@@ -147,18 +150,27 @@ pub enum ExitReason {
     DurationReached,
     /// The controller said it was done.
     ControllerDone,
-    /// A fault ended the run (`stop_on_fault`).
+    /// A fault ended the run (`stop_on_fault`, or a device clock that runs backwards).
     Fault(Fault),
 }
 
-/// A fault that ends a run with `stop_on_fault`.
+/// A fault that ends a run: the first two with `stop_on_fault`, the last always.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Error)]
 pub enum Fault {
     #[error("device reported a fault")]
     DeviceReported,
     #[error("device stopped reporting")]
     DeviceSilent,
+    #[error(
+        "the device clock ran backwards for {CLOCK_BACKWARDS_LIMIT} reports in a row: \
+         its reports cannot be timed"
+    )]
+    ClockBackwards,
 }
+
+/// Consecutive reports whose device clock steps back before the run ends
+/// ([`Fault::ClockBackwards`]); a device reset steps back once.
+pub const CLOCK_BACKWARDS_LIMIT: u32 = 100;
 
 /// What a finished run reports.
 #[derive(Clone, Debug)]
@@ -189,8 +201,9 @@ pub enum TickOutcome {
     Continue,
     /// The controller is done; the output report is ready.
     Done,
-    /// The device reported a fault and the run should end (`stop_on_fault`); zero force is ready.
-    Fault,
+    /// A fault that ends the run (a device fault with `stop_on_fault`, a clock that runs
+    /// backwards); zero force is ready.
+    Fault(Fault),
 }
 
 /// The hot path of one tick, without I/O: decode → state estimate → controller → safety → encode.
@@ -201,6 +214,8 @@ pub struct ServoCore {
     foaw: Foaw,
     safety: SafetyLayer,
     clock: DeviceClock,
+    /// Reports in a row whose clock stepped back.
+    clock_backwards: u32,
     last_sequence: Option<u16>,
     last_report_at: f64,
     device_fault: bool,
@@ -233,6 +248,7 @@ impl ServoCore {
             )?,
             safety: SafetyLayer::new(&options.safety, options.period),
             clock: DeviceClock::default(),
+            clock_backwards: 0,
             last_sequence: None,
             last_report_at: 0.0,
             device_fault: false,
@@ -329,7 +345,7 @@ impl ServoCore {
             self.stats.device_fault_ticks += 1;
             if self.stop_on_fault {
                 self.prepare_zero();
-                return Ok(TickOutcome::Fault);
+                return Ok(TickOutcome::Fault(Fault::DeviceReported));
             }
         }
 
@@ -342,8 +358,20 @@ impl ServoCore {
             Some(raw) => {
                 let (time, jumped_back) = self.clock.seconds(raw);
                 if jumped_back {
-                    // A device reset: the time it lost is not lateness.
+                    // A device reset: the time it lost is not lateness. A clock that keeps
+                    // running backwards cannot time anything: the run ends.
                     self.stats.restart_lateness();
+                    self.stats.clock_jumps_back += 1;
+                    if self.stats.clock_jumps_back == 1 {
+                        emit(events, ServoEvent::ClockJumpedBack);
+                    }
+                    self.clock_backwards += 1;
+                    if self.clock_backwards >= CLOCK_BACKWARDS_LIMIT {
+                        self.prepare_zero();
+                        return Ok(TickOutcome::Fault(Fault::ClockBackwards));
+                    }
+                } else {
+                    self.clock_backwards = 0;
                 }
                 self.stats.record_lateness(arrived, time);
                 time
@@ -476,7 +504,7 @@ fn run_loop(
                     match outcome {
                         TickOutcome::Continue => continue,
                         TickOutcome::Done => return Ok(ExitReason::ControllerDone),
-                        TickOutcome::Fault => return Ok(ExitReason::Fault(Fault::DeviceReported)),
+                        TickOutcome::Fault(fault) => return Ok(ExitReason::Fault(fault)),
                     }
                 }
                 Err(e) => {

@@ -88,6 +88,8 @@ pub struct TimingStats {
     pub device_fault_ticks: u64,
     /// Ticks whose controller force was not finite.
     pub non_finite_forces: u64,
+    /// Reports whose device clock stepped back (a device reset, or a broken clock).
+    pub clock_jumps_back: u64,
     /// How fast the device clock may run slow against the host's, as a fraction: the floor of
     /// the clock difference rises at this rate, so lateness that lasts is absorbed into it no
     /// faster (0.2 ms per second at the default, [`CLOCK_DRIFT`]).
@@ -115,6 +117,7 @@ impl TimingStats {
             watchdog_faults: 0,
             device_fault_ticks: 0,
             non_finite_forces: 0,
+            clock_jumps_back: 0,
             clock_drift: CLOCK_DRIFT,
             clock_floor: None,
             last_device_time: 0.0,
@@ -187,14 +190,15 @@ impl fmt::Display for TimingStats {
         )?;
         write!(
             f,
-            "  late {}  missed {}  overruns {}  garbled {}  watchdog faults {}  device-fault ticks {}  non-finite forces {}",
+            "  late {}  missed {}  overruns {}  garbled {}  watchdog faults {}  device-fault ticks {}  non-finite forces {}  clock jumps back {}",
             self.late,
             self.missed,
             self.overruns,
             self.garbled,
             self.watchdog_faults,
             self.device_fault_ticks,
-            self.non_finite_forces
+            self.non_finite_forces,
+            self.clock_jumps_back
         )
     }
 }

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
 use tracing::{error, info, warn};
 
-use super::{rt, run, ServoError, ServoEvent, ServoOptions, ServoReport};
+use super::{rt, run, ServoError, ServoEvent, ServoOptions, ServoReport, CLOCK_BACKWARDS_LIMIT};
 use crate::config::ServoConfig;
 use crate::control::Controller;
 use crate::transport::Transport;
@@ -146,6 +146,10 @@ impl EventLog {
                     warn!("{line}");
                 }
             }
+            ServoEvent::ClockJumpedBack => warn!(
+                "device clock stepped back (a reset?): counted in the loop's statistics; \
+                 {CLOCK_BACKWARDS_LIMIT} steps back in a row end the run"
+            ),
             ServoEvent::Stats(_) => {}
         }
     }

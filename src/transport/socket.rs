@@ -12,7 +12,9 @@
 //! [`DEVICE_INFO_WAIT`]. A device that says it runs in lock-step advances only when the host
 //! answers: its clock, not the wall clock, is then the transport's ([`Transport::now`]), so the
 //! loop's watchdog and `--duration` count device time, and a device that sends nothing for
-//! [`LOCKSTEP_STALL`] has hung.
+//! [`LOCKSTEP_STALL`] has hung. Every frame from such a device is one step of its time: a report
+//! whose clock does not move forward (garbled, or a clock that stands still or runs backwards)
+//! counts one period of its declared rate, so a device that only babbles still trips the watchdog.
 
 use std::io::{ErrorKind, Read, Write};
 use std::os::unix::net::UnixStream;
@@ -53,8 +55,10 @@ pub struct SocketTransport {
     /// hands up the newest valid one (a lock-step device waits for the host's reply to it).
     held: Option<(usize, u64)>,
     held_report: [u8; MAX_REPORT_LEN],
-    /// Lock-step: the device clock, unwrapped from the reports, and its newest reading, s.
+    /// Lock-step: the device clock, unwrapped from the reports, its newest reading, and the
+    /// transport's time built from its forward steps (and a period per frame that has none), s.
     device_clock: DeviceClock,
+    clock_reading: f64,
     device_time: f64,
     /// When the device last sent anything, and how long a lock-step device may send nothing.
     last_heard: Instant,
@@ -98,6 +102,7 @@ impl SocketTransport {
             held: None,
             held_report: [0; MAX_REPORT_LEN],
             device_clock: DeviceClock::default(),
+            clock_reading: 0.0,
             device_time: 0.0,
             last_heard: now,
             stall: LOCKSTEP_STALL,
@@ -214,14 +219,23 @@ impl SocketTransport {
         Ok(Some(n))
     }
 
-    /// Hand up the chosen report (`Burst::finish`); in lock-step its timestamp sets the clock.
+    /// Hand up the chosen report (`Burst::finish`). In lock-step the burst moves the clock: by the
+    /// chosen report's forward step, or by a period for each of its frames when there is none.
     fn chosen(&mut self, chosen: Option<usize>, garbled: u64, buf: &[u8]) -> Option<usize> {
         self.garbled_skipped += garbled;
-        if let Some(n) = chosen {
-            if self.lockstep() {
-                if let Ok(report) = InputReport::decode(&buf[..n]) {
-                    self.device_time = self.device_clock.seconds(report.timestamp_us).0;
+        if let (Some(n), Ok(info)) = (chosen, &self.info) {
+            if info.lockstep {
+                let reading = InputReport::decode(&buf[..n])
+                    .ok()
+                    .map(|report| self.device_clock.seconds(report.timestamp_us).0);
+                let step = reading.map_or(0.0, |t| t - self.clock_reading);
+                if step > 0.0 {
+                    self.device_time += step;
+                } else {
+                    // The chosen report and the garbled ones dropped before it.
+                    self.device_time += (garbled + 1) as f64 / info.rate_hz;
                 }
+                self.clock_reading = reading.unwrap_or(self.clock_reading);
             }
         }
         chosen
@@ -294,8 +308,8 @@ impl Transport for SocketTransport {
         Ok(())
     }
 
-    /// Device time of the newest report for a lock-step device (it stands still while the
-    /// device is silent), wall-clock time since connecting otherwise.
+    /// Device time for a lock-step device (it stands still while the device is silent; see the
+    /// module's doc), wall-clock time since connecting otherwise.
     fn now(&self) -> f64 {
         if self.lockstep() {
             self.device_time
