@@ -1284,12 +1284,15 @@ impl Config {
     /// standing in for the keys the file did not give ([`GivenKeys`]): the safe box becomes the
     /// device's workspace, the calibration grid is centred in that box, and the cube's spacing
     /// shrinks from its configured value, if need be, until the cube fits inside the box with
-    /// [`CUBE_MARGIN`] of each half-extent to spare. Without `info`, the config as it is.
+    /// [`CUBE_MARGIN`] of each half-extent to spare. The host's force limit becomes the smaller
+    /// of `safety.max_force_n` and the device's own (the host clamps too, rather than leave it
+    /// to the device). Without `info`, the config as it is.
     pub fn for_device(&self, info: Option<&DeviceInfo>) -> Config {
         let mut config = self.clone();
         let Some(info) = info else {
             return config;
         };
+        config.safety.max_force_n = config.safety.max_force_n.min(info.max_force);
         // To the nanometre, in mm: what the report carried, without binary-fraction noise.
         let mm = |v: Vector3<f64>| -> [f64; 3] { (v * 1e9).map(|nm| nm.round() / 1e6).into() };
         if !self.given.workspace {
@@ -1727,10 +1730,16 @@ mod tests {
         let mut two = config.clone();
         two.calibration.half_size = 2;
         assert_eq!(two.for_device(Some(&small)).calibration.spacing_mm, 11.25);
+        // The force limit is the smaller of the config's and the device's (3 N here).
+        assert_eq!(c.safety.max_force_n, 3.0);
+        let mut strong = far.clone();
+        strong.max_force = 20.0;
+        assert_eq!(config.for_device(Some(&strong)).safety.max_force_n, 8.0);
         // Everything else is the config's.
         let mut rest = c.clone();
         rest.device = config.device.clone();
         rest.calibration.centre_mm = config.calibration.centre_mm;
+        rest.safety = config.safety.clone();
         assert_eq!(rest, config);
     }
 
@@ -1749,7 +1758,8 @@ mod tests {
                 cube: true
             }
         );
-        let far = info([0.0, 150.0, 60.0], [80.0, 60.0, 60.0]);
+        let mut far = info([0.0, 150.0, 60.0], [80.0, 60.0, 60.0]);
+        far.max_force = given.safety.max_force_n;
         assert_eq!(given.for_device(Some(&far)), given);
         // The cube's size is given by either of its keys.
         let n = parse("[calibration]\nhalf_size = 2\n").unwrap();

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use nalgebra::Vector3;
 
-use hgcd::calibrate::{calibrate, CalibrateRequest};
+use hgcd::calibrate::{calibrate, calibrate_on, CalibrateRequest};
 use hgcd::config::Config;
 use hgcd::control::calibration::{
     Calibration, CalibrationEvent, CalibrationFailure, CalibrationParams, CalibrationResult,
@@ -21,6 +21,7 @@ use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
 mod common;
+use common::tap::Tap;
 use common::{failed, file_names, hgcd, serial, succeeded, truth_field_125};
 
 /// A config file (paper defaults) whose simulated device has the truth field; extra TOML appended.
@@ -622,4 +623,121 @@ fn a_linkage_over_balanced_below_the_centre_calibrates_with_negative_masses() {
         );
     }
     assert!(result.vertices.iter().filter(|v| v.mass < -0.16).count() == 9);
+}
+
+/// The calibration controller ticked with the handle held at `at` (m) for `seconds` of device
+/// time at 1 kHz: the forces it asked for, and how it ended if it did.
+fn held_at(
+    config: &Config,
+    at: Vector3<f64>,
+    seconds: f64,
+) -> (Vec<Vector3<f64>>, Option<Result<(), CalibrationFailure>>) {
+    let mut calibration = Calibration::new(CalibrationParams::from_config(config), None).unwrap();
+    let mut forces = Vec::new();
+    for tick in 0..(seconds * 1e3) as u64 {
+        let out = calibration.tick(&DeviceState {
+            time: tick as f64 * 1e-3,
+            host_time: tick as f64 * 1e-3,
+            position: at,
+            velocity: Vector3::zeros(),
+            status: Default::default(),
+            tick,
+        });
+        forces.push(out.force);
+        if out.done {
+            break;
+        }
+    }
+    let outcome = calibration.outcome().map(|o| o.map(|_| ()));
+    (forces, outcome)
+}
+
+/// Issue 40, item 6: a device whose declared box (here 800–1000 mm, with the grid in it) is far
+/// from where its handle rests is refused on the first tick, before any force, in one line.
+#[test]
+fn a_handle_outside_the_declared_workspace_is_refused_before_any_force() {
+    let config = Config::from_toml_str(
+        "[device]\nworkspace_min_mm = [800.0, 800.0, 800.0]\n\
+         workspace_max_mm = [1000.0, 1000.0, 1000.0]\n\
+         [calibration]\ncentre_mm = [900.0, 900.0, 900.0]\n",
+        Path::new("test"),
+    )
+    .unwrap();
+    let (forces, outcome) = held_at(&config, Vector3::zeros(), 1.0);
+    assert_eq!(forces, [Vector3::zeros()]);
+    let Some(Err(failure @ CalibrationFailure::OutsideWorkspace { outside, .. })) = outcome else {
+        panic!("{outcome:?}");
+    };
+    // 800 mm away along each axis, less the slack of a quarter of the 100 mm half-extent.
+    assert!((outside - 0.775).abs() < 1e-9, "{outside}");
+    let line = failure.to_string();
+    assert!(
+        line.contains("the handle rests at (0.0, 0.0, 0.0) mm, 775 mm outside the workspace")
+            && line.contains("nothing was pushed")
+            && !line.contains('\n'),
+        "{line}"
+    );
+    // A handle resting on a stop just beyond the box (the default box is ±70 mm, the simulated
+    // stops ±80 mm) is calibrated as before.
+    let (_, outcome) = held_at(&Config::default(), Vector3::new(0.0, 0.0, -0.08), 0.1);
+    assert!(outcome.is_none(), "{outcome:?}");
+}
+
+/// Issue 40, item 6: a handle outside the grid's cube is carried to it by a gliding field, which
+/// pushes with at most half the force limit until the handle is seen to move (it used
+/// to pull with k_init times the whole way, 37.5 N, cut to 8 N by the safety layer, and then
+/// took the held handle for one at rest).
+#[test]
+fn until_the_handle_moves_the_field_that_carries_it_to_the_grid_pushes_gently() {
+    let config = Config::default();
+    let limit = 0.5 * config.safety.max_force_n;
+    let (forces, outcome) = held_at(&config, Vector3::new(0.0, 0.0, -0.075), 30.0);
+    let largest = forces.iter().map(|f| f.norm()).fold(0.0, f64::max);
+    assert!(
+        largest <= limit + 1e-12 && largest > 0.9 * limit,
+        "{largest} N"
+    );
+    // A handle that never follows is held: after the initialisation's time, it says so.
+    assert_eq!(
+        outcome,
+        Some(Err(CalibrationFailure::Held {
+            axis: 'z',
+            push_n: limit
+        }))
+    );
+    assert!(forces.len() < 15_000, "{} ticks", forces.len());
+}
+
+/// Issue 40, item 9: the host clamps to the smaller of `safety.max_force_n` and the force limit
+/// the device declares (here 0.5 N, in its device-info report), not only the device. Before, a
+/// calibration pushed with up to 2 N, a quarter of the config's 8 N.
+#[test]
+fn the_host_never_sends_more_than_the_device_says_it_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = config(dir.path(), "");
+    config.sim.max_force_n = 0.5;
+    let device = SimDevice::from_config("point-mass", &config).unwrap();
+    let tap = Tap::new(SimTransport::new(device, Pacing::Virtual)).recording();
+    let writes = tap.writes();
+    let request = CalibrateRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        pacing: Pacing::Virtual,
+        output: None,
+        state_dir: dir.path().join("state"),
+    };
+    // The handle weighs more than the device can render: the calibration cannot succeed.
+    let run = calibrate_on(
+        Box::new(tap),
+        &config,
+        &request,
+        Arc::new(AtomicBool::new(false)),
+        &mut |_| {},
+    );
+    assert!(run.is_err());
+    let largest = writes
+        .all()
+        .iter()
+        .map(|(_, r)| r.force.norm())
+        .fold(0.0, f64::max);
+    assert!(largest <= 0.5 + 1e-6 && largest > 0.4, "{largest} N");
 }

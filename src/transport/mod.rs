@@ -260,6 +260,13 @@ pub fn identify(
             ""
         }
     );
+    if info.max_force < config.safety.max_force_n {
+        warn!(
+            "device {spec} renders at most {} N: the host limits its forces to that, not to \
+             safety.max_force_n ({} N)",
+            info.max_force, config.safety.max_force_n
+        );
+    }
     Ok(DeviceIdentity::new(spec, Some(info)))
 }
 

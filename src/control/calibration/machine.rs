@@ -126,6 +126,19 @@ const FRICTION_OFFSET_STEPS: f64 = 10.0;
 const MAX_OMEGA_PERIODS: f64 = 0.25;
 /// Share of `safety.max_force_n` calibration pushes with, beyond the forces it holds.
 const PUSH_SHARE: f64 = 0.25;
+
+/// How far outside the declared workspace box a handle may rest when calibration starts: this
+/// share of the box's half-extent along each axis, and at least [`WORKSPACE_SLACK_MIN`] (a
+/// handle resting on a stop just beyond a box drawn inside the stops). Further out, the box
+/// and the device disagree: nothing is pushed.
+const WORKSPACE_SLACK_SHARE: f64 = 0.25;
+const WORKSPACE_SLACK_MIN: f64 = 0.02;
+
+/// Until the handle has moved this far from where it rested, m, the field that catches it (and
+/// carries it to the grid) pushes with at most [`CARRY_SHARE`] of the force limit: enough to lift
+/// a handle of up to that weight, well below what a stuck handle would otherwise be pushed with.
+const SEEN_MOVING: f64 = 0.005;
+const CARRY_SHARE: f64 = 0.5;
 /// The moving-mass pulse: distance timed, m; time limit, s; least force beyond the band, N.
 const PULSE_DISTANCE: f64 = 5e-4;
 const PULSE_TIMEOUT: f64 = 0.5;
@@ -388,6 +401,10 @@ pub struct Calibration {
     end_time: f64,
     /// The face normals the bands followed at the last vertex measured.
     last_normals: [Vector3<f64>; 3],
+    /// Where the handle rested at the first tick, m, and whether it has moved since
+    /// ([`SEEN_MOVING`]).
+    rested_at: Vector3<f64>,
+    followed: bool,
     /// Whether the current vertex is being approached a second time, and where its first
     /// approach started, m.
     retried: bool,
@@ -531,6 +548,8 @@ impl Calibration {
             start_time: 0.0,
             end_time: 0.0,
             last_normals: [0, 1, 2].map(axis),
+            rested_at: Vector3::zeros(),
+            followed: false,
             retried: false,
             approach: Vector3::zeros(),
             moving: NoiseMeter::new(n_init),
@@ -706,6 +725,20 @@ impl Calibration {
     fn start(&mut self, s: &DeviceState) -> ControlOutput {
         let t = s.time;
         self.start_time = t;
+        self.rested_at = s.position;
+        let (lo, hi) = self.params.workspace;
+        let slack = ((hi - lo) / 2.0 * WORKSPACE_SLACK_SHARE).map(|d| d.max(WORKSPACE_SLACK_MIN));
+        let outside = (lo - slack - s.position)
+            .sup(&(s.position - hi - slack))
+            .max();
+        if outside > 0.0 {
+            return self.fail(CalibrationFailure::OutsideWorkspace {
+                position: s.position,
+                lo,
+                hi,
+                outside,
+            });
+        }
         let (lo, hi) = (self.plan.origin, self.plan.far_corner());
         let inside = (0..3).all(|a| s.position[a] >= lo[a] && s.position[a] <= hi[a]);
         let to = if inside {
@@ -812,7 +845,14 @@ impl Calibration {
                 timeout: self.params.vertex_timeout,
             });
         }
-        let force = self.field_force(&field.at(t), s);
+        let mut force = self.field_force(&field.at(t), s);
+        // A handle that has not moved yet may be held, or not where the box says: push gently
+        // until it follows.
+        self.followed |= (s.position - self.rested_at).norm() > SEEN_MOVING;
+        let carry_limit = CARRY_SHARE * self.params.max_force;
+        if !self.followed {
+            force = force.cap_magnitude(carry_limit);
+        }
         if field.progress(t) < 1.0 {
             return ControlOutput::force(force);
         }
@@ -820,6 +860,10 @@ impl Calibration {
         let since = self.field_since.max(field.start + field.duration);
         self.field_back_off(s, since);
         if self.field_steady(s).is_some() {
+            let off = field.to - s.position;
+            if !self.followed && off.norm() > SEEN_MOVING {
+                return self.held(t, off.iamax(), carry_limit);
+            }
             self.initial.noise = self.noise.sigma();
             // A step adopted from the bands' slips (below) stands if the handle is caught again.
             self.initial.step = self.noise.step().max(self.initial.step);

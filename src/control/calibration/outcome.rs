@@ -160,9 +160,25 @@ pub enum CalibrationFailure {
     )]
     InitTimeout { timeout: f64 },
     #[error(
+        "the handle rests at ({:.1}, {:.1}, {:.1}) mm, {:.0} mm outside the workspace the device \
+         declares, ({:.1}, {:.1}, {:.1}) to ({:.1}, {:.1}, {:.1}) mm: nothing was pushed (bring the \
+         handle into it, or correct device.workspace_*_mm or the device's device-info report)",
+        position.x * 1e3 + 0.0, position.y * 1e3 + 0.0, position.z * 1e3 + 0.0, outside * 1e3,
+        lo.x * 1e3, lo.y * 1e3, lo.z * 1e3, hi.x * 1e3, hi.y * 1e3, hi.z * 1e3
+    )]
+    OutsideWorkspace {
+        /// Where the handle rested, m.
+        position: Vector3<f64>,
+        /// The declared box, m.
+        lo: Vector3<f64>,
+        hi: Vector3<f64>,
+        /// How far beyond the box and its slack the handle is, m.
+        outside: f64,
+    },
+    #[error(
         "initialisation: the handle did not move under {push_n:.2} N along {axis}; something holds \
          it (a hand, a cable, a support), or its friction is beyond what calibration pushes \
-         (a quarter of safety.max_force_n)"
+         (a share of safety.max_force_n: docs/calibration.md §9.2)"
     )]
     Held { axis: char, push_n: f64 },
     #[error(
