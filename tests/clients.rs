@@ -897,10 +897,23 @@ const BAD_WELCOMES: &[(&str, &str, &str)] = &[
     ("max_force_n", r#""max_force_n":8.0"#, r#""max_force_n":51"#),
 ];
 
-/// Each of [`BAD_WELCOMES`], with its field.
-fn bad_welcomes() -> impl Iterator<Item = (&'static str, String)> {
+/// Welcomes with numbers that are not finite, which Python's JSON reads (Rust's refuses them).
+const NOT_FINITE_WELCOMES: &[(&str, &str, &str)] = &[
+    ("rate_hz", r#""rate_hz":1000.0"#, r#""rate_hz":Infinity"#),
+    ("rate_hz", r#""rate_hz":1000.0"#, r#""rate_hz":1e999"#),
+    (
+        "max_force_n",
+        r#""max_force_n":8.0"#,
+        r#""max_force_n":NaN"#,
+    ),
+];
+
+/// Each welcome of `table` (as [`BAD_WELCOMES`]), with its field.
+fn bad_welcomes(
+    table: &'static [(&str, &str, &str)],
+) -> impl Iterator<Item = (&'static str, String)> {
     let welcome = observe_welcome();
-    BAD_WELCOMES.iter().map(move |(field, from, to)| {
+    table.iter().map(move |(field, from, to)| {
         assert!(welcome.contains(from), "{from}");
         (*field, welcome.replace(from, to))
     })
@@ -947,7 +960,7 @@ fn rust_protocol_error(path: &Path) -> String {
 #[test]
 fn the_rust_client_refuses_a_welcome_out_of_range() {
     let dir = tempfile::tempdir().unwrap();
-    for (field, welcome) in bad_welcomes() {
+    for (field, welcome) in bad_welcomes(BAD_WELCOMES) {
         let message = rust_protocol_error(&fake_daemon(dir.path(), &[&welcome]));
         assert!(message.contains(field), "{welcome}: {message}");
         assert!(!message.chars().any(char::is_control), "{message:?}");
@@ -994,4 +1007,101 @@ fn the_rust_client_strips_control_characters_from_what_the_daemon_says() {
         Err(ClientError::Refused(message)) => assert_eq!(message, "[2J[31mboom[0m"),
         other => panic!("{other:?}"),
     }
+}
+
+/// What the Python client's `hello()` asking for `observe` on `path` raises as ProtocolError, as
+/// it prints.
+fn python_protocol_error(path: &Path) -> String {
+    let output = python_module(
+        path,
+        "import sys, hgcd_client as h\n\
+         try:\n    print('accepted', h.connect(sys.argv[1]).hello())\n\
+         except h.ProtocolError as e:\n    print(e)",
+    );
+    assert!(output.status.success(), "{output:?}");
+    let stdout = text(&output.stdout);
+    assert_eq!(stdout.lines().count(), 1, "{stdout}");
+    stdout.trim_end().to_string()
+}
+
+#[test]
+fn the_python_client_refuses_a_welcome_out_of_range() {
+    let dir = tempfile::tempdir().unwrap();
+    for (field, welcome) in bad_welcomes(BAD_WELCOMES).chain(bad_welcomes(NOT_FINITE_WELCOMES)) {
+        let message = python_protocol_error(&fake_daemon(dir.path(), &[&welcome]));
+        assert!(
+            message.contains(&format!("'{field}'")),
+            "{welcome}: {message}"
+        );
+        assert!(!message.chars().any(char::is_control), "{message:?}");
+    }
+    // Its limits are the protocol's.
+    let output = python_module(
+        Path::new("-"),
+        "import hgcd_client as h\n\
+         print(h.MAX_RATE_HZ, h.MAX_FORCE_N, h.MAX_REPLY_LEN, h.LINE_COMPLETION_S)",
+    );
+    assert_eq!(
+        text(&output.stdout).trim_end(),
+        format!(
+            "{:?} {:?} {} {:?}",
+            protocol::MAX_RATE_HZ,
+            protocol::MAX_FORCE_N,
+            protocol::MAX_REPLY_LEN,
+            protocol::REPLY_LINE_TIME.as_secs_f64()
+        )
+    );
+}
+
+#[test]
+fn the_python_client_gives_a_reply_line_one_deadline_not_one_per_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    // The alarm ends a client that waits byte by byte (about 50 s) sooner.
+    let output = python_module(
+        &trickling_daemon(dir.path()),
+        "import signal, sys, time, hgcd_client as h\n\
+         signal.alarm(20)\n\
+         c = h.connect(sys.argv[1])\n\
+         start = time.monotonic()\n\
+         try:\n    c.hello()\n\
+         except h.ProtocolError as e:\n    print(time.monotonic() - start)\n    print(e)",
+    );
+    assert!(output.status.success(), "{output:?}");
+    let stdout = text(&output.stdout);
+    let lines: Vec<&str> = stdout.lines().collect();
+    let took: f64 = lines[0].parse().unwrap();
+    assert!(took < 5.0, "{took} s");
+    assert!(
+        lines[1].contains("within 1 s of its first byte"),
+        "{stdout}"
+    );
+}
+
+#[test]
+fn the_python_client_names_deeply_nested_json_in_one_short_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let message = python_protocol_error(&fake_daemon(dir.path(), &[&deep_json()]));
+    assert!(message.len() < 400, "{} bytes: {message}", message.len());
+    assert!(message.contains("does not understand"), "{message}");
+}
+
+#[test]
+fn the_python_client_strips_control_characters_from_what_the_daemon_says() {
+    let replies = escaping_replies();
+    let replies: Vec<&str> = replies.iter().map(String::as_str).collect();
+    let dir = tempfile::tempdir().unwrap();
+    let output = python_module(
+        &fake_daemon(dir.path(), &replies),
+        "import sys, hgcd_client as h\n\
+         with h.connect(sys.argv[1]) as c:\n    \
+         c.hello()\n    \
+         print(c.status().owner)\n    \
+         try:\n        c.newest_state(wait=5.0)\n    \
+         except h.RefusedError as e:\n        print(e)",
+    );
+    assert!(output.status.success(), "{output:?}");
+    assert_eq!(
+        text(&output.stdout),
+        "]0;pwnedmallory\nthe daemon refused: [2J[31mboom[0m\n"
+    );
 }
