@@ -21,7 +21,8 @@ use std::time::Instant;
 
 use nalgebra::Vector3;
 
-use hgcd::client::{Client, Reply, Role, StateSample};
+use hgcd::app::protocol;
+use hgcd::client::{Client, ClientError, Reply, Role, StateSample};
 use hgcd::config::Config;
 use hgcd::grid::MassGrid;
 
@@ -602,8 +603,9 @@ fn the_python_trial_holds_still_then_its_spring_balances_a_probe_mass() {
     );
 }
 
-/// A daemon that answers the hello with `replies`, then waits for the client to go.
-fn fake_daemon(dir: &Path, replies: &'static [&'static str]) -> PathBuf {
+/// A daemon at a new socket in `dir` that reads the hello, runs `serve` on the connection, then
+/// waits for the client to go.
+fn fake_daemon_serving(dir: &Path, serve: impl FnOnce(&UnixStream) + Send + 'static) -> PathBuf {
     static MADE: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let n = MADE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let path = dir.join(format!("fake-{n}.sock"));
@@ -612,12 +614,18 @@ fn fake_daemon(dir: &Path, replies: &'static [&'static str]) -> PathBuf {
         let (stream, _) = listener.accept().unwrap();
         let mut lines = BufReader::new(stream.try_clone().unwrap()).lines();
         let _hello = lines.next();
-        for reply in replies {
-            let _ = (&stream).write_all(format!("{reply}\n").as_bytes());
-        }
+        serve(&stream);
         for _ in lines {}
     });
     path
+}
+
+/// A daemon that answers the hello with `replies`, then waits for the client to go.
+fn fake_daemon(dir: &Path, replies: &[&str]) -> PathBuf {
+    let text: String = replies.iter().map(|r| format!("{r}\n")).collect();
+    fake_daemon_serving(dir, move |mut stream| {
+        let _ = stream.write_all(text.as_bytes());
+    })
 }
 
 const WELCOME: &str = r#"{"type":"welcome","version":1,"role":"control","client_id":1,"device":"sim:point-mass","device_id":"sim-point-mass","rate_hz":1000.0,"max_force_n":8.0}"#;
@@ -859,4 +867,241 @@ fn the_guide_names_only_functions_the_c_header_has() {
             "docs/app-protocol.md names {name}, hgcd.h has no such thing"
         );
     }
+}
+
+/// [`WELCOME`] granting `observe`, what a hello asking for it gets.
+fn observe_welcome() -> String {
+    WELCOME.replace(r#""role":"control""#, r#""role":"observe""#)
+}
+
+/// Welcomes out of range: the field a client must name, and what replaces its value in
+/// [`observe_welcome`].
+const BAD_WELCOMES: &[(&str, &str, &str)] = &[
+    ("version", r#""version":1"#, r#""version":2"#),
+    ("role", r#""role":"observe""#, r#""role":"control""#),
+    ("client_id", r#""client_id":1"#, r#""client_id":0"#),
+    ("device", r#""device":"sim:point-mass""#, r#""device":"""#),
+    (
+        "device",
+        r#""device":"sim:point-mass""#,
+        r#""device":"sim:\u001b[2J""#,
+    ),
+    (
+        "device_id",
+        r#""device_id":"sim-point-mass""#,
+        r#""device_id":"../etc/x""#,
+    ),
+    ("rate_hz", r#""rate_hz":1000.0"#, r#""rate_hz":0"#),
+    ("rate_hz", r#""rate_hz":1000.0"#, r#""rate_hz":1e7"#),
+    ("max_force_n", r#""max_force_n":8.0"#, r#""max_force_n":-1"#),
+    ("max_force_n", r#""max_force_n":8.0"#, r#""max_force_n":51"#),
+];
+
+/// Welcomes with numbers that are not finite, which Python's JSON reads (Rust's refuses them).
+const NOT_FINITE_WELCOMES: &[(&str, &str, &str)] = &[
+    ("rate_hz", r#""rate_hz":1000.0"#, r#""rate_hz":Infinity"#),
+    ("rate_hz", r#""rate_hz":1000.0"#, r#""rate_hz":1e999"#),
+    (
+        "max_force_n",
+        r#""max_force_n":8.0"#,
+        r#""max_force_n":NaN"#,
+    ),
+];
+
+/// Each welcome of `table` (as [`BAD_WELCOMES`]), with its field.
+fn bad_welcomes(
+    table: &'static [(&str, &str, &str)],
+) -> impl Iterator<Item = (&'static str, String)> {
+    let welcome = observe_welcome();
+    table.iter().map(move |(field, from, to)| {
+        assert!(welcome.contains(from), "{from}");
+        (*field, welcome.replace(from, to))
+    })
+}
+
+/// A daemon that answers the hello with a welcome sent a byte every 0.3 s: about 50 s in all,
+/// each byte well within 1 s of the one before.
+fn trickling_daemon(dir: &Path) -> PathBuf {
+    let welcome = observe_welcome();
+    fake_daemon_serving(dir, move |mut stream| {
+        for byte in welcome.bytes() {
+            if stream.write_all(&[byte]).is_err() {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(300));
+        }
+    })
+}
+
+/// A reply nested 50,000 deep, shorter than the longest reply.
+fn deep_json() -> String {
+    format!(r#"{{"type":"state","tick":{}"#, "[".repeat(50_000))
+}
+
+/// A welcome, a status whose owner carries a terminal escape, a refusal made of escapes.
+fn escaping_replies() -> [String; 3] {
+    [
+        observe_welcome(),
+        r#"{"type":"status","device":"sim:point-mass","device_id":"sim-point-mass","grid":null,"mode":"none","held_out_pct":null,"calibrating":false,"clients":1,"owner":"\u001b]0;pwned\u0007mallory","uptime_s":1.0,"ticks":1,"late":0,"missed":0,"overruns":0,"garbled":0,"watchdog_faults":0,"worst_compute_us":1.0,"worst_period_us":1.0,"late_wakeups":0,"worst_lateness_us":0.0}"#.into(),
+        r#"{"type":"error","message":"\u001b[2J\u001b[31mboom\u001b[0m","fatal":true}"#.into(),
+    ]
+}
+
+/// `Client::connect` asking for `observe` on `path`: the message of the protocol error it must
+/// give.
+fn rust_protocol_error(path: &Path) -> String {
+    match Client::connect(path, Role::Observe, "t") {
+        Err(ClientError::Protocol(message)) => message,
+        Err(e) => panic!("not a protocol error: {e}"),
+        Ok(c) => panic!("accepted: {} at {} Hz", c.device_id, c.rate_hz),
+    }
+}
+
+#[test]
+fn the_rust_client_refuses_a_welcome_out_of_range() {
+    let dir = tempfile::tempdir().unwrap();
+    for (field, welcome) in bad_welcomes(BAD_WELCOMES) {
+        let message = rust_protocol_error(&fake_daemon(dir.path(), &[&welcome]));
+        assert!(message.contains(field), "{welcome}: {message}");
+        assert!(!message.chars().any(char::is_control), "{message:?}");
+    }
+    // The ranges are the daemon's configurable ones.
+    let top = |key: &str| {
+        let ranges = hgcd::config::RANGES;
+        ranges.iter().find(|r| r.0 == key).unwrap().1.max
+    };
+    assert_eq!(top("servo.rate_hz"), protocol::MAX_RATE_HZ);
+    assert_eq!(top("safety.max_force_n"), protocol::MAX_FORCE_N);
+}
+
+#[test]
+fn the_rust_client_gives_a_reply_line_one_deadline_not_one_per_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let start = Instant::now();
+    let message = rust_protocol_error(&trickling_daemon(dir.path()));
+    let took = start.elapsed().as_secs_f64();
+    assert!(took < 5.0, "{took} s");
+    assert!(
+        message.contains("within 1 s of its first byte"),
+        "{message}"
+    );
+}
+
+#[test]
+fn the_rust_client_names_deeply_nested_json_in_one_short_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let message = rust_protocol_error(&fake_daemon(dir.path(), &[&deep_json()]));
+    assert!(message.len() < 400, "{} bytes: {message}", message.len());
+    assert!(message.contains("recursion limit"), "{message}");
+}
+
+#[test]
+fn the_rust_client_strips_control_characters_from_what_the_daemon_says() {
+    let replies = escaping_replies();
+    let replies: Vec<&str> = replies.iter().map(String::as_str).collect();
+    let dir = tempfile::tempdir().unwrap();
+    let path = fake_daemon(dir.path(), &replies);
+    let mut client = Client::connect(&path, Role::Observe, "t").unwrap();
+    assert_eq!(client.status().unwrap().owner.unwrap(), "]0;pwnedmallory");
+    match client.next_reply() {
+        Err(ClientError::Refused(message)) => assert_eq!(message, "[2J[31mboom[0m"),
+        other => panic!("{other:?}"),
+    }
+}
+
+/// What the Python client's `hello()` asking for `observe` on `path` raises as ProtocolError, as
+/// it prints.
+fn python_protocol_error(path: &Path) -> String {
+    let output = python_module(
+        path,
+        "import sys, hgcd_client as h\n\
+         try:\n    print('accepted', h.connect(sys.argv[1]).hello())\n\
+         except h.ProtocolError as e:\n    print(e)",
+    );
+    assert!(output.status.success(), "{output:?}");
+    let stdout = text(&output.stdout);
+    assert_eq!(stdout.lines().count(), 1, "{stdout}");
+    stdout.trim_end().to_string()
+}
+
+#[test]
+fn the_python_client_refuses_a_welcome_out_of_range() {
+    let dir = tempfile::tempdir().unwrap();
+    for (field, welcome) in bad_welcomes(BAD_WELCOMES).chain(bad_welcomes(NOT_FINITE_WELCOMES)) {
+        let message = python_protocol_error(&fake_daemon(dir.path(), &[&welcome]));
+        assert!(
+            message.contains(&format!("'{field}'")),
+            "{welcome}: {message}"
+        );
+        assert!(!message.chars().any(char::is_control), "{message:?}");
+    }
+    // Its limits are the protocol's.
+    let output = python_module(
+        Path::new("-"),
+        "import hgcd_client as h\n\
+         print(h.MAX_RATE_HZ, h.MAX_FORCE_N, h.MAX_REPLY_LEN, h.LINE_COMPLETION_S)",
+    );
+    assert_eq!(
+        text(&output.stdout).trim_end(),
+        format!(
+            "{:?} {:?} {} {:?}",
+            protocol::MAX_RATE_HZ,
+            protocol::MAX_FORCE_N,
+            protocol::MAX_REPLY_LEN,
+            protocol::REPLY_LINE_TIME.as_secs_f64()
+        )
+    );
+}
+
+#[test]
+fn the_python_client_gives_a_reply_line_one_deadline_not_one_per_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    // The alarm ends a client that waits byte by byte (about 50 s) sooner.
+    let output = python_module(
+        &trickling_daemon(dir.path()),
+        "import signal, sys, time, hgcd_client as h\n\
+         signal.alarm(20)\n\
+         c = h.connect(sys.argv[1])\n\
+         start = time.monotonic()\n\
+         try:\n    c.hello()\n\
+         except h.ProtocolError as e:\n    print(time.monotonic() - start)\n    print(e)",
+    );
+    assert!(output.status.success(), "{output:?}");
+    let stdout = text(&output.stdout);
+    let lines: Vec<&str> = stdout.lines().collect();
+    let took: f64 = lines[0].parse().unwrap();
+    assert!(took < 5.0, "{took} s");
+    assert!(
+        lines[1].contains("within 1 s of its first byte"),
+        "{stdout}"
+    );
+}
+
+#[test]
+fn the_python_client_names_deeply_nested_json_in_one_short_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let message = python_protocol_error(&fake_daemon(dir.path(), &[&deep_json()]));
+    assert!(message.len() < 400, "{} bytes: {message}", message.len());
+    assert!(message.contains("does not understand"), "{message}");
+}
+
+#[test]
+fn the_python_client_strips_control_characters_from_what_the_daemon_says() {
+    let replies = escaping_replies();
+    let replies: Vec<&str> = replies.iter().map(String::as_str).collect();
+    let dir = tempfile::tempdir().unwrap();
+    let output = python_module(
+        &fake_daemon(dir.path(), &replies),
+        "import sys, hgcd_client as h\n\
+         with h.connect(sys.argv[1]) as c:\n    \
+         c.hello()\n    \
+         print(c.status().owner)\n    \
+         try:\n        c.newest_state(wait=5.0)\n    \
+         except h.RefusedError as e:\n        print(e)",
+    );
+    assert!(output.status.success(), "{output:?}");
+    assert_eq!(
+        text(&output.stdout),
+        "]0;pwnedmallory\nthe daemon refused: [2J[31mboom[0m\n"
+    );
 }

@@ -33,8 +33,10 @@ import enum
 import json
 import math
 import os
+import re
 import select
 import socket
+import sys
 import time
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -55,8 +57,17 @@ DEFAULT_RUNTIME_DIR = "/run/hgcd"
 DEFAULT_MAX_FORCE_N = 8.0
 #: Longest reply line accepted, bytes.
 MAX_REPLY_LEN = 64 * 1024
-#: How long a reply that has begun to arrive may take to end, s.
+#: How long a reply may take from its first byte to its end, s (the daemon writes it at once).
 LINE_COMPLETION_S = 1.0
+#: How long hello() waits for the welcome, s.
+WELCOME_WAIT_S = 5.0
+#: The largest welcome rate_hz accepted, Hz (the top of the daemon's servo.rate_hz range).
+MAX_RATE_HZ = 10_000.0
+#: The largest welcome max_force_n accepted, N (the top of the daemon's safety.max_force_n range).
+MAX_FORCE_N = 50.0
+#: The longest welcome device (a spec) and device_id accepted, characters.
+MAX_DEVICE_LEN = 4096
+MAX_DEVICE_ID_LEN = 255
 
 # State flags (docs/hid-protocol.md section 4).
 FLAG_MOTORS_ENABLED = 0x1
@@ -160,32 +171,84 @@ class Status:
     worst_lateness_us: float
 
 
-def _field(reply: Dict[str, Any], name: str, kind: Any) -> Any:
+def _shown(value: Any) -> str:
+    """`value` for a message: its repr (control characters escaped), at most 200 characters."""
+    text = repr(value)
+    return text if len(text) <= 200 else text[:200] + "..."
+
+
+def _printable(text: str) -> str:
+    """`text` without control characters (terminal escapes among them)."""
+    return "".join(c for c in text if not (ord(c) < 0x20 or 0x7F <= ord(c) < 0xA0))
+
+
+#: What a value of each kind of field must be: integers unsigned 64-bit, numbers finite.
+_KINDS = {
+    bool: lambda v: isinstance(v, bool),
+    str: lambda v: isinstance(v, str),
+    int: lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**64,
+    float: lambda v: (isinstance(v, (int, float)) and not isinstance(v, bool)
+                      and abs(v) <= sys.float_info.max),
+}
+_MISSING = object()
+
+
+def _field(reply: Dict[str, Any], name: str, kind: Any, default: Any = _MISSING) -> Any:
+    """`reply[name]`, a `kind` (`default` when absent, if given); a float for a number."""
+    if default is not _MISSING and name not in reply:
+        return default
     value = reply.get(name)
-    if kind is float and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
-    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
-        raise ProtocolError(
-            f"the daemon's {reply.get('type')} has no valid {name!r}: {value!r}"
-        )
+    if not _KINDS[kind](value):
+        raise ProtocolError(f"the daemon's {reply['type']} has no valid {name!r}: {_shown(value)}")
+    return float(value) if kind is float else value
+
+
+def _ranged(reply: Dict[str, Any], name: str, kind: Any, valid: Any, rule: str,
+            default: Any = _MISSING) -> Any:
+    """`reply[name]` as _field gives it, if `valid` holds for it, else a ProtocolError saying
+    the `rule`."""
+    value = _field(reply, name, kind, default)
+    if not valid(value):
+        raise ProtocolError(f"the daemon's {reply['type']} has {name!r} {_shown(value)}: {rule}")
     return value
 
 
 def _optional(reply: Dict[str, Any], name: str) -> Optional[str]:
     value = reply.get(name)
     if value is not None and not isinstance(value, str):
-        raise ProtocolError(f"the daemon's {reply.get('type')} has no valid {name!r}: {value!r}")
-    return value
+        raise ProtocolError(f"the daemon's {reply['type']} has no valid {name!r}: {_shown(value)}")
+    return None if value is None else _printable(value)
 
 
 def _vector(reply: Dict[str, Any], name: str) -> Vector:
     value = reply.get(name)
-    if not (isinstance(value, list) and len(value) == 3
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
-        raise ProtocolError(
-            f"the daemon's {reply.get('type')} has no valid {name!r}: {value!r}"
-        )
+    if not (isinstance(value, list) and len(value) == 3 and all(map(_KINDS[float], value))):
+        raise ProtocolError(f"the daemon's {reply['type']} has no valid {name!r}: {_shown(value)}")
     return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def _welcome(reply: Dict[str, Any], asked: Role) -> Welcome:
+    """The welcome `reply` to a hello asking for `asked`, each field in its range
+    (docs/app-protocol.md section 5)."""
+    _ranged(reply, "version", int, lambda v: v == PROTOCOL_VERSION,
+            f"this client speaks {PROTOCOL_VERSION}")
+    role = _ranged(reply, "role", str, lambda v: v in (asked.value, Role.OBSERVE.value),
+                   f"granted to a hello asking for {asked.value}")
+    return Welcome(
+        role=Role(role),
+        client_id=_ranged(reply, "client_id", int, lambda v: v >= 1, "ids start at 1"),
+        device=_ranged(reply, "device", str,
+                       lambda v: 0 < len(v) <= MAX_DEVICE_LEN and v == _printable(v),
+                       f"a spec has 1 to {MAX_DEVICE_LEN} characters, none a control character"),
+        device_id=_ranged(reply, "device_id", str,
+                          re.compile(f"[A-Za-z0-9_-]{{1,{MAX_DEVICE_ID_LEN}}}").fullmatch,
+                          f"an id has 1 to {MAX_DEVICE_ID_LEN} ASCII letters, digits, '-' and '_'"),
+        rate_hz=_ranged(reply, "rate_hz", float, lambda v: 0 < v <= MAX_RATE_HZ,
+                        f"the servo rate is above 0 and at most {MAX_RATE_HZ:g} Hz"),
+        max_force_n=_ranged(reply, "max_force_n", float, lambda v: 0 < v <= MAX_FORCE_N,
+                            f"the limit is above 0 and at most {MAX_FORCE_N:g} N",
+                            DEFAULT_MAX_FORCE_N),
+    )
 
 
 def _state(reply: Dict[str, Any]) -> State:
@@ -204,10 +267,10 @@ def _status(reply: Dict[str, Any]) -> Status:
     try:
         mode = Mode(reply.get("mode"))
     except ValueError:
-        raise ProtocolError(f"the daemon's status has an unknown mode: {reply.get('mode')!r}")
+        raise ProtocolError(f"the daemon's status has an unknown mode: {_shown(reply.get('mode'))}")
     return Status(
-        device=_field(reply, "device", str),
-        device_id=_field(reply, "device_id", str),
+        device=_printable(_field(reply, "device", str)),
+        device_id=_printable(_field(reply, "device_id", str)),
         grid=_optional(reply, "grid"),
         mode=mode,
         calibrating=_field(reply, "calibrating", bool),
@@ -218,8 +281,8 @@ def _status(reply: Dict[str, Any]) -> Status:
             "ticks", "late", "missed", "overruns", "garbled", "watchdog_faults")},
         worst_compute_us=_field(reply, "worst_compute_us", float),
         worst_period_us=_field(reply, "worst_period_us", float),
-        late_wakeups=int(reply.get("late_wakeups", 0)),
-        worst_lateness_us=float(reply.get("worst_lateness_us", 0.0)),
+        late_wakeups=_field(reply, "late_wakeups", int, 0),
+        worst_lateness_us=_field(reply, "worst_lateness_us", float, 0.0),
     )
 
 
@@ -229,6 +292,7 @@ class Client:
     def __init__(self, sock: socket.socket) -> None:
         self._sock = sock
         self._buf = bytearray()
+        self._began = 0.0  # when the first byte in _buf arrived (monotonic s)
         self._seq = 0
         self._pending: Optional[State] = None
         self.welcome: Optional[Welcome] = None
@@ -254,24 +318,12 @@ class Client:
                              "connection, connect again to change it")
         self._send({"type": "hello", "version": PROTOCOL_VERSION, "role": Role(role).value,
                     "name": name})
-        reply = self._reply(time.monotonic() + 5.0)
+        reply = self._reply(time.monotonic() + WELCOME_WAIT_S)
         if reply is None:
-            raise ProtocolError("no welcome from the daemon within 5 s")
+            raise ProtocolError(f"no welcome from the daemon within {WELCOME_WAIT_S:g} s")
         if reply["type"] != "welcome":
-            raise ProtocolError(f"expected a welcome, got: {reply}")
-        try:
-            role = Role(reply.get("role"))
-        except ValueError:
-            raise ProtocolError(f"the daemon's welcome has an unknown role: {reply.get('role')!r}")
-        self.welcome = Welcome(
-            role=role,
-            client_id=_field(reply, "client_id", int),
-            device=_field(reply, "device", str),
-            device_id=_field(reply, "device_id", str),
-            rate_hz=_field(reply, "rate_hz", float),
-            max_force_n=(_field(reply, "max_force_n", float) if "max_force_n" in reply
-                         else DEFAULT_MAX_FORCE_N),
-        )
+            raise ProtocolError(f"expected a welcome, got: {_shown(reply)}")
+        self.welcome = _welcome(reply, Role(role))
         return self.welcome
 
     def take_ownership(self, name: str = "") -> Welcome:
@@ -367,14 +419,14 @@ class Client:
             return None
         try:
             reply = json.loads(line.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
+        except (ValueError, RecursionError):  # UnicodeDecodeError is a ValueError
             raise ProtocolError(
                 f"the daemon sent something this client does not understand: {bytes(line)[:200]!r}"
             ) from None
         if not (isinstance(reply, dict) and isinstance(reply.get("type"), str)):
             raise ProtocolError(f"the daemon sent a reply without a type: {bytes(line)[:200]!r}")
         if reply["type"] == "error" and reply.get("fatal") is True:
-            raise RefusedError(f"the daemon refused: {reply.get('message')}")
+            raise RefusedError(f"the daemon refused: {_printable(str(reply.get('message')))}")
         return reply
 
     def _line(self, deadline: float) -> Optional[bytes]:
@@ -386,13 +438,13 @@ class Client:
                 return line
             if len(self._buf) > MAX_REPLY_LEN:
                 raise ProtocolError(f"the daemon sent a line longer than {MAX_REPLY_LEN} bytes")
-            now = time.monotonic()
-            if self._buf:  # a reply has begun: read it to its end
-                deadline = max(deadline, now + LINE_COMPLETION_S)
-            if not self._readable(max(0.0, deadline - now)):
+            if self._buf:  # a reply has begun: read it to its end, however its bytes trickle in
+                deadline = self._began + LINE_COMPLETION_S
+            if not self._readable(max(0.0, deadline - time.monotonic())):
                 if self._buf:
                     raise ProtocolError(
-                        f"the daemon stopped in the middle of a line: {bytes(self._buf)[:200]!r}")
+                        f"the daemon did not end a line within {LINE_COMPLETION_S:g} s of its "
+                        f"first byte: {bytes(self._buf)[:200]!r}")
                 return None
             try:
                 chunk = self._sock.recv(65536)
@@ -404,6 +456,8 @@ class Client:
                 if self._buf:
                     raise ClosedError("the daemon closed the connection in the middle of a line")
                 raise ClosedError("the daemon closed the connection")
+            if not self._buf or b"\n" in chunk:  # the line left unfinished begins in this chunk
+                self._began = time.monotonic()
             self._buf += chunk
 
     def _readable(self, timeout: float) -> bool:

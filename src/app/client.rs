@@ -2,16 +2,20 @@
 //! Z_E, read the device state, ask for status or a calibration. Blocking, one connection per
 //! `Client`; see `examples/virtual_wall.rs`, and `examples/two_handles.rs` for two daemons.
 
-use std::io::{BufRead, BufReader, Write};
+use std::collections::VecDeque;
+use std::io::{ErrorKind, Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::Path;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 
 use super::endpoint::{self, FindError};
 pub use super::protocol::{CalibrationStage, Compensating, Reply, Role, StateSample, Status};
-use super::protocol::{Request, APP_PROTOCOL_VERSION, MAX_LINE_LEN};
+use super::protocol::{
+    Request, APP_PROTOCOL_VERSION, MAX_DEVICE_ID_LEN, MAX_DEVICE_LEN, MAX_FORCE_N, MAX_RATE_HZ,
+    MAX_REPLY_LEN, REPLY_LINE_TIME,
+};
 use crate::sys::wait_readable;
 
 #[derive(Debug, thiserror::Error)]
@@ -32,7 +36,12 @@ pub enum ClientError {
     Protocol(String),
     #[error("the daemon refused: {0}")]
     Refused(String),
+    #[error("no welcome from the daemon within {} s", WELCOME_WAIT.as_secs())]
+    NoWelcome,
 }
+
+/// How long [`Client::hello`] waits for the welcome to begin.
+pub const WELCOME_WAIT: Duration = Duration::from_secs(5);
 
 /// What to do when connecting to the socket failed with `e`.
 fn connect_hint(e: &std::io::Error) -> &'static str {
@@ -50,8 +59,13 @@ fn connect_hint(e: &std::io::Error) -> &'static str {
 
 /// One connection to the daemon.
 pub struct Client {
-    writer: UnixStream,
-    reader: BufReader<UnixStream>,
+    stream: UnixStream,
+    /// Reply lines read, without their newlines, not yet returned.
+    lines: VecDeque<Vec<u8>>,
+    /// The bytes read after the last newline: the start of the next reply line.
+    partial: Vec<u8>,
+    /// When the first byte of `partial` arrived.
+    began: Instant,
     seq: u64,
     /// Role granted by the daemon.
     pub role: Role,
@@ -69,8 +83,7 @@ impl Client {
     /// [`Client::hello`]. The granted role may be `Observe` when another client already owns the
     /// force.
     ///
-    /// Errors: [`ClientError::Connect`] when nobody listens there, `Refused` when the daemon
-    /// refuses the hello, `Closed`, `Io` or `Protocol` when the conversation breaks.
+    /// Errors: [`ClientError::Connect`] when nobody listens there, then as [`Client::hello`].
     pub fn connect(path: &Path, role: Role, name: &str) -> Result<Self, ClientError> {
         let mut client = Self::open(path)?;
         client.hello(role, name)?;
@@ -90,18 +103,18 @@ impl Client {
     /// Connect to the socket at `path` without saying hello: the daemon refuses every request
     /// but [`Client::hello`], which must follow within `app.hello_timeout_ms`.
     ///
-    /// Errors: [`ClientError::Connect`] when nobody listens there, `Io` when the socket cannot
-    /// be shared between reader and writer.
+    /// Errors: [`ClientError::Connect`] when nobody listens there.
     pub fn open(path: &Path) -> Result<Self, ClientError> {
         let stream = UnixStream::connect(path).map_err(|source| ClientError::Connect {
             path: path.display().to_string(),
             hint: connect_hint(&source),
             source,
         })?;
-        let writer = stream.try_clone()?;
         Ok(Self {
-            writer,
-            reader: BufReader::new(stream),
+            stream,
+            lines: VecDeque::new(),
+            partial: Vec::new(),
+            began: Instant::now(),
             seq: 0,
             role: Role::Observe,
             client_id: 0,
@@ -113,45 +126,91 @@ impl Client {
     }
 
     /// Say hello asking for `role` (once, first, on a connection from [`Client::open`]) and
-    /// fill in `role` (check it), `client_id`, `device`, `device_id`, `rate_hz` and `max_force` from the
-    /// welcome.
+    /// fill in `role` (check it), `client_id`, `device`, `device_id`, `rate_hz` and `max_force`
+    /// from the welcome.
     ///
-    /// Errors: `Refused` when the daemon refuses the hello (a second one included), `Closed`,
-    /// `Io` or `Protocol` when the conversation breaks.
+    /// Errors: `Refused` when the daemon refuses the hello (a second one included), `NoWelcome`
+    /// when none begins within [`WELCOME_WAIT`], `Protocol` for a welcome with a field out of
+    /// its range (docs/app-protocol.md §5), `Closed` or `Io` when the conversation breaks.
     pub fn hello(&mut self, role: Role, name: &str) -> Result<(), ClientError> {
         self.send(&Request::Hello {
             version: APP_PROTOCOL_VERSION,
             role,
             name: name.to_string(),
         })?;
-        match self.next_reply()? {
-            Reply::Welcome {
-                role,
-                client_id,
-                device,
-                device_id,
-                rate_hz,
-                max_force_n,
-                ..
-            } => {
-                self.role = role;
-                self.client_id = client_id;
-                self.device = device;
-                self.device_id = device_id;
-                self.rate_hz = rate_hz;
-                self.max_force = max_force_n;
-                Ok(())
-            }
-            other => Err(ClientError::Protocol(format!(
-                "expected welcome, got {other:?}"
-            ))),
+        let welcome = self
+            .next_reply_within(WELCOME_WAIT)?
+            .ok_or(ClientError::NoWelcome)?;
+        let Reply::Welcome {
+            version,
+            role: granted,
+            client_id,
+            device,
+            device_id,
+            rate_hz,
+            max_force_n,
+        } = welcome
+        else {
+            return Err(ClientError::Protocol(format!(
+                "expected welcome, got {}",
+                shown(&format!("{welcome:?}"))
+            )));
+        };
+        let problem = if version != APP_PROTOCOL_VERSION {
+            Some(format!(
+                "version {version}: this client speaks {APP_PROTOCOL_VERSION}"
+            ))
+        } else if !(granted == role || granted == Role::Observe) {
+            Some(format!(
+                "role {granted:?} granted to a hello asking for {role:?}"
+            ))
+        } else if client_id == 0 {
+            Some("client_id 0: ids start at 1".into())
+        } else if !(1..=MAX_DEVICE_LEN).contains(&device.chars().count())
+            || device.chars().any(char::is_control)
+        {
+            Some(format!(
+                "device {:?}: a spec has 1 to {MAX_DEVICE_LEN} characters, none a control \
+                 character",
+                shown(&device)
+            ))
+        } else if !(1..=MAX_DEVICE_ID_LEN).contains(&device_id.len())
+            || !device_id
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+        {
+            Some(format!(
+                "device_id {:?}: an id has 1 to {MAX_DEVICE_ID_LEN} ASCII letters, digits, '-' \
+                 and '_'",
+                shown(&device_id)
+            ))
+        } else if !(rate_hz > 0.0 && rate_hz <= MAX_RATE_HZ) {
+            Some(format!(
+                "rate_hz {rate_hz}: the servo rate is above 0 and at most {MAX_RATE_HZ} Hz"
+            ))
+        } else if !(max_force_n > 0.0 && max_force_n <= MAX_FORCE_N) {
+            Some(format!(
+                "max_force_n {max_force_n}: the limit is above 0 and at most {MAX_FORCE_N} N"
+            ))
+        } else {
+            None
+        };
+        if let Some(problem) = problem {
+            return Err(ClientError::Protocol(format!("a welcome with {problem}")));
         }
+        self.role = granted;
+        self.client_id = client_id;
+        self.device = device;
+        self.device_id = device_id;
+        self.rate_hz = rate_hz;
+        self.max_force = max_force_n;
+        Ok(())
     }
 
     fn send(&mut self, request: &Request) -> Result<(), ClientError> {
         let mut line = serde_json::to_string(request).expect("requests always serialise");
         line.push('\n');
-        self.writer.write_all(line.as_bytes())?;
+        (&self.stream).write_all(line.as_bytes())?;
         Ok(())
     }
 
@@ -208,30 +267,99 @@ impl Client {
         self.send(&Request::Status {})
     }
 
-    /// Limit how long the next reads may block (None: forever).
+    /// Limit how long the next reads may block waiting for a reply to begin (None: forever).
     ///
     /// Errors: [`ClientError::Io`] for a zero duration (as `std` refuses it).
     pub fn set_read_timeout(&mut self, timeout: Option<Duration>) -> Result<(), ClientError> {
-        self.reader.get_ref().set_read_timeout(timeout)?;
+        self.stream.set_read_timeout(timeout)?;
         Ok(())
     }
 
-    /// The next reply of any kind. A fatal error from the daemon is returned as `Refused`.
+    /// The next reply of any kind, control characters (terminal escapes among them) removed
+    /// from its text. A fatal error from the daemon is returned as `Refused`.
+    ///
+    /// Errors: `Protocol` for a line that is not a reply (not UTF-8, not protocol JSON, longer
+    /// than [`MAX_REPLY_LEN`], or not ended within [`REPLY_LINE_TIME`] of its first byte),
+    /// `Closed`, or `Io` (a read timeout is one of kind `WouldBlock`/`TimedOut`).
     pub fn next_reply(&mut self) -> Result<Reply, ClientError> {
-        let mut line = String::new();
-        let n =
-            std::io::Read::take(&mut self.reader, 64 * MAX_LINE_LEN as u64).read_line(&mut line)?;
-        if n == 0 {
-            return Err(ClientError::Closed);
+        let line = self.next_line()?;
+        let line = std::str::from_utf8(&line).map_err(|_| {
+            ClientError::Protocol(format!(
+                "a line that is not UTF-8: {}",
+                shown(&String::from_utf8_lossy(&line))
+            ))
+        })?;
+        let mut reply: Reply = serde_json::from_str(line)
+            .map_err(|e| ClientError::Protocol(format!("{e}: {}", shown(line))))?;
+        let texts: Vec<&mut String> = match &mut reply {
+            Reply::Error { message, .. } | Reply::Calibration { message, .. } => vec![message],
+            Reply::Status(s) => [&mut s.device, &mut s.device_id]
+                .into_iter()
+                .chain(s.grid.as_mut())
+                .chain(s.owner.as_mut())
+                .collect(),
+            Reply::Welcome { .. } | Reply::State(_) => Vec::new(),
+        };
+        for text in texts {
+            text.retain(|c| !c.is_control());
         }
-        let reply: Reply = serde_json::from_str(line.trim_end())
-            .map_err(|e| ClientError::Protocol(format!("{e}: {}", line.trim_end())))?;
         match reply {
             Reply::Error {
                 message,
                 fatal: true,
             } => Err(ClientError::Refused(message)),
             other => Ok(other),
+        }
+    }
+
+    /// The next reply line, without its newline. The wait for it to begin is the read timeout's;
+    /// once begun it must end within [`REPLY_LINE_TIME`] of its first byte.
+    fn next_line(&mut self) -> Result<Vec<u8>, ClientError> {
+        let mut chunk = [0; 8192];
+        loop {
+            if let Some(line) = self.lines.pop_front() {
+                return Ok(line);
+            }
+            if !self.partial.is_empty() {
+                let left = (self.began + REPLY_LINE_TIME).saturating_duration_since(Instant::now());
+                if !wait_readable(&self.stream, left)? {
+                    if left.is_zero() {
+                        return Err(ClientError::Protocol(format!(
+                            "a line not ended within {} s of its first byte: {}",
+                            REPLY_LINE_TIME.as_secs_f64(),
+                            shown(&String::from_utf8_lossy(&self.partial))
+                        )));
+                    }
+                    continue; // interrupted
+                }
+            }
+            let n = match (&self.stream).read(&mut chunk) {
+                Ok(0) => return Err(ClientError::Closed),
+                Ok(n) => n,
+                Err(e) if e.kind() == ErrorKind::Interrupted => continue,
+                Err(e) => return Err(e.into()),
+            };
+            let mut rest = &chunk[..n];
+            if self.partial.is_empty() || rest.contains(&b'\n') {
+                self.began = Instant::now();
+            }
+            while let Some(end) = rest.iter().position(|&b| b == b'\n') {
+                let mut line = std::mem::take(&mut self.partial);
+                line.extend_from_slice(&rest[..end]);
+                self.lines.push_back(line);
+                rest = &rest[end + 1..];
+            }
+            self.partial.extend_from_slice(rest);
+            if self
+                .lines
+                .iter()
+                .chain([&self.partial])
+                .any(|l| l.len() > MAX_REPLY_LEN)
+            {
+                return Err(ClientError::Protocol(format!(
+                    "a line longer than {MAX_REPLY_LEN} bytes"
+                )));
+            }
         }
     }
 
@@ -242,8 +370,15 @@ impl Client {
     ///
     /// Errors: as [`Client::next_reply`].
     pub fn next_reply_within(&mut self, timeout: Duration) -> Result<Option<Reply>, ClientError> {
-        if self.reader.buffer().is_empty() && !wait_readable(self.reader.get_ref(), timeout)? {
-            return Ok(None);
+        let deadline = Instant::now() + timeout;
+        while self.lines.is_empty() && self.partial.is_empty() {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if wait_readable(&self.stream, left)? {
+                break;
+            }
+            if left.is_zero() {
+                return Ok(None);
+            }
         }
         self.next_reply().map(Some)
     }
@@ -260,8 +395,7 @@ impl Client {
 
     /// Ask for and wait for the daemon's status (state samples in between are skipped).
     ///
-    /// Errors: [`ClientError::Refused`] for a refusal, `Closed`, `Io` or `Protocol` when the
-    /// conversation breaks (a read timeout is an `Io` error of kind `WouldBlock`/`TimedOut`).
+    /// Errors: [`ClientError::Refused`] for a refusal, else as [`Client::next_reply`].
     pub fn status(&mut self) -> Result<Status, ClientError> {
         self.request_status()?;
         loop {
@@ -270,4 +404,14 @@ impl Client {
             }
         }
     }
+}
+
+/// Daemon text fit for a message: control characters removed, at most 200 characters.
+fn shown(text: &str) -> String {
+    let mut chars = text.chars().filter(|c| !c.is_control());
+    let mut shown: String = chars.by_ref().take(200).collect();
+    if chars.next().is_some() {
+        shown.push('…');
+    }
+    shown
 }

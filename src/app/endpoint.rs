@@ -6,7 +6,6 @@
 //! `app.socket`) bypasses all of this on both sides.
 
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 use thiserror::Error;
 
@@ -14,9 +13,6 @@ use super::client::{Client, ClientError, Role};
 
 /// The runtime directory when `$RUNTIME_DIRECTORY` is not set (the shipped unit sets it to it).
 pub const DEFAULT_RUNTIME_DIR: &str = "/run/hgcd";
-
-/// How long a daemon being looked up may take to answer its hello.
-const HELLO_WAIT: Duration = Duration::from_secs(10);
 
 /// The directory daemons' sockets live in: the first entry of `$RUNTIME_DIRECTORY` (systemd),
 /// else [`DEFAULT_RUNTIME_DIR`].
@@ -117,7 +113,8 @@ fn list(instances: &[Instance]) -> String {
 /// that was killed) are skipped.
 ///
 /// Errors: [`FindError::List`] when `dir` cannot be read (a missing `dir` lists nothing), `Ask`
-/// when a live socket cannot be asked (permission denied, no welcome within 10 s).
+/// when a live socket cannot be asked (permission denied, no welcome within
+/// [`WELCOME_WAIT`](super::client::WELCOME_WAIT)).
 pub fn running(dir: &Path) -> Result<Vec<Instance>, FindError> {
     let entries = match std::fs::read_dir(dir) {
         Ok(entries) => entries,
@@ -136,11 +133,7 @@ pub fn running(dir: &Path) -> Result<Vec<Instance>, FindError> {
     sockets.sort();
     let mut found = Vec::new();
     for socket in sockets {
-        let welcome = Client::open(&socket).and_then(|mut client| {
-            client.set_read_timeout(Some(HELLO_WAIT))?;
-            client.hello(Role::Observe, "hgcd lookup")?;
-            Ok(client)
-        });
+        let welcome = Client::connect(&socket, Role::Observe, "hgcd lookup");
         match welcome {
             Ok(client) => found.push(Instance {
                 socket,

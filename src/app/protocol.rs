@@ -2,6 +2,8 @@
 //! stream socket. Every request and reply is one JSON object on one line, with a `type` field.
 //! Units are SI: metres, newtons, seconds.
 
+use std::time::Duration;
+
 use serde::{Deserialize, Serialize};
 
 use crate::config::CompensationMode;
@@ -12,6 +14,20 @@ use crate::servo::StatsSnapshot;
 pub const APP_PROTOCOL_VERSION: u32 = 1;
 /// Longest request line accepted, bytes (newline excluded). Longer lines close the client.
 pub const MAX_LINE_LEN: usize = 1024;
+/// Longest reply line a client reads, bytes (newline excluded).
+pub const MAX_REPLY_LEN: usize = 64 * 1024;
+/// How long a client gives a reply line from its first byte to its newline: the daemon writes a
+/// line at once, so one trickling in is cut off rather than waited for byte by byte.
+pub const REPLY_LINE_TIME: Duration = Duration::from_secs(1);
+/// The largest `welcome.rate_hz` a client accepts, Hz (the top of `servo.rate_hz`'s range).
+pub const MAX_RATE_HZ: f64 = 10_000.0;
+/// The largest `welcome.max_force_n` a client accepts, N (the top of `safety.max_force_n`'s
+/// range).
+pub const MAX_FORCE_N: f64 = 50.0;
+/// The longest `welcome.device` a client accepts, characters (a `socket:PATH` spec holds a path).
+pub const MAX_DEVICE_LEN: usize = 4096;
+/// The longest `welcome.device_id` a client accepts, characters (it names files).
+pub const MAX_DEVICE_ID_LEN: usize = 255;
 
 /// What a client asks to be.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -87,7 +87,7 @@ typedef enum {
   HGCD_ERR_STATE = -8,
   // Another thread is inside a call on this handle (see the threads rule in `hgcd.h`).
   HGCD_ERR_BUSY = -9,
-  // `hgcd_status`: no status reply within the wait.
+  // `hgcd_status`: no status reply within the wait; `hgcd_hello`: no welcome within 5 s.
   HGCD_ERR_TIMEOUT = -10,
   // An internal error in this library (a bug: please report `hgcd_last_error()`).
   HGCD_ERR_PANIC = -11,
@@ -199,7 +199,8 @@ hgcd_result hgcd_connect_device(const char *device, hgcd_client **out);
 // observe: check `welcome->role`, or use `hgcd_take_ownership`.
 //
 // Returns `HGCD_OK`, `HGCD_ERR_STATE` (hello already said), `HGCD_ERR_REFUSED`,
-// `HGCD_ERR_CLOSED`, `HGCD_ERR_PROTOCOL`, `HGCD_ERR_IO`, `HGCD_ERR_ARGUMENT`, `HGCD_ERR_BUSY`.
+// `HGCD_ERR_TIMEOUT` (no welcome within 5 s), `HGCD_ERR_CLOSED`, `HGCD_ERR_PROTOCOL` (a
+// welcome out of its ranges among others), `HGCD_ERR_IO`, `HGCD_ERR_ARGUMENT`, `HGCD_ERR_BUSY`.
 //
 // # Safety
 //

@@ -59,7 +59,7 @@ pub enum hgcd_result {
     HGCD_ERR_STATE = -8,
     /// Another thread is inside a call on this handle (see the threads rule in `hgcd.h`).
     HGCD_ERR_BUSY = -9,
-    /// `hgcd_status`: no status reply within the wait.
+    /// `hgcd_status`: no status reply within the wait; `hgcd_hello`: no welcome within 5 s.
     HGCD_ERR_TIMEOUT = -10,
     /// An internal error in this library (a bug: please report `hgcd_last_error()`).
     HGCD_ERR_PANIC = -11,
@@ -220,6 +220,7 @@ impl From<ClientError> for Failure {
             ClientError::Io(_) => HGCD_ERR_IO,
             ClientError::Protocol(_) => HGCD_ERR_PROTOCOL,
             ClientError::Refused(_) => HGCD_ERR_REFUSED,
+            ClientError::NoWelcome => HGCD_ERR_TIMEOUT,
         };
         fail(code, e.to_string())
     }
@@ -341,9 +342,8 @@ impl Session {
         }
         self.client.hello(role, name.unwrap_or(""))?;
         self.greeted = true;
-        let text = |s: &str| CString::new(s.replace('\0', " ")).unwrap_or_default();
-        self.device = text(&self.client.device);
-        self.device_id = text(&self.client.device_id);
+        self.device = c_text(&self.client.device);
+        self.device_id = c_text(&self.client.device_id);
         // SAFETY: `out` is NULL or points to a welcome the caller owns.
         if let Some(out) = unsafe { out.as_mut() } {
             *out = hgcd_welcome {
@@ -356,6 +356,11 @@ impl Session {
         }
         Ok(())
     }
+}
+
+/// Text from the client as C: it has no control characters, NUL among them.
+fn c_text(text: &str) -> CString {
+    CString::new(text).unwrap_or_default()
 }
 
 fn role_code(role: Role) -> c_int {
@@ -483,7 +488,8 @@ unsafe fn open(path: &Path, out: *mut *mut hgcd_client) -> Result<hgcd_result, F
 /// observe: check `welcome->role`, or use `hgcd_take_ownership`.
 ///
 /// Returns `HGCD_OK`, `HGCD_ERR_STATE` (hello already said), `HGCD_ERR_REFUSED`,
-/// `HGCD_ERR_CLOSED`, `HGCD_ERR_PROTOCOL`, `HGCD_ERR_IO`, `HGCD_ERR_ARGUMENT`, `HGCD_ERR_BUSY`.
+/// `HGCD_ERR_TIMEOUT` (no welcome within 5 s), `HGCD_ERR_CLOSED`, `HGCD_ERR_PROTOCOL` (a
+/// welcome out of its ranges among others), `HGCD_ERR_IO`, `HGCD_ERR_ARGUMENT`, `HGCD_ERR_BUSY`.
 ///
 /// # Safety
 ///
@@ -707,11 +713,10 @@ pub unsafe extern "C" fn hgcd_status(
 impl Session {
     /// `status` for C, its strings kept in the session until the next status.
     fn keep_status(&mut self, status: Status) -> hgcd_daemon_status {
-        let text = |s: &str| CString::new(s.replace('\0', " ")).unwrap_or_default();
-        self.status_strings = vec![text(&status.device), text(&status.device_id)];
+        self.status_strings = vec![c_text(&status.device), c_text(&status.device_id)];
         let mut optional = |s: &Option<String>| match s {
             Some(s) => {
-                self.status_strings.push(text(s));
+                self.status_strings.push(c_text(s));
                 self.status_strings
                     .last()
                     .map_or(ptr::null(), |c| c.as_ptr())
@@ -780,6 +785,9 @@ pub extern "C" fn hgcd_last_error() -> *const c_char {
 mod tests {
     use super::*;
     use hgcd::protocol::Status as Flags;
+    use std::io::{BufRead, BufReader, Lines, Write};
+    use std::os::unix::net::{UnixListener, UnixStream};
+    use std::thread::JoinHandle;
 
     fn last_error() -> String {
         // SAFETY: hgcd_last_error returns a NUL-terminated string owned by this thread.
@@ -837,33 +845,57 @@ mod tests {
         );
     }
 
-    #[test]
-    fn requests_before_hello_and_a_second_hello_are_refused_here() {
-        let dir = std::env::temp_dir().join(format!("hgcd-c-test-{}", std::process::id()));
+    const WELCOME: &str =
+        "{\"type\":\"welcome\",\"version\":1,\"role\":\"observe\",\"client_id\":3,\
+        \"device\":\"sim:point-mass\",\"device_id\":\"sim-point-mass\",\"rate_hz\":1000.0,\
+        \"max_force_n\":8.0}";
+
+    /// A fake daemon at a socket of its own, named after `test`, that runs `serve` on the one
+    /// connection it accepts: its socket as a C string, its directory (for the caller to
+    /// remove), its thread.
+    fn fake_daemon(
+        test: &str,
+        serve: impl FnOnce(UnixStream) + Send + 'static,
+    ) -> (CString, PathBuf, JoinHandle<()>) {
+        let dir = std::env::temp_dir().join(format!("hgcd-c-{test}-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("fake.sock");
         let _ = std::fs::remove_file(&path);
-        let listener = std::os::unix::net::UnixListener::bind(&path).unwrap();
-        let server = std::thread::spawn(move || {
-            use std::io::{BufRead, BufReader, Write};
-            let (stream, _) = listener.accept().unwrap();
-            let mut lines = BufReader::new(stream.try_clone().unwrap()).lines();
-            let hello = lines.next().unwrap().unwrap();
-            assert!(hello.contains(r#""type":"hello""#), "{hello}");
-            (&stream)
-                .write_all(
-                    b"{\"type\":\"welcome\",\"version\":1,\"role\":\"observe\",\"client_id\":3,\
-                      \"device\":\"sim:point-mass\",\"device_id\":\"sim-point-mass\",\"rate_hz\":1000.0,\"max_force_n\":8.0}\n",
-                )
-                .unwrap();
+        let listener = UnixListener::bind(&path).unwrap();
+        let server = std::thread::spawn(move || serve(listener.accept().unwrap().0));
+        let path = CString::new(path.as_os_str().as_bytes()).unwrap();
+        (path, dir, server)
+    }
+
+    /// Read the hello on `stream` and answer it with `welcome`; the lines after the hello.
+    fn answer_hello(stream: &UnixStream, welcome: &str) -> Lines<BufReader<UnixStream>> {
+        let mut lines = BufReader::new(stream.try_clone().unwrap()).lines();
+        let hello = lines.next().unwrap().unwrap();
+        assert!(hello.contains(r#""type":"hello""#), "{hello}");
+        (&*stream)
+            .write_all(format!("{welcome}\n").as_bytes())
+            .unwrap();
+        lines
+    }
+
+    /// A handle connected to `path`.
+    fn connect(path: &CString) -> *mut hgcd_client {
+        let mut handle = ptr::null_mut();
+        // SAFETY: a C string and an out-pointer we own.
+        assert_eq!(unsafe { hgcd_connect(path.as_ptr(), &mut handle) }, HGCD_OK);
+        handle
+    }
+
+    #[test]
+    fn requests_before_hello_and_a_second_hello_are_refused_here() {
+        let (path, dir, server) = fake_daemon("order", |stream| {
+            let mut lines = answer_hello(&stream, WELCOME);
             // Nothing else reaches the server: the library refuses the rest itself.
             assert!(lines.next().is_none());
         });
-        // SAFETY: C strings and out-pointers we own; the handle is open until hgcd_close.
+        let handle = connect(&path);
+        // SAFETY: out-pointers we own; the handle is open until hgcd_close.
         unsafe {
-            let c_path = CString::new(path.as_os_str().as_bytes()).unwrap();
-            let mut handle = ptr::null_mut();
-            assert_eq!(hgcd_connect(c_path.as_ptr(), &mut handle), HGCD_OK);
             assert_eq!(hgcd_subscribe(handle, 100.0), HGCD_ERR_STATE);
             assert!(last_error().contains("say hello first"), "{}", last_error());
             let mut welcome = hgcd_welcome {
@@ -898,18 +930,93 @@ mod tests {
     }
 
     #[test]
-    fn a_handle_in_use_by_another_thread_is_busy_not_shared() {
-        let dir = std::env::temp_dir().join(format!("hgcd-c-busy-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("fake.sock");
-        let _ = std::fs::remove_file(&path);
-        let listener = std::os::unix::net::UnixListener::bind(&path).unwrap();
-        // SAFETY: a C string and an out-pointer we own; the handle is open until hgcd_close.
+    fn a_welcome_out_of_range_is_a_protocol_error() {
+        let welcome = WELCOME.replace("\"max_force_n\":8.0", "\"max_force_n\":-1");
+        let (path, dir, server) = fake_daemon(
+            "range",
+            move |stream| {
+                for _ in answer_hello(&stream, &welcome) {}
+            },
+        );
+        let handle = connect(&path);
+        // SAFETY: the handle is open until hgcd_close.
         unsafe {
-            let c_path = CString::new(path.as_os_str().as_bytes()).unwrap();
-            let mut handle = ptr::null_mut();
-            assert_eq!(hgcd_connect(c_path.as_ptr(), &mut handle), HGCD_OK);
-            let (_server_side, _) = listener.accept().unwrap();
+            let code = hgcd_hello(handle, HGCD_ROLE_OBSERVE, ptr::null(), ptr::null_mut());
+            assert_eq!(code, HGCD_ERR_PROTOCOL);
+            assert!(last_error().contains("max_force_n -1"), "{}", last_error());
+            hgcd_close(handle);
+        }
+        server.join().unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_daemon_that_never_welcomes_is_a_timeout() {
+        let (path, dir, server) = fake_daemon("silent", |stream| {
+            // Silent until the client goes, or 20 s (a client waiting forever sees it close).
+            stream
+                .set_read_timeout(Some(Duration::from_secs(20)))
+                .unwrap();
+            let mut lines = BufReader::new(stream).lines();
+            while let Some(Ok(_)) = lines.next() {}
+        });
+        let handle = connect(&path);
+        let start = Instant::now();
+        // SAFETY: the handle is open until hgcd_close.
+        unsafe {
+            let code = hgcd_hello(handle, HGCD_ROLE_OBSERVE, ptr::null(), ptr::null_mut());
+            assert_eq!(code, HGCD_ERR_TIMEOUT, "{}", last_error());
+            assert!(start.elapsed() < Duration::from_secs(15));
+            assert!(last_error().contains("no welcome"), "{}", last_error());
+            hgcd_close(handle);
+        }
+        server.join().unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_line_trickling_in_is_cut_off_not_waited_for_byte_by_byte() {
+        let (path, dir, server) = fake_daemon("trickle", |stream| {
+            let _lines = answer_hello(&stream, WELCOME);
+            // A state line, a byte every 0.3 s: about 40 s in all.
+            let state = hgcd::app::protocol::encode_reply(&Reply::State(StateSample::default()));
+            for byte in state.bytes() {
+                if (&stream).write_all(&[byte]).is_err() {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(300));
+            }
+        });
+        let handle = connect(&path);
+        // SAFETY: an out-pointer we own; the handle is open until hgcd_close.
+        unsafe {
+            let code = hgcd_hello(handle, HGCD_ROLE_OBSERVE, ptr::null(), ptr::null_mut());
+            assert_eq!(code, HGCD_OK);
+            let start = Instant::now();
+            let mut state = hgcd_state::from(StateSample::default());
+            assert_eq!(
+                hgcd_newest_state(handle, 3000, &mut state),
+                HGCD_ERR_PROTOCOL
+            );
+            assert!(start.elapsed() < Duration::from_secs(5));
+            let message = last_error();
+            assert!(
+                message.contains("within 1 s of its first byte"),
+                "{message}"
+            );
+            hgcd_close(handle);
+        }
+        server.join().unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_handle_in_use_by_another_thread_is_busy_not_shared() {
+        let (path, dir, server) =
+            fake_daemon("busy", |stream| for _ in BufReader::new(stream).lines() {});
+        let handle = connect(&path);
+        // SAFETY: the handle is open until hgcd_close.
+        unsafe {
             // The guard stands for another thread inside a call.
             let guard = (*handle).session.lock().unwrap();
             assert_eq!(hgcd_set_force(handle, 0.0, 0.0, 0.0), HGCD_ERR_BUSY);
@@ -917,6 +1024,7 @@ mod tests {
             drop(guard);
             hgcd_close(handle);
         }
+        server.join().unwrap();
         let _ = std::fs::remove_dir_all(&dir);
     }
 
