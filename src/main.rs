@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
@@ -296,12 +297,36 @@ fn install_signal_handlers() -> Result<Signals> {
     Ok(signals)
 }
 
+/// How long, after SIGINT or SIGTERM, the work in hand has to stop cleanly (the servo loop sees
+/// the stop flag within a tick and zeroes the force) before hgcd ends anyway, wherever it is
+/// blocked. A second signal ends it at once.
+const STOP_GRACE: Duration = Duration::from_secs(3);
+
+/// Set the returned flag on SIGINT or SIGTERM, and end the process if it has not ended
+/// [`STOP_GRACE`] later or at a second signal.
 fn install_stop_handler() -> Result<Arc<AtomicBool>> {
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
-    ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst))
-        .context("installing the SIGINT/SIGTERM handler")?;
+    ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            stopped_by_signal("a second signal came");
+        }
+        std::thread::spawn(|| {
+            std::thread::sleep(STOP_GRACE);
+            stopped_by_signal(&format!(
+                "what it was doing did not stop within {} s",
+                STOP_GRACE.as_secs()
+            ));
+        });
+    })
+    .context("installing the SIGINT/SIGTERM handler")?;
     Ok(stop)
+}
+
+/// End the process after a stop signal the work in hand did not answer.
+fn stopped_by_signal(why: &str) -> ! {
+    eprintln!("hgcd: stopped by a signal: {why}");
+    std::process::exit(1)
 }
 
 fn device_spec(arg: Option<&str>, config: &Config) -> Result<DeviceSpec> {

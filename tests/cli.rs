@@ -700,3 +700,60 @@ fn help_and_devices_show_what_a_newcomer_can_use() {
     assert_eq!(out.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("--socket"), "{stderr}");
 }
+
+/// Issue 40, item 2: SIGTERM ends hgcd at any point, even where it is blocked on something that
+/// never answers (here writing `summary.json` into a FIFO nobody reads, after the experiment):
+/// the stop flag is set at once, and the process ends within the grace of 3 s. Before, the
+/// Ctrl-C thread only set the flag, and hgcd hung until SIGKILL.
+#[test]
+fn sigterm_ends_hgcd_even_where_it_is_blocked() {
+    use std::time::{Duration, Instant};
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let fifo = std::ffi::CString::new(out.join("summary.json").to_str().unwrap()).unwrap();
+    // SAFETY: mkfifo(3) on a NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o600) }, 0);
+    let config =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/validate-point-mass.toml");
+    let mut child = hgcd()
+        .arg("--config")
+        .arg(&config)
+        .arg("--state-dir")
+        .arg(dir.path())
+        .args(["validate", "--device", "sim:point-mass", "--out"])
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The CSV is written just before summary.json, whose open then waits for a reader.
+    let started = Instant::now();
+    while !out.join("penalties.csv").exists() {
+        assert!(child.try_wait().unwrap().is_none(), "hgcd ended early");
+        assert!(started.elapsed() < Duration::from_secs(300), "no CSV");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    assert!(child.try_wait().unwrap().is_none(), "hgcd did not block");
+    // SAFETY: kill(2) on our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
+    let signalled = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if signalled.elapsed() > Duration::from_secs(30) {
+            let _ = child.kill();
+            panic!("hgcd still running 30 s after SIGTERM");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut stderr).unwrap();
+    assert_eq!(status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("hgcd: stopped by a signal: what it was doing did not stop within 3 s"),
+        "{stderr}"
+    );
+}
