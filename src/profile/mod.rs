@@ -9,6 +9,8 @@
 //! [`Codec`] is the profile's place in the servo loop: between the transport's raw report bytes
 //! and the loop's Cartesian position and force in SI units. It allocates nothing.
 
+#[cfg(test)]
+mod fuzz;
 pub mod kinematics;
 pub mod woodenhaptics;
 
