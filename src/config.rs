@@ -101,6 +101,23 @@ impl fmt::Display for Number {
     }
 }
 
+/// A TOML file's error on one line: the line and its key, where the parser knows them, and what
+/// is wrong.
+pub fn toml_error(text: &str, error: &toml::de::Error) -> String {
+    let message = error.message().trim().replace('\n', " ");
+    let Some(span) = error.span() else {
+        return message;
+    };
+    let before = &text[..span.start.min(text.len())];
+    let line = before.matches('\n').count() + 1;
+    let key = text
+        .lines()
+        .nth(line - 1)
+        .and_then(|l| l.split_once('='))
+        .map_or("", |(k, _)| k.trim());
+    format!("line {line} (`{key}`): {message}")
+}
+
 /// Every numeric key and its range, in the file's units (`config/hgcd.toml` states each one; a
 /// test pins them together). Array keys apply the range to each element. Cross-key rules (a
 /// watchdog of at least two report periods, ordered workspace corners, ...) are checked on top.

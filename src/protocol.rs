@@ -1083,20 +1083,5 @@ mod tests {
     }
 }
 
-/// Settings shared by the fuzz properties of the wire codecs (`docs/fuzzing.md`).
 #[cfg(test)]
-pub(crate) mod fuzz {
-    use proptest::test_runner::Config;
-
-    /// Cases per property in a plain `cargo test`.
-    pub const DEFAULT_CASES: u32 = 4096;
-
-    /// `DEFAULT_CASES` cases, or `PROPTEST_CASES` when it is set (a long campaign).
-    pub fn config() -> Config {
-        let mut config = Config::default();
-        if std::env::var_os("PROPTEST_CASES").is_none() {
-            config.cases = DEFAULT_CASES;
-        }
-        config
-    }
-}
+pub(crate) mod fuzz;

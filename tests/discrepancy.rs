@@ -542,6 +542,27 @@ fn a_recording_stopped_early_leaves_a_valid_shorter_log() {
     assert_eq!(written.len(), recording.log.len());
 }
 
+/// Why `hgcd record` on the simulated point mass, recording `duration` s with `grid` into `out`,
+/// refuses to start; the device must not move.
+fn refused_recording(grid: &Path, out: &Path, duration: f64) -> discrepancy::RecordError {
+    let mut config = Config::default();
+    config.servo.lock_memory = false;
+    let request = RecordRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        pacing: Pacing::Virtual,
+        grid: Some(grid.to_path_buf()),
+        out: out.to_path_buf(),
+        duration,
+    };
+    discrepancy::record(
+        &config,
+        &request,
+        Arc::new(AtomicBool::new(false)),
+        &mut |_| panic!("the device must not move"),
+    )
+    .unwrap_err()
+}
+
 /// `hgcd record --out` onto the grid it compensates with, onto another log or onto anything
 /// else that is there is refused before the device moves, and the file is left as it was
 /// (issue 40: `--grid G --out G` replaced the grid with a log and exited 0).
@@ -551,24 +572,9 @@ fn a_recording_never_replaces_a_file_that_is_there() {
     let grid = nominal_grid(dir.path());
     let other = dir.path().join("old-log.csv");
     std::fs::write(&other, "t,x,y,z,fx,fy,fz\n").unwrap();
-    let mut config = Config::default();
-    config.servo.lock_memory = false;
     for out in [&grid, &other] {
         let before = std::fs::read(out).unwrap();
-        let request = RecordRequest {
-            device: "sim:point-mass".parse().unwrap(),
-            pacing: Pacing::Virtual,
-            grid: Some(grid.clone()),
-            out: out.clone(),
-            duration: 10.0,
-        };
-        let refused = discrepancy::record(
-            &config,
-            &request,
-            Arc::new(AtomicBool::new(false)),
-            &mut |_| panic!("the device must not move"),
-        )
-        .unwrap_err();
+        let refused = refused_recording(&grid, out, 10.0);
         assert!(
             matches!(&refused, discrepancy::RecordError::OutExists(p) if p == out),
             "{refused}"
@@ -579,6 +585,21 @@ fn a_recording_never_replaces_a_file_that_is_there() {
         );
         assert_eq!(std::fs::read(out).unwrap(), before);
     }
+}
+
+/// A recording longer than the rows `hgcd analyze` reads is refused before the device moves
+/// (issue 40: a 3600 s log at 1 kHz could be recorded but not analysed).
+#[test]
+fn a_recording_longer_than_analyze_reads_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("log.csv");
+    let refused = refused_recording(&nominal_grid(dir.path()), &out, 1001.0);
+    assert_eq!(
+        refused.to_string(),
+        "--duration 1001 s at 1000 Hz gives more than the 1000000 rows hgcd analyze reads: \
+         record at most 1000 s"
+    );
+    assert!(!out.exists());
 }
 
 /// The seven effects of the pair table, at a small and a large magnitude for a lab device.

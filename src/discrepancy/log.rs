@@ -17,6 +17,10 @@ pub const MAX_FORCE: f64 = 1000.0;
 pub const MAX_STIFFNESS: f64 = 1e5;
 pub const MAX_DAMPING: f64 = 1e3;
 
+/// The most rows a log may hold: 1000 s at 1 kHz. Analysing a log takes about 600 bytes a row
+/// (620 MB at the limit, docs/discrepancy.md); a longer one is refused, not read without bound.
+pub const MAX_ROWS: usize = 1_000_000;
+
 /// The shortest log analysed, s: its held-out part must still hold several slow cycles.
 pub const MIN_DURATION: f64 = 10.0;
 /// Sample rates accepted, Hz.
@@ -48,6 +52,12 @@ pub enum LogError {
         line: usize,
         problem: String,
     },
+    #[error(
+        "log {} line {line}: more than {MAX_ROWS} rows; analyze reads at most {MAX_ROWS} (1000 s \
+         at 1 kHz): cut the log",
+        path.display()
+    )]
+    TooLong { path: PathBuf, line: usize },
     #[error(
         "log {}: {seconds:.1} s of data; analyze needs at least {MIN_DURATION} s (hgcd record \
          writes 40 s by default)",
@@ -200,6 +210,12 @@ impl Log {
                 columns = Some(parsed);
                 continue;
             };
+            if log.len() == MAX_ROWS {
+                return Err(LogError::TooLong {
+                    path: path.to_path_buf(),
+                    line,
+                });
+            }
             let fields: Vec<&str> = trimmed.split(',').map(str::trim).collect();
             let value = |i: usize, name: &str| -> Result<f64, LogError> {
                 let text = fields
@@ -414,6 +430,9 @@ impl Columns {
 }
 
 #[cfg(test)]
+mod fuzz;
+
+#[cfg(test)]
 mod tests {
     use super::*;
 
@@ -484,5 +503,32 @@ mod tests {
             let _ = writeln!(gap, "{t},{},0,0,0,0,1.2", k as f64 * 1e-6);
         }
         says(&gap, "a gap of 20.0 ms after t = 0.499 s");
+    }
+
+    /// Issue 40: `hgcd analyze` on 10⁷ rows used 3 GB. A log of more than `MAX_ROWS` rows is
+    /// refused with one line at the first row beyond.
+    #[test]
+    fn a_log_of_more_rows_than_analyze_reads_is_refused() {
+        let mut text = String::from(
+            "t,x,y,z,fx,fy,fz
+",
+        );
+        for k in 0..=MAX_ROWS {
+            let _ = writeln!(text, "{k}e-4,0,0,0,0,0,1");
+        }
+        let e = Log::parse(&text, Path::new("l.csv"))
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            "log l.csv line 1000002: more than 1000000 rows; analyze reads at most 1000000 \
+             (1000 s at 1 kHz): cut the log"
+        );
+        // One row fewer is read (and is 100 s at 10 kHz).
+        text.truncate(text.trim_end().rfind('\n').unwrap() + 1);
+        assert_eq!(
+            Log::parse(&text, Path::new("l.csv")).unwrap().len(),
+            MAX_ROWS
+        );
     }
 }

@@ -53,6 +53,12 @@ pub enum RecordError {
     Config(#[from] ConfigError),
     #[error("--duration {0} s is out of range (10 to 3600 s)")]
     Duration(f64),
+    #[error(
+        "--duration {duration} s at {rate} Hz gives more than the {} rows hgcd analyze reads: \
+         record at most {most} s",
+        log::MAX_ROWS
+    )]
+    TooLong { duration: f64, rate: f64, most: f64 },
     #[error(transparent)]
     Open(TransportError),
     #[error(transparent)]
@@ -107,6 +113,14 @@ pub fn record(
     let device = transport::identify(transport.as_ref(), &request.device, config)
         .map_err(RecordError::Open)?;
     let config = &config.for_device(device.info.as_ref());
+    let most = log::MAX_ROWS as f64 * config.servo_period();
+    if request.duration > most {
+        return Err(RecordError::TooLong {
+            duration: request.duration,
+            rate: 1.0 / config.servo_period(),
+            most,
+        });
+    }
     let (file, path) = device_grid(request.grid.as_deref(), &config.state_dir(), &device)?;
     let c = &config.compensation;
     let model = GravityModel::configured(file, c.mode, c.outside_grid)

@@ -80,12 +80,26 @@ pub const STIFFNESS_RANGE: (f64, f64) = (-1000.0, 10_000.0);
 pub const ANCHOR_RANGE: (f64, f64) = (-10.0, 10.0);
 
 impl EffectRecord {
+    /// The effect's name, as the file and `hgcd analyze` write it.
+    pub fn name(&self) -> &'static str {
+        match self {
+            EffectRecord::None => "none",
+            EffectRecord::Payload { .. } => "payload",
+            EffectRecord::CoulombFriction { .. } => "coulomb_friction",
+            EffectRecord::ViscousDamping { .. } => "viscous_damping",
+            EffectRecord::TimeDelay { .. } => "time_delay",
+            EffectRecord::GravityTilt { .. } => "gravity_tilt",
+            EffectRecord::Spring { .. } => "spring",
+        }
+    }
+
     /// Every parameter finite and in its range, a rotation axis of unit length.
     ///
     /// # Errors
     /// One line naming the effect, the key, the value and the range.
     pub fn check(&self) -> Result<(), String> {
-        let within = |name: &str, key: &str, value: f64, (lo, hi): (f64, f64), unit: &str| {
+        let name = self.name();
+        let within = |key: &str, value: f64, (lo, hi): (f64, f64), unit: &str| {
             if value.is_finite() && (lo..=hi).contains(&value) {
                 Ok(())
             } else {
@@ -97,33 +111,28 @@ impl EffectRecord {
         };
         match self {
             EffectRecord::None => Ok(()),
-            EffectRecord::Payload { mass_kg } => {
-                within("payload", "mass_kg", *mass_kg, MASS_RANGE, "kg")
-            }
+            EffectRecord::Payload { mass_kg } => within("mass_kg", *mass_kg, MASS_RANGE, "kg"),
             EffectRecord::CoulombFriction { force_n } => {
-                within("coulomb_friction", "force_n", *force_n, FRICTION_RANGE, "N")
+                within("force_n", *force_n, FRICTION_RANGE, "N")
             }
             EffectRecord::ViscousDamping { damping_n_s_per_m } => within(
-                "viscous_damping",
                 "damping_n_s_per_m",
                 *damping_n_s_per_m,
                 DAMPING_RANGE,
                 "N*s/m",
             ),
-            EffectRecord::TimeDelay { delay_s } => {
-                within("time_delay", "delay_s", *delay_s, DELAY_RANGE, "s")
-            }
+            EffectRecord::TimeDelay { delay_s } => within("delay_s", *delay_s, DELAY_RANGE, "s"),
             EffectRecord::GravityTilt {
                 angle_rad,
                 rotation_axis,
             } => {
-                within("gravity_tilt", "angle_rad", *angle_rad, TILT_RANGE, "rad")?;
+                within("angle_rad", *angle_rad, TILT_RANGE, "rad")?;
                 let norm = nalgebra::Vector3::from(*rotation_axis).norm();
                 if (norm - 1.0).abs() <= 1e-3 {
                     Ok(())
                 } else {
                     Err(format!(
-                        "`gravity_tilt` `rotation_axis` has length {norm}: expected a unit vector"
+                        "`{name}` `rotation_axis` has length {norm}: expected a unit vector"
                     ))
                 }
             }
@@ -132,7 +141,6 @@ impl EffectRecord {
                 anchor_m,
             } => {
                 within(
-                    "spring",
                     "stiffness_n_per_m",
                     *stiffness_n_per_m,
                     STIFFNESS_RANGE,
@@ -140,7 +148,7 @@ impl EffectRecord {
                 )?;
                 anchor_m
                     .iter()
-                    .try_for_each(|a| within("spring", "anchor_m", *a, ANCHOR_RANGE, "m"))
+                    .try_for_each(|a| within("anchor_m", *a, ANCHOR_RANGE, "m"))
             }
         }
     }
@@ -150,19 +158,28 @@ impl ModelFile {
     /// Read and check a model file.
     ///
     /// # Errors
-    /// [`ModelFileError`]: unreadable, not TOML, not `hgcd-model/1`, an unknown effect, or a
-    /// parameter that is not finite or out of its range ([`EffectRecord::check`]).
+    /// [`ModelFileError`]: unreadable, or as [`ModelFile::parse`].
     pub fn load(path: &Path) -> Result<Self, ModelFileError> {
-        let invalid = |message: String| ModelFileError::Invalid {
-            path: path.to_path_buf(),
-            message,
-        };
         let text = crate::sys::read_text(path).map_err(|source| ModelFileError::Read {
             path: path.to_path_buf(),
             source,
         })?;
+        Self::parse(&text, path)
+    }
+
+    /// [`ModelFile::load`] on `text`, read from `path`.
+    ///
+    /// # Errors
+    /// [`ModelFileError::Invalid`]: not TOML, not `hgcd-model/1`, an unknown effect, a parameter
+    /// that is not finite or out of its range ([`EffectRecord::check`]), `[[effects]]` naming
+    /// `none` or an effect twice, or not starting with `[effect]`.
+    pub fn parse(text: &str, path: &Path) -> Result<Self, ModelFileError> {
+        let invalid = |message: String| ModelFileError::Invalid {
+            path: path.to_path_buf(),
+            message,
+        };
         let file: ModelFile =
-            toml::from_str(&text).map_err(|e| invalid(e.message().to_string()))?;
+            toml::from_str(text).map_err(|e| invalid(crate::config::toml_error(text, &e)))?;
         if file.format != MODEL_FORMAT {
             return Err(invalid(format!(
                 "`format` is \"{}\", expected \"{MODEL_FORMAT}\"",
@@ -171,6 +188,28 @@ impl ModelFile {
         }
         for effect in file.all_effects() {
             effect.check().map_err(invalid)?;
+        }
+        for (i, effect) in file.effects.iter().enumerate() {
+            let name = effect.name();
+            if *effect == EffectRecord::None {
+                return Err(invalid(
+                    "`[[effects]]` lists `none`: it lists the effects found, each once".into(),
+                ));
+            }
+            if file.effects[..i].iter().any(|e| e.name() == name) {
+                return Err(invalid(format!(
+                    "`[[effects]]` names `{name}` twice: it lists the effects found, each once"
+                )));
+            }
+        }
+        if file
+            .effects
+            .first()
+            .is_some_and(|first| *first != file.effect)
+        {
+            return Err(invalid(
+                "`[effect]` is not the first of `[[effects]]`: which one holds the model?".into(),
+            ));
         }
         Ok(file)
     }
@@ -205,6 +244,9 @@ impl ModelFile {
 }
 
 #[cfg(test)]
+mod fuzz;
+
+#[cfg(test)]
 mod tests {
     use super::*;
 
@@ -235,6 +277,13 @@ mod tests {
             ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"gravity_tilt\"\nangle_rad = 0.1\nrotation_axis = [0.0, 2.0, 0.0]\n", "expected a unit vector"),
             ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"time_delay\"\ndelay_s = -0.01\n", "`time_delay` `delay_s` is -0.01"),
             ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"none\"\n[[effects]]\nname = \"coulomb_friction\"\nforce_n = 1e9\n", "`coulomb_friction` `force_n` is 1e9"),
+            // Issue 40 (fuzzing): a TOML error took several lines; an effect named twice (two
+            // payloads add up beyond the range), `none` among the effects and an `[effect]`
+            // other than the first of `[[effects]]` were accepted.
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect\n", "line 3 (``): invalid table header"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"payload\"\nmass_kg = 0.9\n[[effects]]\nname = \"payload\"\nmass_kg = 0.9\n[[effects]]\nname = \"payload\"\nmass_kg = 0.9\n", "`[[effects]]` names `payload` twice"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"none\"\n[[effects]]\nname = \"none\"\n", "`[[effects]]` lists `none`"),
+            ("format = \"hgcd-model/1\"\ngrid = \"g\"\n[effect]\nname = \"none\"\n[[effects]]\nname = \"payload\"\nmass_kg = 0.1\n", "`[effect]` is not the first of `[[effects]]`"),
         ] {
             std::fs::write(&path, bad).unwrap();
             let e = ModelFile::load(&path).unwrap_err().to_string();

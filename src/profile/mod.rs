@@ -9,6 +9,8 @@
 //! [`Codec`] is the profile's place in the servo loop: between the transport's raw report bytes
 //! and the loop's Cartesian position and force in SI units. It allocates nothing.
 
+#[cfg(test)]
+mod fuzz;
 pub mod kinematics;
 pub mod woodenhaptics;
 
@@ -218,22 +220,8 @@ impl Profile {
             origin: origin.to_string(),
             message,
         };
-        let file: ProfileFile = toml::from_str(text).map_err(|e| {
-            let message = e.message().replace('\n', " ");
-            // Where it is: the line and its key, when the parser knows.
-            match e.span() {
-                Some(span) => {
-                    let line = text[..span.start.min(text.len())].lines().count().max(1);
-                    let key = text
-                        .lines()
-                        .nth(line - 1)
-                        .and_then(|l| l.split_once('='))
-                        .map_or("", |(k, _)| k.trim());
-                    invalid(format!("line {line} (`{key}`): {message}"))
-                }
-                None => invalid(message),
-            }
-        })?;
+        let file: ProfileFile =
+            toml::from_str(text).map_err(|e| invalid(crate::config::toml_error(text, &e)))?;
         let check = |key: &'static str, values: &[f64]| {
             let &(_, min, max, unit) = RANGES.iter().find(|r| r.0 == key).expect("a ranged key");
             match values.iter().find(|v| !(min..=max).contains(*v)) {
