@@ -122,23 +122,25 @@ impl MassGrid {
     /// cell's face values hold. Coefficients are normalised: b = (x − x_k)/L, a = 1 − b (the paper's
     /// Section 4 writes (L − b)/L, which mixes units).
     pub fn cell_weights(&self, x: &Vector3<f64>) -> CellWeights {
-        let mut base = [0usize; 3];
+        // Index arithmetic wraps explicitly: a checked grid holds at most `MAX_VERTICES`, so
+        // nothing here can overflow, and the release profile's overflow checks would otherwise
+        // guard every one of the 8 vertices' indices on the servo thread.
+        let mut first = 0usize; // flat index of the cell's vertex 0
+        let mut stride = 1usize;
+        let mut next = [0usize; 3]; // flat step to the next vertex along each axis (0: flat)
         let mut frac = [0f64; 3];
         for a in 0..3 {
-            let cells = self.dims[a] - 1;
-            if cells == 0 {
-                continue;
+            let n = self.dims[a];
+            if n > 1 {
+                let cells = n.wrapping_sub(1);
+                let u = ((x[a] - self.origin[a]) / self.spacing).clamp(0.0, cells as f64);
+                let cell = (u.floor() as usize).min(cells.wrapping_sub(1));
+                first = first.wrapping_add(cell.wrapping_mul(stride));
+                frac[a] = u - cell as f64;
+                next[a] = stride;
             }
-            let u = ((x[a] - self.origin[a]) / self.spacing).clamp(0.0, cells as f64);
-            let cell = (u.floor() as usize).min(cells - 1);
-            base[a] = cell;
-            frac[a] = u - cell as f64;
+            stride = stride.wrapping_mul(n);
         }
-        let step = [
-            usize::from(self.dims[0] > 1),
-            usize::from(self.dims[1] > 1),
-            usize::from(self.dims[2] > 1),
-        ];
         let (b, d, f) = (frac[0], frac[1], frac[2]);
         let (a, c, e) = (1.0 - b, 1.0 - d, 1.0 - f);
         let mut idx = [0usize; 8];
@@ -146,11 +148,10 @@ impl MassGrid {
         // Vertex n has offsets (n & 1, (n >> 1) & 1, (n >> 2) & 1): the paper's M_0 … M_7.
         for n in 0..8 {
             let (ox, oy, oz) = (n & 1, (n >> 1) & 1, (n >> 2) & 1);
-            idx[n] = self.index(
-                base[0] + ox * step[0],
-                base[1] + oy * step[1],
-                base[2] + oz * step[2],
-            );
+            idx[n] = first
+                .wrapping_add(ox * next[0])
+                .wrapping_add(oy * next[1])
+                .wrapping_add(oz * next[2]);
             w[n] = [a, b][ox] * [c, d][oy] * [e, f][oz];
         }
         (idx, w)
