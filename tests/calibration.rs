@@ -137,6 +137,7 @@ fn hgcd_calibrate_recovers_the_truth_within_1_percent_and_half_a_degree() {
     }
     // Under 65 s of device time (docs/performance.md).
     let duration = file.calibration.as_ref().unwrap().duration_s.unwrap();
+    eprintln!("calibration took {duration:.1} s of device time");
     assert!(
         duration < 65.0,
         "calibration took {duration} s of device time"
