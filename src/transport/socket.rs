@@ -58,7 +58,7 @@ pub struct SocketTransport {
     /// Lock-step: the device clock, unwrapped from the reports, its newest reading, and the
     /// transport's time built from its forward steps (and a period per frame that has none), s.
     device_clock: DeviceClock,
-    clock_reading: f64,
+    clock_reading: Option<f64>,
     device_time: f64,
     /// When the device last sent anything, and how long a lock-step device may send nothing.
     last_heard: Instant,
@@ -102,7 +102,7 @@ impl SocketTransport {
             held: None,
             held_report: [0; MAX_REPORT_LEN],
             device_clock: DeviceClock::default(),
-            clock_reading: 0.0,
+            clock_reading: None,
             device_time: 0.0,
             last_heard: now,
             stall: LOCKSTEP_STALL,
@@ -228,14 +228,14 @@ impl SocketTransport {
                 let reading = InputReport::decode(&buf[..n])
                     .ok()
                     .map(|report| self.device_clock.seconds(report.timestamp_us).0);
-                let step = reading.map_or(0.0, |t| t - self.clock_reading);
-                if step > 0.0 {
-                    self.device_time += step;
-                } else {
+                match (reading, self.clock_reading) {
+                    (Some(now), Some(before)) if now > before => self.device_time += now - before,
+                    // The first reading is the clock's origin.
+                    (Some(_), None) => {}
                     // The chosen report and the garbled ones dropped before it.
-                    self.device_time += (garbled + 1) as f64 / info.rate_hz;
+                    _ => self.device_time += (garbled + 1) as f64 / info.rate_hz,
                 }
-                self.clock_reading = reading.unwrap_or(self.clock_reading);
+                self.clock_reading = reading.or(self.clock_reading);
             }
         }
         chosen
