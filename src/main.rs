@@ -10,6 +10,7 @@ use anyhow::{Context, Result};
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 use hgcd::app::endpoint::{self, FindError};
+use hgcd::calibrate::check::{self, CheckRequest};
 use hgcd::calibrate::{calibrate, CalibrateError, CalibrateRequest};
 use hgcd::config::{Config, DeviceSpec, WorkspaceMode, DEFAULT_CONFIG_PATH, SIM_MODELS};
 use hgcd::daemon::{self, RunError, RunRequest, Signals};
@@ -69,6 +70,10 @@ enum Command {
     /// Compare a measured log with a calibrated grid: where they disagree, which physical effect
     /// the model misses (or none), and how much adding it shrinks the gap on held-out data.
     Analyze(AnalyzeArgs),
+    /// Is the saved gravity model still right? Two short friction-robust holds compared with it:
+    /// unchanged (exit 0), a payload and/or a base tilt it can take in (exit 4), or something
+    /// else: recalibrate (exit 5) (docs/calibration.md §2).
+    Check(CheckArgs),
     /// Show the running daemons' state: device, grid, mode, clients, loop timing.
     Status(StatusArgs),
     /// Serve the simulated device (config [sim]) on a Unix socket, for `--device socket:PATH`:
@@ -115,6 +120,25 @@ struct CalibrateArgs {
     /// the lattice inside it (default: config `calibration.workspace`; docs/calibration.md §12).
     #[arg(long, value_name = "cube|explore")]
     workspace: Option<WorkspaceMode>,
+}
+
+#[derive(clap::Args, Debug)]
+struct CheckArgs {
+    /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+    #[arg(long, value_name = "SPEC")]
+    device: Option<String>,
+    /// Check this grid (default: the device's stored grid).
+    #[arg(long, value_name = "FILE")]
+    grid: Option<PathBuf>,
+    /// Run a simulated device in real time (default for simulated devices: virtual time).
+    #[arg(long)]
+    real_time: bool,
+    /// Do not ask for confirmation before starting on a real device.
+    #[arg(long)]
+    yes: bool,
+    /// Print one JSON object (verdict, payload_g, tilt_deg, tilt_axis, device_time_s, holds).
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -363,6 +387,7 @@ fn real_main(cli: Cli) -> Result<()> {
         Command::Status(args) => status(&config()?, args.device.as_deref()),
         Command::SimDevice(args) => sim_device(&config()?, &args),
         Command::Devices => devices(&config()?),
+        Command::Check(args) => check_command(&config()?, &args),
     }
 }
 
@@ -518,6 +543,34 @@ fn confirmed_pacing(device: &DeviceSpec, real_time: bool, yes: bool) -> Result<P
         confirm_start()?;
     }
     Ok(pacing(device, real_time))
+}
+
+/// The verdict of `hgcd check` as its exit status (printed already; nothing more to say).
+#[derive(Debug, thiserror::Error)]
+#[error("check verdict: exit status {0}")]
+struct CheckVerdict(u8);
+
+/// `hgcd check`: the two holds, the verdict, and the exit status that says it.
+fn check_command(config: &Config, args: &CheckArgs) -> Result<()> {
+    let device = device_spec(args.device.as_deref(), config)?;
+    let pacing = confirmed_pacing(&device, args.real_time, args.yes)?;
+    let request = CheckRequest {
+        device,
+        pacing,
+        grid: args.grid.clone(),
+        state_dir: config.state_dir(),
+    };
+    let stop = install_stop_handler()?;
+    let found = check::check(config, &request, stop, &mut |_| {})?;
+    if args.json {
+        out(&format!("{}\n", serde_json::to_string(&found)?))?;
+    } else {
+        out(&progress::check_summary(&found))?;
+    }
+    match found.verdict.exit_code() {
+        0 => Ok(()),
+        code => Err(CheckVerdict(code).into()),
+    }
 }
 
 /// `hgcd record`: the identification run; says where the log went.
@@ -794,6 +847,9 @@ fn main() -> ExitCode {
     match real_main(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
+            if let Some(CheckVerdict(code)) = e.downcast_ref() {
+                return ExitCode::from(*code);
+            }
             err(&format!("hgcd: {e:#}\n"));
             ExitCode::from(exit_status(&e))
         }

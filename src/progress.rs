@@ -6,6 +6,7 @@ use std::io::IsTerminal;
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::info;
 
+use hgcd::calibrate::check::{Check, Verdict};
 use hgcd::calibrate::{CalibrationRun, TimeLeft};
 use hgcd::config::{Config, DeviceSpec};
 use hgcd::control::calibration::{unreachable_note, CalibrationEvent, CalibrationParams, GridPlan};
@@ -344,6 +345,46 @@ pub fn vertex_count(config: &Config, device: &DeviceSpec) -> usize {
     GridPlan::new(&CalibrationParams::for_device(config, device))
         .map(|p| p.path.len())
         .unwrap_or(0)
+}
+
+/// What `hgcd check` found, for people: the verdict, what explains it, and the holds.
+pub fn check_summary(check: &Check) -> String {
+    let mut out = match check.verdict {
+        Verdict::Unchanged => "unchanged: the model fits both holds\n".to_string(),
+        Verdict::Apply => format!(
+            "changed: a payload of {:+.1} g and a tilt of {:.2}° about ({:.3}, {:.3}, {:.3}) \
+             explain it (hgcd calibrate to take it in)\n",
+            check.payload_g,
+            check.tilt_deg,
+            check.tilt_axis[0],
+            check.tilt_axis[1],
+            check.tilt_axis[2]
+        ),
+        Verdict::Recalibrate => format!(
+            "recalibrate: a payload and a tilt do not explain what changed (the closest: {:+.1} g, \
+             {:.2}°); a spring, a cable, another arm? run hgcd calibrate\n",
+            check.payload_g, check.tilt_deg
+        ),
+    };
+    out.push_str("hold at (mm)                  measured (N)                  model (N)                     left (mN)  allowed (mN)\n");
+    for h in &check.holds {
+        let v =
+            |a: [f64; 3], k: f64| format!("({:7.3}, {:7.3}, {:7.3})", a[0] * k, a[1] * k, a[2] * k);
+        out.push_str(&format!(
+            "{}  {}  {}  {:9.2}  {:12.2}\n",
+            v(h.position_m, 1e3),
+            v(h.measured_n, 1.0),
+            v(h.model_n, 1.0),
+            h.unexplained_n * 1e3,
+            h.tolerance_n * 1e3
+        ));
+    }
+    out.push_str(&format!(
+        "{:.1} s of device time; grid {}\n",
+        check.device_time_s,
+        check.grid.display()
+    ));
+    out
 }
 
 /// What `hgcd calibrate` prints when it succeeds.

@@ -1,5 +1,6 @@
 //! `hgcd calibrate`: run Algorithm 1 on a device inside the servo loop and persist the grid.
 
+pub mod check;
 pub mod persist;
 
 use std::path::{Path, PathBuf};
@@ -263,29 +264,15 @@ pub fn calibrate_on(
             c.spacing_mm, c.centre_mm[0], c.centre_mm[1], c.centre_mm[2],
         ),
     }
-    let mut options = ServoOptions::from_config(config);
-    options.stop_on_fault = true;
-    options.silence_limit = SILENCE_LIMIT_WATCHDOGS * options.watchdog;
     let started = Instant::now();
-    // The controller (holding the sender) comes back when the run ends, so watch the thread
-    // rather than wait for the channel to close.
-    let (result, calibration) = servo::thread::run_watched(
+    let (result, stats) = drive(
         transport,
-        calibration,
-        options,
-        config.servo.clone(),
+        (calibration, rx),
+        config,
         request.pacing.set_by_device(&device),
         stop,
-        &mut || rx.try_iter().for_each(|event| progress(&event)),
+        progress,
     )?;
-    let report = result.map_err(CalibrateError::Servo)?;
-    let result = match (report.exit, calibration.outcome()) {
-        (_, Some(Ok(result))) => result,
-        (_, Some(Err(failure))) => return Err(CalibrateError::Failed(failure)),
-        (ExitReason::Stopped, None) => return Err(CalibrateError::Aborted),
-        (ExitReason::Fault(fault), None) => return Err(CalibrateError::Fault(fault)),
-        (exit, None) => return Err(CalibrateError::EndedEarly(exit)),
-    };
     let (stops, unread): (Vec<&VertexResult>, Vec<&VertexResult>) = result
         .vertices
         .iter()
@@ -329,9 +316,45 @@ pub fn calibrate_on(
         result,
         grid,
         path,
-        stats: report.stats,
+        stats,
         wall_time: started.elapsed().as_secs_f64(),
     })
+}
+
+/// Drive `calibration` (and the receiver of its events, handed to `progress` on this thread)
+/// on `transport` to its end on the servo thread, as every calibration runs: a fault ends it,
+/// a silence of up to [`SILENCE_LIMIT_WATCHDOGS`] watchdog periods is ridden out. Its result
+/// and the loop's statistics; nothing is saved.
+pub(crate) fn drive(
+    transport: Box<dyn Transport>,
+    (calibration, events): (Calibration, crossbeam_channel::Receiver<CalibrationEvent>),
+    config: &Config,
+    device_paced: bool,
+    stop: Arc<AtomicBool>,
+    progress: &mut dyn FnMut(&CalibrationEvent),
+) -> Result<(CalibrationResult, TimingStats), CalibrateError> {
+    let mut options = ServoOptions::from_config(config);
+    options.stop_on_fault = true;
+    options.silence_limit = SILENCE_LIMIT_WATCHDOGS * options.watchdog;
+    // The controller (holding the sender) comes back when the run ends, so watch the thread
+    // rather than wait for the channel to close.
+    let (result, calibration) = servo::thread::run_watched(
+        transport,
+        calibration,
+        options,
+        config.servo.clone(),
+        device_paced,
+        stop,
+        &mut || events.try_iter().for_each(|event| progress(&event)),
+    )?;
+    let report = result.map_err(CalibrateError::Servo)?;
+    match (report.exit, calibration.outcome()) {
+        (_, Some(Ok(result))) => Ok((result, report.stats)),
+        (_, Some(Err(failure))) => Err(CalibrateError::Failed(failure)),
+        (ExitReason::Stopped, None) => Err(CalibrateError::Aborted),
+        (ExitReason::Fault(fault), None) => Err(CalibrateError::Fault(fault)),
+        (exit, None) => Err(CalibrateError::EndedEarly(exit)),
+    }
 }
 
 #[cfg(test)]

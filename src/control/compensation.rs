@@ -216,7 +216,7 @@ impl GravityModel {
     /// An arm model turns the gravity it holds the arm against, not the handle force: a tilt
     /// turns the arm model's v_G (and a payload's weight with it), and the lattice's residual
     /// stays as measured.
-    pub fn with_effect(mut self, effect: Option<StaticEffect>) -> Self {
+    pub fn with_effect(self, effect: Option<StaticEffect>) -> Self {
         // The bound: twice the largest force the calibration measured at a vertex.
         let g = &self.grid;
         let largest = (0..g.vertex_count())
@@ -225,10 +225,13 @@ impl GravityModel {
                 self.force(&g.vertex_position(i, j, k)).norm()
             })
             .fold(0.0, f64::max);
-        let effect = effect.map(|e| StaticEffect {
-            bound: 2.0 * largest,
-            ..e
-        });
+        self.with_effect_bounded(effect, 2.0 * largest)
+    }
+
+    /// [`GravityModel::with_effect`] with the effects' added force bounded by `bound`, N
+    /// (`f64::INFINITY`: the model as it is, for fitting the effects to measurements).
+    pub fn with_effect_bounded(mut self, effect: Option<StaticEffect>, bound: f64) -> Self {
+        let effect = effect.map(|e| StaticEffect { bound, ..e });
         self.effect = match (effect, &mut self.arm) {
             (Some(mut effect), Some(arm)) => {
                 arm.up = effect.tilt * arm.up;

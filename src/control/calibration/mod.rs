@@ -51,6 +51,19 @@ use crate::config::{Config, DeviceSpec, HoldPlan, WorkspaceMode};
 use crate::estimate::FoawVariant;
 use crate::profile::Profile;
 
+/// Which of the cube's vertices a run holds the handle at (in cube mode; exploration holds
+/// every vertex it reaches). The others are filled from the held ones.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Holds {
+    /// Every vertex (the paper).
+    Every,
+    /// The eight corners, farthest apart in joint angles (`calibration.holds = "sparse"`).
+    Corners,
+    /// The two corners at the ends of the cube's main diagonal: the holds `hgcd check`
+    /// compares with the saved model.
+    Diagonal,
+}
+
 /// Calibration parameters in SI units.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CalibrationParams {
@@ -93,8 +106,8 @@ pub struct CalibrationParams {
     pub max_window: usize,
     /// The paper's cube, or the workspace explored first.
     pub workspace_mode: WorkspaceMode,
-    /// Hold the cube's corners only (`calibration.holds`).
-    pub sparse: bool,
+    /// Which of the cube's vertices are held (`calibration.holds`, or `hgcd check`'s one).
+    pub holds: Holds,
     /// The arm the device's profile gives, if any: the strokes then turn each of its joints at
     /// the same rate ([`crate::arm::Arm::jacobian`]).
     pub arm: Option<Arm>,
@@ -129,7 +142,11 @@ impl CalibrationParams {
             noise_bound: config.estimate.noise_bound(),
             max_window: config.estimate.max_window,
             workspace_mode: c.workspace,
-            sparse: c.holds == HoldPlan::Sparse,
+            holds: if c.holds == HoldPlan::Sparse {
+                Holds::Corners
+            } else {
+                Holds::Every
+            },
             arm: None,
             strokes_again_share: STROKES_AGAIN_SHARE,
         }
@@ -143,8 +160,8 @@ impl CalibrationParams {
         params.arm = Profile::for_device(device, config)
             .ok()
             .and_then(|p| p.gravity_arm());
-        if config.calibration.holds == HoldPlan::Auto {
-            params.sparse = params.arm.is_some();
+        if config.calibration.holds == HoldPlan::Auto && params.arm.is_some() {
+            params.holds = Holds::Corners;
         }
         params
     }

@@ -9,7 +9,7 @@
 use nalgebra::Vector3;
 
 use super::explore::{WorkspaceMap, MARGIN};
-use super::{CalibrationFailure, CalibrationParams};
+use super::{CalibrationFailure, CalibrationParams, Holds};
 
 /// Most vertices along one axis of an explored grid: room for the largest explored grid is made
 /// before the run (replanning happens on the servo thread, which must not allocate).
@@ -157,17 +157,24 @@ impl GridPlan {
             left_out,
             extrapolated: Vec::new(),
         };
-        if params.sparse && params.workspace_mode == crate::config::WorkspaceMode::Cube {
-            plan.keep_corners();
+        if params.workspace_mode == crate::config::WorkspaceMode::Cube {
+            let dims = plan.dims;
+            match params.holds {
+                Holds::Every => {}
+                // The corners are the vertices farthest apart in joint angles, where the arm
+                // model's parameters are best conditioned.
+                Holds::Corners => plan.keep(|c| (0..3).all(|a| c[a] == 0 || c[a] == dims[a] - 1)),
+                Holds::Diagonal => {
+                    plan.keep(|c| c == [0, 0, 0] || (0..3).all(|a| c[a] == dims[a] - 1))
+                }
+            }
         }
         Ok(plan)
     }
 
-    /// Visit only the grid's eight corners, in the serpentine's order; the others are not
-    /// visited, their values filled from these (`calibration.holds = "sparse"`). The corners are
-    /// the vertices farthest apart in joint angles, where the arm model's parameters are best
-    /// conditioned.
-    fn keep_corners(&mut self) {
+    /// Visit only the vertices whose grid coordinates `held` accepts, in the serpentine's
+    /// order; the others are not visited, their values filled from these.
+    fn keep(&mut self, held: impl Fn([usize; 3]) -> bool) {
         let dims = self.dims;
         let coordinates = |n: usize| {
             [
@@ -176,14 +183,10 @@ impl GridPlan {
                 n / (dims[0] * dims[1]),
             ]
         };
-        let held = |n: usize| {
-            let c = coordinates(n);
-            (0..3).all(|a| c[a] == 0 || c[a] == dims[a] - 1)
-        };
         let mut path = Vec::with_capacity(self.path.len());
         let mut grid_index = Vec::with_capacity(self.path.len());
         for (vertex, &n) in self.path.iter().zip(&self.grid_index) {
-            if held(n) {
+            if held(coordinates(n)) {
                 path.push(*vertex);
                 grid_index.push(n);
             } else {

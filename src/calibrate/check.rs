@@ -1,0 +1,319 @@
+//! `hgcd check`: is the saved gravity model still right? Two friction-robust holds, at the ends
+//! of the calibrated cube's main diagonal (measured as calibration measures a vertex, after its
+//! initialisation), are compared with the model, and what differs is explained, if it can be,
+//! by a payload added to the handle and a tilt of the base (docs/calibration.md §2.1).
+//!
+//! The two explanations are the model's own: [`GravityModel::with_effect_bounded`] adds a
+//! payload's weight along the model's v_G and turns the field (a lattice) or the gravity the arm
+//! is held against (an arm model), as `hgcd run` compensates them. Three unknowns (the
+//! payload's mass, the tilt about the two axes across v_G; a turn about v_G itself changes no
+//! force) from six equations, by Levenberg–Marquardt from zero: the three left over tell a
+//! payload and a tilt from anything else (a spring, a cable, another arm).
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use nalgebra::{Matrix3, Rotation3, SMatrix, Vector3};
+use serde::Serialize;
+use thiserror::Error;
+use tracing::info;
+
+use super::{device_grid, drive, CalibrateError, GridModelError};
+use crate::config::{Config, DeviceSpec};
+use crate::control::calibration::{
+    Calibration, CalibrationEvent, CalibrationParams, CalibrationResult, Holds,
+};
+use crate::control::compensation::{GravityModel, StaticEffect};
+use crate::transport::{self, Pacing};
+
+/// A hold agrees with the model when they differ by at most this share of the model's force
+/// there, or [`TOLERANCE_MIN`], whichever is larger: twice the calibration's own accuracy
+/// (0.5 % at its worst vertex, docs/calibration.md §7.1).
+pub const TOLERANCE_SHARE: f64 = 0.01;
+/// N: a few times the noise of a hold on the simulated linkages (0.4–0.6 mN).
+pub const TOLERANCE_MIN: f64 = 0.002;
+
+/// What a payload and a tilt may leave of a hold's difference from the model and still explain
+/// it: this share of the difference (or the hold's tolerance). A tilt turns the gravity that
+/// parameters act against which an upright calibration could not see (a counterweight along a
+/// vertical joint axis): the arm model predicts a tilted field only to a few millinewtons.
+pub const EXPLAINED_SHARE: f64 = 0.2;
+/// Beyond these the fit explains nothing: a tilt of more than 30° or a payload of more than
+/// 1 kg is not what a changed handle or table gives (rad, kg).
+const MAX_TILT: f64 = 0.52;
+const MAX_PAYLOAD: f64 = 1.0;
+
+/// Levenberg–Marquardt iterations and the finite-difference steps of its Jacobian (kg, rad).
+const ITERATIONS: usize = 50;
+const MASS_STEP: f64 = 1e-5;
+const ANGLE_STEP: f64 = 1e-5;
+
+/// What `hgcd check` was asked to do.
+#[derive(Clone, Debug)]
+pub struct CheckRequest {
+    pub device: DeviceSpec,
+    pub pacing: Pacing,
+    /// The grid to check: this file, or the one calibration stored for the device.
+    pub grid: Option<PathBuf>,
+    pub state_dir: PathBuf,
+}
+
+/// The answer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Verdict {
+    /// Every hold agrees with the model.
+    Unchanged,
+    /// A payload and a tilt explain what changed (`--apply` can take them in).
+    Apply,
+    /// Something a payload and a tilt do not explain: calibrate again.
+    Recalibrate,
+}
+
+impl Verdict {
+    /// The exit status `hgcd check` ends with (docs/calibration.md §2).
+    pub fn exit_code(self) -> u8 {
+        match self {
+            Verdict::Unchanged => 0,
+            Verdict::Apply => 4,
+            Verdict::Recalibrate => 5,
+        }
+    }
+}
+
+/// One hold: where, what it measured, what the model says there (N).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Hold {
+    pub position_m: [f64; 3],
+    pub measured_n: [f64; 3],
+    pub model_n: [f64; 3],
+    /// What the payload and tilt found leave of the difference, N.
+    pub unexplained_n: f64,
+    /// The agreement asked of this hold ([`TOLERANCE_SHARE`], [`TOLERANCE_MIN`]), N.
+    pub tolerance_n: f64,
+}
+
+/// What a check found.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Check {
+    pub verdict: Verdict,
+    /// The payload's mass found, g (negative: something was taken off the handle).
+    pub payload_g: f64,
+    /// The base's tilt found, degrees, about `tilt_axis` (a unit vector of the device frame).
+    pub tilt_deg: f64,
+    pub tilt_axis: [f64; 3],
+    pub holds: Vec<Hold>,
+    pub device_time_s: f64,
+    /// The grid checked.
+    pub grid: PathBuf,
+}
+
+/// Why a check has no answer.
+#[derive(Debug, Error)]
+pub enum CheckError {
+    #[error(transparent)]
+    Grid(#[from] GridModelError),
+    #[error("check: {0}")]
+    Measure(#[from] CalibrateError),
+    #[error("check: a hold was not measured ({0}); nothing to compare")]
+    NoHold(String),
+}
+
+/// Measure the two holds on the device and compare them with its saved model. `progress` sees
+/// the calibration events of the measurement. Nothing is written.
+pub fn check(
+    config: &Config,
+    request: &CheckRequest,
+    stop: Arc<AtomicBool>,
+    progress: &mut dyn FnMut(&CalibrationEvent),
+) -> Result<Check, CheckError> {
+    config.validate().map_err(CalibrateError::from)?;
+    let transport =
+        transport::open(&request.device, config, request.pacing).map_err(CalibrateError::Open)?;
+    let device = transport::identify(transport.as_ref(), &request.device, config)
+        .map_err(CalibrateError::Open)?;
+    let config = &config.for_device(device.info.as_ref());
+    let (file, path) = device_grid(request.grid.as_deref(), &request.state_dir, &device)?;
+    let c = &config.compensation;
+    let model = GravityModel::configured(file.clone(), c.mode, c.outside_grid)
+        .map_err(GridModelError::model(&path))?;
+    // The holds lie in the calibrated cube: its centre, and its corner of smallest coordinates.
+    let grid = &file.grid;
+    let half_cells = grid.dims.iter().map(|&n| n - 1).min().unwrap_or(0) / 2;
+    let mut params = CalibrationParams::for_device(config, &request.device);
+    params.holds = Holds::Diagonal;
+    params.half_size = 1;
+    params.spacing = grid.spacing * half_cells.max(1) as f64;
+    params.centre = grid.origin
+        + Vector3::new(
+            grid.dims[0] as f64 - 1.0,
+            grid.dims[1] as f64 - 1.0,
+            grid.dims[2] as f64 - 1.0,
+        ) * (grid.spacing / 2.0);
+    let (lo, hi) = (
+        (params.centre.add_scalar(-params.spacing)) * 1e3,
+        (params.centre.add_scalar(params.spacing)) * 1e3,
+    );
+    info!(
+        "checking {device} against {}: holds at ({:.1}, {:.1}, {:.1}) and ({:.1}, {:.1}, {:.1}) mm",
+        path.display(),
+        lo.x,
+        lo.y,
+        lo.z,
+        hi.x,
+        hi.y,
+        hi.z,
+    );
+    let (tx, rx) = crossbeam_channel::bounded(4096);
+    let calibration = Calibration::new(params, Some(tx)).map_err(CalibrateError::from)?;
+    let (result, _) = drive(
+        transport,
+        (calibration, rx),
+        config,
+        request.pacing.set_by_device(&device),
+        stop,
+        progress,
+    )?;
+    let holds = holds_of(&result)?;
+    let mut check = compare(&model, grid.g, &holds);
+    check.device_time_s = result.duration;
+    check.grid = path;
+    Ok(check)
+}
+
+/// A measured hold: where (m), and the force that held the handle there (N).
+pub type Measured = (Vector3<f64>, Vector3<f64>);
+
+/// The holds a check's run measured.
+fn holds_of(result: &CalibrationResult) -> Result<Vec<Measured>, CheckError> {
+    result
+        .vertices
+        .iter()
+        .filter(|v| !result.extrapolated.contains(&v.vertex))
+        .map(|v| {
+            if v.reached && !result.unreachable.contains(&v.vertex) {
+                Ok((v.measured_at, v.held_force))
+            } else {
+                Err(CheckError::NoHold(match v.failure {
+                    Some(failure) => failure.to_string(),
+                    None => format!("the handle could not reach {}", v.vertex),
+                }))
+            }
+        })
+        .collect()
+}
+
+/// The payload (kg) and tilt (rotation vector, rad) of `p`, across `up`.
+fn effect(p: &Vector3<f64>, across: &[Vector3<f64>; 2], up: &Vector3<f64>, g: f64) -> StaticEffect {
+    StaticEffect {
+        tilt: Rotation3::new(across[0] * p[1] + across[1] * p[2]),
+        weight: up * (p[0] * g),
+        spring: None,
+        bound: f64::INFINITY,
+    }
+}
+
+/// Compare `holds` (where, measured force) with `model` (its grid's `g`): the verdict, and the
+/// payload and tilt that explain the difference. Device time and grid are left for the caller.
+pub fn compare(model: &GravityModel, g: f64, holds: &[Measured]) -> Check {
+    let up = model.up;
+    let first = if up.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let a = up.cross(&first).normalize();
+    let across = [a, up.cross(&a)];
+    let predicted = |p: &Vector3<f64>| -> Vec<Vector3<f64>> {
+        let turned = model
+            .clone()
+            .with_effect_bounded(Some(effect(p, &across, &up, g)), f64::INFINITY);
+        holds.iter().map(|(x, _)| turned.force(x)).collect()
+    };
+    let residual = |p: &Vector3<f64>| -> SMatrix<f64, 6, 1> {
+        let mut r = SMatrix::<f64, 6, 1>::zeros();
+        for (i, (f, (_, measured))) in predicted(p).iter().zip(holds).enumerate().take(2) {
+            r.fixed_rows_mut::<3>(3 * i).copy_from(&(measured - f));
+        }
+        r
+    };
+    // Levenberg–Marquardt from no change: the step is damped until it lowers the residual.
+    let mut p = Vector3::zeros();
+    let mut r = residual(&p);
+    let mut damping = 1e-3;
+    for _ in 0..ITERATIONS {
+        let mut jacobian = SMatrix::<f64, 6, 3>::zeros();
+        for k in 0..3 {
+            let step = if k == 0 { MASS_STEP } else { ANGLE_STEP };
+            let mut dp = Vector3::zeros();
+            dp[k] = step;
+            let column = (residual(&(p + dp)) - residual(&(p - dp))) / (2.0 * step);
+            jacobian.set_column(k, &column);
+        }
+        let normal: Matrix3<f64> = jacobian.transpose() * jacobian;
+        let gradient = jacobian.transpose() * r;
+        let mut improved = false;
+        while damping < 1e12 {
+            let damped = normal + Matrix3::from_diagonal(&normal.diagonal()) * damping;
+            let Some(step) = damped.try_inverse().map(|n| -(n * gradient)) else {
+                break;
+            };
+            let next = residual(&(p + step));
+            if next.norm_squared() < r.norm_squared() {
+                p += step;
+                r = next;
+                damping = (damping / 10.0).max(1e-9);
+                improved = step[0].abs() > 1e-7 || step[1].abs().max(step[2].abs()) > 1e-8;
+                break;
+            }
+            damping *= 10.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    let before = predicted(&Vector3::zeros());
+    let after = predicted(&p);
+    let holds: Vec<Hold> = holds
+        .iter()
+        .zip(before.iter().zip(&after))
+        .map(|((x, measured), (model_force, explained))| Hold {
+            position_m: (*x).into(),
+            measured_n: (*measured).into(),
+            model_n: (*model_force).into(),
+            unexplained_n: (measured - explained).norm(),
+            tolerance_n: (TOLERANCE_SHARE * model_force.norm()).max(TOLERANCE_MIN),
+        })
+        .collect();
+    let agrees = holds
+        .iter()
+        .zip(&before)
+        .all(|(h, f)| (Vector3::from(h.measured_n) - f).norm() <= h.tolerance_n);
+    let plausible = p[0].abs() <= MAX_PAYLOAD && p[1].hypot(p[2]) <= MAX_TILT;
+    let explained = plausible
+        && holds.iter().zip(&before).all(|(h, f)| {
+            let difference = (Vector3::from(h.measured_n) - f).norm();
+            h.unexplained_n <= h.tolerance_n.max(EXPLAINED_SHARE * difference)
+        });
+    let verdict = match (agrees, explained) {
+        (true, _) => Verdict::Unchanged,
+        (false, true) => Verdict::Apply,
+        (false, false) => Verdict::Recalibrate,
+    };
+    let tilt = across[0] * p[1] + across[1] * p[2];
+    let angle = tilt.norm();
+    Check {
+        verdict,
+        payload_g: p[0] * 1e3,
+        tilt_deg: angle.to_degrees(),
+        tilt_axis: if angle > 0.0 {
+            (tilt / angle).into()
+        } else {
+            across[0].into()
+        },
+        holds,
+        device_time_s: 0.0,
+        grid: PathBuf::new(),
+    }
+}
