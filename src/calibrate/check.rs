@@ -138,13 +138,15 @@ pub fn check(
     let c = &config.compensation;
     let model = GravityModel::configured(file.clone(), c.mode, c.outside_grid)
         .map_err(GridModelError::model(&path))?;
-    // The holds lie in the calibrated cube: its centre, and its corner of smallest coordinates.
+    // The holds: the ends of the main diagonal of the largest cube the grid holds about its
+    // centre.
     let grid = &file.grid;
-    let half_cells = grid.dims.iter().map(|&n| n - 1).min().unwrap_or(0) / 2;
+    // Half the smallest side, in cells (a 2-vertex side: half a cell).
+    let half_cells = grid.dims.iter().map(|&n| n - 1).min().unwrap_or(0) as f64 / 2.0;
     let mut params = CalibrationParams::for_device(config, &request.device);
     params.holds = Holds::Diagonal;
     params.half_size = 1;
-    params.spacing = grid.spacing * half_cells.max(1) as f64;
+    params.spacing = grid.spacing * half_cells;
     params.centre = grid.origin
         + Vector3::new(
             grid.dims[0] as f64 - 1.0,
