@@ -561,7 +561,11 @@ fn check_command(config: &Config, args: &CheckArgs) -> Result<()> {
         state_dir: config.state_dir(),
     };
     let stop = install_stop_handler()?;
-    let found = check::check(config, &request, stop, &mut |_| {})?;
+    // The initialisation, then the two holds, shown as a calibration's are.
+    let mut display = progress::Display::new(2);
+    let found = check::check(config, &request, stop, &mut |e| display.show(e));
+    display.finish();
+    let found = found?;
     if args.json {
         out(&format!("{}\n", serde_json::to_string(&found)?))?;
     } else {
