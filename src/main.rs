@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, LazyLock};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
@@ -218,9 +218,20 @@ const IGNORED_OPTIONS: &[(&str, &[&str])] = &[
     ("devices", &["state_dir", "socket"]),
 ];
 
+/// `hgcd --version`: the release, the git commit it was built from ("unknown" outside a git
+/// checkout) and the HID report protocol it speaks.
+static VERSION: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "{} (git {}, HID protocol v{})",
+        env!("CARGO_PKG_VERSION"),
+        env!("HGCD_GIT_COMMIT"),
+        hgcd::protocol::PROTOCOL_VERSION
+    )
+});
+
 /// The command line, each subcommand's help listing only the global options it uses.
 fn command() -> clap::Command {
-    let mut cmd = Cli::command();
+    let mut cmd = Cli::command().version(VERSION.as_str());
     for (sub, ignored) in IGNORED_OPTIONS {
         for id in *ignored {
             let hidden = cmd

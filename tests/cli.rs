@@ -757,3 +757,26 @@ fn sigterm_ends_hgcd_even_where_it_is_blocked() {
         "{stderr}"
     );
 }
+
+/// Issue 37: `hgcd --version` names the release, the commit it was built from and the HID
+/// report protocol it speaks.
+#[test]
+fn version_names_the_release_the_git_commit_and_the_hid_protocol() {
+    let commit = std::process::Command::new("git")
+        .args(["rev-parse", "--short", "HEAD"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map_or("unknown".into(), |o| {
+            String::from_utf8_lossy(&o.stdout).trim().to_string()
+        });
+    let want = format!(
+        "hgcd {} (git {commit}, HID protocol v{})\n",
+        env!("CARGO_PKG_VERSION"),
+        hgcd::protocol::PROTOCOL_VERSION
+    );
+    for flag in ["--version", "-V"] {
+        assert_eq!(succeeded(&hgcd().arg(flag).output().unwrap()), want);
+    }
+}
