@@ -77,6 +77,26 @@ enum Command {
     SimDevice(SimDeviceArgs),
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
+    /// Write the man pages, hgcd.1 and hgcd-SUBCOMMAND.1, into DIR (for packagers).
+    #[command(hide = true)]
+    Man(ManArgs),
+    /// Print the completion script for SHELL on standard output (for packagers).
+    #[command(hide = true)]
+    Completions(CompletionsArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct ManArgs {
+    /// Directory for the pages (created if needed).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+struct CompletionsArgs {
+    /// The shell the script is for.
+    #[arg(value_enum)]
+    shell: clap_complete::Shell,
 }
 
 #[derive(clap::Args, Debug)]
@@ -216,6 +236,8 @@ const IGNORED_OPTIONS: &[(&str, &[&str])] = &[
     ("status", &["state_dir", "profile"]),
     ("sim-device", &["state_dir", "socket"]),
     ("devices", &["state_dir", "socket"]),
+    ("man", &["config", "state_dir", "socket", "profile"]),
+    ("completions", &["config", "state_dir", "socket", "profile"]),
 ];
 
 /// `hgcd --version`: the release, the git commit it was built from ("unknown" outside a git
@@ -374,7 +396,39 @@ fn real_main(cli: Cli) -> Result<()> {
         Command::Status(args) => status(&config()?, args.device.as_deref()),
         Command::SimDevice(args) => sim_device(&config()?, &args),
         Command::Devices => devices(&config()?),
+        Command::Man(args) => man_pages(&args.out),
+        Command::Completions(args) => {
+            let mut script = Vec::new();
+            clap_complete::generate(args.shell, &mut command(), "hgcd", &mut script);
+            out(&String::from_utf8_lossy(&script))
+        }
     }
+}
+
+/// `hgcd man`: a page for hgcd and one for each subcommand a user sees, from the command line's
+/// own definition (the hidden ones, `man` and `completions`, are left out).
+fn man_pages(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    // `hgcd help` has no page of its own: `--help` is on every page.
+    let mut cmd = command().disable_help_subcommand(true);
+    // Building gives each subcommand the global options it accepts.
+    cmd.build();
+    let source = format!("hgcd {}", *VERSION);
+    let write = |name: &str, page: clap::Command| -> Result<()> {
+        let path = dir.join(format!("{name}.1"));
+        let mut roff = Vec::new();
+        let man = clap_mangen::Man::new(page).title(name).source(&source);
+        man.render(&mut roff)?;
+        std::fs::write(&path, roff).with_context(|| format!("writing {}", path.display()))
+    };
+    for sub in cmd.get_subcommands() {
+        if sub.is_hide_set() {
+            continue;
+        }
+        let name = format!("hgcd-{}", sub.get_name());
+        write(&name, sub.clone())?;
+    }
+    write("hgcd", cmd)
 }
 
 /// `hgcd calibrate`: through the running daemon with `--via-daemon`, else in this process.

@@ -780,3 +780,52 @@ fn version_names_the_release_the_git_commit_and_the_hid_protocol() {
         assert_eq!(succeeded(&hgcd().arg(flag).output().unwrap()), want);
     }
 }
+
+/// Issue 37: the man pages and completions the package ships come from the command line's own
+/// definition: a page per subcommand a user sees, none for the generators themselves.
+#[test]
+fn man_pages_and_completions_are_generated_from_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    succeeded(
+        &hgcd()
+            .args(["man", "--out"])
+            .arg(dir.path())
+            .output()
+            .unwrap(),
+    );
+    let mut pages: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    pages.sort();
+    let want = [
+        "hgcd-analyze.1",
+        "hgcd-calibrate.1",
+        "hgcd-devices.1",
+        "hgcd-record.1",
+        "hgcd-run.1",
+        "hgcd-sim-device.1",
+        "hgcd-status.1",
+        "hgcd-validate.1",
+        "hgcd.1",
+    ];
+    assert_eq!(pages, want);
+    let run = std::fs::read_to_string(dir.path().join("hgcd-run.1")).unwrap();
+    assert!(run.contains("virtual\\-time"), "{run}");
+    // The global options a subcommand uses are on its page.
+    assert!(run.contains("state\\-dir"), "{run}");
+    let top = std::fs::read_to_string(dir.path().join("hgcd.1")).unwrap();
+    assert!(top.contains("HID protocol v1"), "the version: {top}");
+    for (shell, marker) in [
+        ("bash", "complete -F _hgcd"),
+        ("zsh", "#compdef hgcd"),
+        ("fish", "complete -c hgcd"),
+    ] {
+        let script = succeeded(&hgcd().args(["completions", shell]).output().unwrap());
+        assert!(script.contains(marker), "{shell}: {script}");
+        assert!(script.contains("calibrate"), "{shell}: {script}");
+    }
+    // The generators are for packagers: not in the help a user reads.
+    let help = succeeded(&hgcd().arg("--help").output().unwrap());
+    assert!(!help.contains("completions"), "{help}");
+}
