@@ -399,10 +399,24 @@ fn real_main(cli: Cli) -> Result<()> {
         Command::Man(args) => man_pages(&args.out),
         Command::Completions(args) => {
             let mut script = Vec::new();
-            clap_complete::generate(args.shell, &mut command(), "hgcd", &mut script);
+            clap_complete::generate(args.shell, &mut visible_command(), "hgcd", &mut script);
             out(&String::from_utf8_lossy(&script))
         }
     }
+}
+
+/// The command line without its hidden subcommands (clap has no way to leave them out of a
+/// completion script), as completions offer it.
+fn visible_command() -> clap::Command {
+    let full = command();
+    let mut visible = clap::Command::new("hgcd").version(VERSION.as_str());
+    for arg in full.get_arguments() {
+        visible = visible.arg(arg.clone());
+    }
+    for sub in full.get_subcommands().filter(|s| !s.is_hide_set()) {
+        visible = visible.subcommand(sub.clone());
+    }
+    visible
 }
 
 /// `hgcd man`: a page for hgcd and one for each subcommand a user sees, from the command line's

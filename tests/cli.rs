@@ -824,6 +824,10 @@ fn man_pages_and_completions_are_generated_from_the_command_line() {
         let script = succeeded(&hgcd().args(["completions", shell]).output().unwrap());
         assert!(script.contains(marker), "{shell}: {script}");
         assert!(script.contains("calibrate"), "{shell}: {script}");
+        assert!(
+            !script.contains("completions"),
+            "{shell}: offers the generators"
+        );
     }
     // The generators are for packagers: not in the help a user reads.
     let help = succeeded(&hgcd().arg("--help").output().unwrap());
