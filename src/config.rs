@@ -1471,10 +1471,44 @@ mod tests {
         assert!(may_create_in(&dir.path().join("a/b")));
     }
 
+    /// `line` without the `#` or `# ` that comments out a setting in the shipped file.
+    fn bare(line: &str) -> &str {
+        line.strip_prefix('#')
+            .map_or(line, |rest| rest.strip_prefix(' ').unwrap_or(rest))
+    }
+
+    /// Whether `line`, commented out or not, sets a key (`name = value`).
+    fn is_setting(line: &str) -> bool {
+        bare(line).split_once(" = ").is_some_and(|(k, _)| {
+            !k.is_empty() && k.chars().all(|c| c.is_ascii_lowercase() || c == '_')
+        })
+    }
+
     #[test]
-    fn shipped_config_file_equals_the_defaults() {
+    fn shipped_config_file_sets_nothing_and_shows_the_defaults() {
         let text = include_str!("../config/hgcd.toml");
+        // The package's conffile: every key commented out, so hgcd runs on the defaults.
+        let active: Vec<&str> = text
+            .lines()
+            .filter(|l| !l.starts_with('#') && is_setting(l))
+            .collect();
+        assert!(
+            active.is_empty(),
+            "keys set in config/hgcd.toml: {active:?}"
+        );
         let parsed = Config::from_toml_str(text, Path::new("config/hgcd.toml")).unwrap();
+        assert_eq!(parsed, Config::default());
+        // `#key = value` shows the default: uncommented, they give the defaults again (`# key =
+        // value` is an example for a key without one, left commented).
+        let shown: Vec<&str> = text
+            .lines()
+            .map(|l| match l.strip_prefix('#') {
+                Some(rest) if !rest.starts_with(' ') && is_setting(rest) => rest,
+                _ => l,
+            })
+            .collect();
+        assert!(shown.len() > 40, "too few defaults shown");
+        let parsed = Config::from_toml_str(&shown.join("\n"), Path::new("t")).unwrap();
         assert_eq!(parsed, Config::default());
     }
 
@@ -1528,23 +1562,13 @@ mod tests {
     fn shape(key: &str) -> Shape {
         let uncommented: Vec<&str> = include_str!("../config/hgcd.toml")
             .lines()
-            .map(|line| {
-                let bare = line.trim_start_matches("# ");
-                let setting = bare.split_once(" = ").is_some_and(|(k, _)| {
-                    !k.is_empty() && k.chars().all(|c| c.is_ascii_lowercase() || c == '_')
-                });
-                if setting {
-                    bare
-                } else {
-                    line
-                }
-            })
+            .map(|line| if is_setting(line) { bare(line) } else { line })
             .collect();
         let shipped: toml::Table = uncommented.join("\n").parse().unwrap();
         let (section, name) = key.split_once('.').unwrap();
         let commented_array = include_str!("../config/hgcd.toml")
             .lines()
-            .any(|line| line.starts_with(&format!("# {name} = [")));
+            .any(|line| line.starts_with('#') && bare(line).starts_with(&format!("{name} = [")));
         match shipped[section].get(name) {
             Some(toml::Value::Array(_)) => Shape::Array,
             Some(toml::Value::Integer(_)) => Shape::Integer,
@@ -1683,20 +1707,10 @@ mod tests {
                 .unwrap_or_else(|| panic!("no [{section}] in config/hgcd.toml"));
             // The comment block above `name = ...` (or `# name = ...`) and the settings it
             // documents together (`workspace_min_mm` and `workspace_max_mm` share one).
-            let is_setting = |line: &str| {
-                line.trim_start_matches("# ")
-                    .split_once(" = ")
-                    .is_some_and(|(k, _)| {
-                        !k.is_empty() && k.chars().all(|c| c.is_ascii_lowercase() || c == '_')
-                    })
-            };
             let mut doc = Vec::new();
             let mut after_setting = false;
             for line in body.lines() {
-                if line
-                    .trim_start_matches("# ")
-                    .starts_with(&format!("{name} = "))
-                {
+                if bare(line).starts_with(&format!("{name} = ")) {
                     break;
                 }
                 if is_setting(line) {

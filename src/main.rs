@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, LazyLock};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
@@ -82,6 +82,26 @@ enum Command {
     SimDevice(SimDeviceArgs),
     /// List the HID devices hgcd can see, with the spec that opens each.
     Devices,
+    /// Write the man pages, hgcd.1 and hgcd-SUBCOMMAND.1, into DIR (for packagers).
+    #[command(hide = true)]
+    Man(ManArgs),
+    /// Print the completion script for SHELL on standard output (for packagers).
+    #[command(hide = true)]
+    Completions(CompletionsArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct ManArgs {
+    /// Directory for the pages (created if needed).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+struct CompletionsArgs {
+    /// The shell the script is for.
+    #[arg(value_enum)]
+    shell: clap_complete::Shell,
 }
 
 #[derive(clap::Args, Debug)]
@@ -240,11 +260,24 @@ const IGNORED_OPTIONS: &[(&str, &[&str])] = &[
     ("status", &["state_dir", "profile"]),
     ("sim-device", &["state_dir", "socket"]),
     ("devices", &["state_dir", "socket"]),
+    ("man", &["config", "state_dir", "socket", "profile"]),
+    ("completions", &["config", "state_dir", "socket", "profile"]),
 ];
+
+/// `hgcd --version`: the release, the git commit it was built from ("unknown" outside a git
+/// checkout) and the HID report protocol it speaks.
+static VERSION: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "{} (git {}, HID protocol v{})",
+        env!("CARGO_PKG_VERSION"),
+        env!("HGCD_GIT_COMMIT"),
+        hgcd::protocol::PROTOCOL_VERSION
+    )
+});
 
 /// The command line, each subcommand's help listing only the global options it uses.
 fn command() -> clap::Command {
-    let mut cmd = Cli::command();
+    let mut cmd = Cli::command().version(VERSION.as_str());
     for (sub, ignored) in IGNORED_OPTIONS {
         for id in *ignored {
             let hidden = cmd
@@ -388,7 +421,53 @@ fn real_main(cli: Cli) -> Result<()> {
         Command::SimDevice(args) => sim_device(&config()?, &args),
         Command::Devices => devices(&config()?),
         Command::Check(args) => check_command(&config()?, &args),
+        Command::Man(args) => man_pages(&args.out),
+        Command::Completions(args) => {
+            let mut script = Vec::new();
+            clap_complete::generate(args.shell, &mut visible_command(), "hgcd", &mut script);
+            out(&String::from_utf8_lossy(&script))
+        }
     }
+}
+
+/// The command line without its hidden subcommands (clap has no way to leave them out of a
+/// completion script), as completions offer it.
+fn visible_command() -> clap::Command {
+    let full = command();
+    let mut visible = clap::Command::new("hgcd").version(VERSION.as_str());
+    for arg in full.get_arguments() {
+        visible = visible.arg(arg.clone());
+    }
+    for sub in full.get_subcommands().filter(|s| !s.is_hide_set()) {
+        visible = visible.subcommand(sub.clone());
+    }
+    visible
+}
+
+/// `hgcd man`: a page for hgcd and one for each subcommand a user sees, from the command line's
+/// own definition (the hidden ones, `man` and `completions`, are left out).
+fn man_pages(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    // `hgcd help` has no page of its own: `--help` is on every page.
+    let mut cmd = command().disable_help_subcommand(true);
+    // Building gives each subcommand the global options it accepts.
+    cmd.build();
+    let source = format!("hgcd {}", *VERSION);
+    let write = |name: &str, page: clap::Command| -> Result<()> {
+        let path = dir.join(format!("{name}.1"));
+        let mut roff = Vec::new();
+        let man = clap_mangen::Man::new(page).title(name).source(&source);
+        man.render(&mut roff)?;
+        std::fs::write(&path, roff).with_context(|| format!("writing {}", path.display()))
+    };
+    for sub in cmd.get_subcommands() {
+        if sub.is_hide_set() {
+            continue;
+        }
+        let name = format!("hgcd-{}", sub.get_name());
+        write(&name, sub.clone())?;
+    }
+    write("hgcd", cmd)
 }
 
 /// `hgcd calibrate`: through the running daemon with `--via-daemon`, else in this process.

@@ -757,3 +757,79 @@ fn sigterm_ends_hgcd_even_where_it_is_blocked() {
         "{stderr}"
     );
 }
+
+/// Issue 37: `hgcd --version` names the release, the commit it was built from and the HID
+/// report protocol it speaks.
+#[test]
+fn version_names_the_release_the_git_commit_and_the_hid_protocol() {
+    let commit = std::process::Command::new("git")
+        .args(["rev-parse", "--short", "HEAD"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map_or("unknown".into(), |o| {
+            String::from_utf8_lossy(&o.stdout).trim().to_string()
+        });
+    let want = format!(
+        "hgcd {} (git {commit}, HID protocol v{})\n",
+        env!("CARGO_PKG_VERSION"),
+        hgcd::protocol::PROTOCOL_VERSION
+    );
+    for flag in ["--version", "-V"] {
+        assert_eq!(succeeded(&hgcd().arg(flag).output().unwrap()), want);
+    }
+}
+
+/// Issue 37: the man pages and completions the package ships come from the command line's own
+/// definition: a page per subcommand a user sees, none for the generators themselves.
+#[test]
+fn man_pages_and_completions_are_generated_from_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    succeeded(
+        &hgcd()
+            .args(["man", "--out"])
+            .arg(dir.path())
+            .output()
+            .unwrap(),
+    );
+    let mut pages: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    pages.sort();
+    let want = [
+        "hgcd-analyze.1",
+        "hgcd-calibrate.1",
+        "hgcd-devices.1",
+        "hgcd-record.1",
+        "hgcd-run.1",
+        "hgcd-sim-device.1",
+        "hgcd-status.1",
+        "hgcd-validate.1",
+        "hgcd.1",
+    ];
+    assert_eq!(pages, want);
+    let run = std::fs::read_to_string(dir.path().join("hgcd-run.1")).unwrap();
+    assert!(run.contains("virtual\\-time"), "{run}");
+    // The global options a subcommand uses are on its page.
+    assert!(run.contains("state\\-dir"), "{run}");
+    let top = std::fs::read_to_string(dir.path().join("hgcd.1")).unwrap();
+    assert!(top.contains("HID protocol v1"), "the version: {top}");
+    for (shell, marker) in [
+        ("bash", "complete -F _hgcd"),
+        ("zsh", "#compdef hgcd"),
+        ("fish", "complete -c hgcd"),
+    ] {
+        let script = succeeded(&hgcd().args(["completions", shell]).output().unwrap());
+        assert!(script.contains(marker), "{shell}: {script}");
+        assert!(script.contains("calibrate"), "{shell}: {script}");
+        assert!(
+            !script.contains("completions"),
+            "{shell}: offers the generators"
+        );
+    }
+    // The generators are for packagers: not in the help a user reads.
+    let help = succeeded(&hgcd().arg("--help").output().unwrap());
+    assert!(!help.contains("completions"), "{help}");
+}
