@@ -801,6 +801,7 @@ fn man_pages_and_completions_are_generated_from_the_command_line() {
     let want = [
         "hgcd-analyze.1",
         "hgcd-calibrate.1",
+        "hgcd-check.1",
         "hgcd-devices.1",
         "hgcd-record.1",
         "hgcd-run.1",
