@@ -19,7 +19,7 @@ use serde::Serialize;
 use thiserror::Error;
 use tracing::info;
 
-use super::{device_grid, drive, CalibrateError, GridModelError};
+use super::{device_grid, drive, identified, CalibrateError, GridModelError};
 use crate::config::{Config, DeviceSpec};
 use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationParams, CalibrationResult, Holds,
@@ -131,9 +131,8 @@ pub fn check(
     config.validate().map_err(CalibrateError::from)?;
     let transport =
         transport::open(&request.device, config, request.pacing).map_err(CalibrateError::Open)?;
-    let device = transport::identify(transport.as_ref(), &request.device, config)
-        .map_err(CalibrateError::Open)?;
-    let config = &config.for_device(device.info.as_ref());
+    let (device, config) = identified(transport.as_ref(), &request.device, config)?;
+    let config = &config;
     let (file, path) = device_grid(request.grid.as_deref(), &request.state_dir, &device)?;
     let c = &config.compensation;
     let model = GravityModel::configured(file.clone(), c.mode, c.outside_grid)

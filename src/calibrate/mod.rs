@@ -220,9 +220,8 @@ pub fn calibrate_on(
     progress: &mut dyn FnMut(&CalibrationEvent),
 ) -> Result<CalibrationRun, CalibrateError> {
     config.validate()?;
-    let device = transport::identify(transport.as_ref(), &request.device, config)
-        .map_err(CalibrateError::Open)?;
-    let config = &config.for_device(device.info.as_ref());
+    let (device, config) = identified(transport.as_ref(), &request.device, config)?;
+    let config = &config;
     let path = match &request.output {
         Some(path) => path.clone(),
         None => grid_path(&request.state_dir, &device.grid_id()),
@@ -319,6 +318,18 @@ pub fn calibrate_on(
         stats,
         wall_time: started.elapsed().as_secs_f64(),
     })
+}
+
+/// The device behind `transport` (opened as `spec`), and `config` with what it says of itself
+/// standing in for the keys the file did not give ([`Config::for_device`]).
+pub(crate) fn identified(
+    transport: &dyn Transport,
+    spec: &DeviceSpec,
+    config: &Config,
+) -> Result<(DeviceIdentity, Config), CalibrateError> {
+    let device = transport::identify(transport, spec, config).map_err(CalibrateError::Open)?;
+    let config = config.for_device(device.info.as_ref());
+    Ok((device, config))
 }
 
 /// Drive `calibration` (and the receiver of its events, handed to `progress` on this thread)
