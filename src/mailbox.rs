@@ -61,6 +61,9 @@ pub struct PublishedState {
     pub state: DeviceState,
     /// N.
     pub force: Vector3<f64>,
+    /// The gravity compensation in that force, before the safety layer, N: zero while no model
+    /// compensates (no grid, a calibration, the hold after it).
+    pub gravity: Vector3<f64>,
     /// `seq` of the last force offset applied (0: none).
     pub offset_seq: u64,
 }

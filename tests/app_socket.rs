@@ -330,6 +330,13 @@ fn the_scripted_session_matches_its_golden_transcript() {
         "force {:?} is gravity + {beyond_gravity}",
         state.force
     );
+    // The gravity part alone, as the grid gives it at that position.
+    let gravity = nalgebra::Vector3::from(state.gravity.expect("the daemon sends `gravity`"));
+    let expected = grid.grid.gravity_force(&state.position.into());
+    assert!(
+        (gravity - expected).norm() < 1e-9 && expected.norm() > 0.1,
+        "gravity {gravity} where the grid gives {expected}"
+    );
     s.note("A stops the stream; samples already queued still arrive, up to the status reply.");
     s.send(&mut a, r#"{"type":"subscribe","rate_hz":0}"#);
     s.send(&mut a, r#"{"type":"status"}"#);

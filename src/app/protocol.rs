@@ -113,6 +113,11 @@ pub struct StateSample {
     /// Force the output report carried this tick, N: after the safety layer's magnitude and rate
     /// limits, and zero during a fault.
     pub force: [f64; 3],
+    /// The gravity compensation in `force`, before the safety layer's limits, N: zero while
+    /// the daemon compensates nothing (no grid, a calibration, the hold after it). Absent from
+    /// a daemon older than this field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gravity: Option<[f64; 3]>,
     /// Device status flags (HID protocol v1 bits).
     pub flags: u16,
     /// `seq` of the last force offset the servo applied (0: none).
@@ -127,6 +132,7 @@ impl From<&PublishedState> for StateSample {
             position: p.state.position.into(),
             velocity: p.state.velocity.into(),
             force: p.force.into(),
+            gravity: Some(p.gravity.into()),
             flags: p.state.status.bits(),
             offset_seq: p.offset_seq,
         }
@@ -388,6 +394,7 @@ mod tests {
             position: [0.0, 0.01, -0.02],
             velocity: [0.0; 3],
             force: [0.0, 0.0, 1.2],
+            gravity: Some([0.0, 0.0, 1.1]),
             flags: 1,
             offset_seq: 3,
         });

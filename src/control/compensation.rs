@@ -372,10 +372,18 @@ impl Compensation {
     }
 }
 
+impl Compensation {
+    /// This tick's two parts of the force: the offset Z_E, then the gravity force at the
+    /// handle.
+    pub fn parts(&mut self, s: &DeviceState) -> (Vector3<f64>, Vector3<f64>) {
+        (self.offset.at(s), self.gravity_force(&s.position))
+    }
+}
+
 impl Controller for Compensation {
     fn tick(&mut self, s: &DeviceState) -> ControlOutput {
-        let z_e = self.offset.at(s);
-        ControlOutput::force(z_e + self.gravity_force(&s.position))
+        let (z_e, gravity) = self.parts(s);
+        ControlOutput::force(z_e + gravity)
     }
 }
 

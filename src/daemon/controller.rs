@@ -30,6 +30,8 @@ pub struct Arbiter {
     /// The newest offset from the owner, applied at the next tick.
     pending: Option<OffsetCommand>,
     offset_seq: u64,
+    /// The gravity compensation the last tick rendered (zero when it rendered none).
+    gravity: Vector3<f64>,
 }
 
 impl Arbiter {
@@ -41,12 +43,19 @@ impl Arbiter {
             owner: None,
             pending: None,
             offset_seq: 0,
+            gravity: Vector3::zeros(),
         }
     }
 
     /// `seq` of the last force offset applied (0: none).
     pub fn offset_seq(&self) -> u64 {
         self.offset_seq
+    }
+
+    /// The gravity compensation in the last tick's force, N (zero when it had none: no model, a
+    /// calibration, a hold).
+    pub fn gravity(&self) -> Vector3<f64> {
+        self.gravity
     }
 
     fn drop_offset(&mut self) {
@@ -109,10 +118,15 @@ impl Arbiter {
             self.compensation.offset.set(offset.force, s);
             self.offset_seq = offset.seq;
         }
+        self.gravity = Vector3::zeros();
         let Some(calibration) = self.calibration.as_mut() else {
             let force = match &self.hold {
                 Some(hold) => hold.force(s),
-                None => self.compensation.tick(s).force,
+                None => {
+                    let (z_e, gravity) = self.compensation.parts(s);
+                    self.gravity = gravity;
+                    z_e + gravity
+                }
             };
             return (force, None);
         };
@@ -126,7 +140,10 @@ impl Arbiter {
         self.hold = finished.final_hold();
         let force = match &self.hold {
             Some(hold) => hold.force(s),
-            None => self.compensation.gravity_force(&s.position),
+            None => {
+                self.gravity = self.compensation.gravity_force(&s.position);
+                self.gravity
+            }
         };
         (force, Some(ServoReturn::CalibrationDone(finished)))
     }
@@ -176,6 +193,7 @@ impl Controller for DaemonController {
         self.mailbox.publish(PublishedState {
             state: *s,
             force: *sent,
+            gravity: self.arbiter.gravity(),
             offset_seq: self.arbiter.offset_seq(),
         });
     }
@@ -241,6 +259,11 @@ mod tests {
         a.offset(offset(7, 2, 1.0));
         let (f, _) = a.tick(&state(2));
         assert_eq!(f, weight + Vector3::new(1.0, 0.0, 0.0));
+        assert_eq!(
+            a.gravity(),
+            weight,
+            "the compensation alone, without the offset"
+        );
         assert_eq!(a.offset_seq(), 2);
         // The owner leaves: its force goes on the next tick.
         a.command(ServoCommand::ClientGone(7));
@@ -254,5 +277,6 @@ mod tests {
         let old = a.command(ServoCommand::SwapModel(None));
         assert!(matches!(old, Some(ServoReturn::OldModel(Some(_)))));
         assert_eq!(a.tick(&state(0)).0, Vector3::zeros());
+        assert_eq!(a.gravity(), Vector3::zeros(), "no model, no gravity force");
     }
 }
