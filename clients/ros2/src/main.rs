@@ -97,6 +97,8 @@ impl From<Mapping> for ServiceMapping {
 /// How often a held offset is sent again while servo_cf is alive: well within the daemon's
 /// default `app.stale_offset_ms` (50 ms).
 const REFRESH: Duration = Duration::from_millis(20);
+/// The pause after creating each DDS writer (see `ros`).
+const WRITER_SETTLE: Duration = Duration::from_millis(10);
 /// At most one line a second for each kind of refusal.
 const LOG_PERIOD: Duration = Duration::from_secs(1);
 /// Name the bridge gives the daemon (shown as `owner` in its status).
@@ -216,6 +218,10 @@ fn ros(args: &Args, namespace: &str, domain: u16) -> anyhow::Result<Ros> {
     })?;
     let context = Context::with_options(ContextOptions::new().domain_id(domain))
         .context("cannot start DDS")?;
+    // No rosout, no spinner (its parameter services): RustDDS 0.11 holds its discovery database
+    // locked while it queues a new writer for its event loop on a channel of 10, so a process
+    // that creates more than 10 writers can deadlock with discovery (seen here: the spinner's
+    // six more, as a peer appeared). The context, the node and the bridge make 9 in all, once.
     let mut node = context
         .new_node(node_name, NodeOptions::new().enable_rosout(false))
         .context("cannot create the ROS 2 node")?;
@@ -253,19 +259,33 @@ fn ros(args: &Args, namespace: &str, domain: u16) -> anyhow::Result<Ros> {
         )
         .with_context(|| format!("cannot create the service {base}"))
     };
+    // One writer at a time, each given time to reach RustDDS's event loop (see above).
+    let settle = || thread::sleep(WRITER_SETTLE);
     let calibrate = server(&mut node, "calibrate")?;
+    settle();
     let status = server(&mut node, "status")?;
+    settle();
     Ok(Ros {
-        cp: node.create_publisher(&t_cp, None)?,
-        cv: node.create_publisher(&t_cv, None)?,
-        cf: node.create_publisher(&t_cf, None)?,
-        gravity: node.create_publisher(&t_g, None)?,
-        operating_state: node.create_publisher(&t_state, None)?,
+        cp: publisher(&mut node, &t_cp)?,
+        cv: publisher(&mut node, &t_cv)?,
+        cf: publisher(&mut node, &t_cf)?,
+        gravity: publisher(&mut node, &t_g)?,
+        operating_state: publisher(&mut node, &t_state)?,
         servo_cf: node.create_subscription(&t_servo, Some(servo_qos))?,
         calibrate,
         status,
         node,
     })
+}
+
+/// A publisher on `topic`, then the pause that lets RustDDS's event loop take its writer.
+fn publisher<M: Serialize>(
+    node: &mut Node,
+    topic: &ros2_client::rustdds::Topic,
+) -> anyhow::Result<Publisher<M>> {
+    let p = node.create_publisher(topic, None)?;
+    thread::sleep(WRITER_SETTLE);
+    Ok(p)
 }
 
 /// Why the bridge stopped.
@@ -308,7 +328,7 @@ fn run(args: Args) -> anyhow::Result<()> {
         .unwrap_or_else(|| logic::default_namespace(&device_id));
     let owns = owner.role == Role::Control;
     let max_force = owner.max_force;
-    let mut ros = ros(&args, &namespace, domain)?;
+    let ros = ros(&args, &namespace, domain)?;
     info!(
         "bridging {} ({}) to ROS 2 domain {domain}, namespace {namespace}, frame {frame_id:?}",
         owner.device_id, owner.device
@@ -328,20 +348,6 @@ fn run(args: Args) -> anyhow::Result<()> {
         })
         .context("cannot install the signal handler")?;
     }
-    // The spinner answers the ROS 2 graph (node discovery); the bridge works without it.
-    match ros.node.spinner() {
-        Ok(spinner) => {
-            thread::Builder::new()
-                .name("ros2-spinner".into())
-                .spawn(move || {
-                    if let Err(e) = futures::executor::block_on(spinner.spin()) {
-                        warn!("the ROS 2 graph spinner stopped: {e:?}");
-                    }
-                })?;
-        }
-        Err(e) => warn!("no ROS 2 graph spinner: {e:?}"),
-    }
-
     let owner = Arc::new(Mutex::new(owner));
     let Ros {
         node,
