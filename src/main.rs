@@ -159,6 +159,13 @@ struct CheckArgs {
     /// Print one JSON object (verdict, payload_g, tilt_deg, tilt_axis, device_time_s, holds).
     #[arg(long)]
     json: bool,
+    /// Take a payload and tilt found into the grid, keeping the model before as GRID.bak.
+    #[arg(long, conflicts_with = "revert")]
+    apply: bool,
+    /// Put back the model kept as GRID.bak (before the last --apply or calibration); nothing is
+    /// measured.
+    #[arg(long)]
+    revert: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -639,12 +646,19 @@ fn check_command(config: &Config, args: &CheckArgs) -> Result<()> {
         grid: args.grid.clone(),
         state_dir: config.state_dir(),
     };
+    if args.revert {
+        let reverted = check::revert(config, &request)?;
+        return out(&progress::revert_summary(&reverted));
+    }
     let stop = install_stop_handler()?;
     // The initialisation, then the two holds, shown as a calibration's are.
     let mut display = progress::Display::new(2);
     let found = check::check(config, &request, stop, &mut |e| display.show(e));
     display.finish();
-    let found = found?;
+    let mut found = found?;
+    if args.apply && found.verdict == check::Verdict::Apply {
+        check::apply(&mut found)?;
+    }
     if args.json {
         out(&format!("{}\n", serde_json::to_string(&found)?))?;
     } else {
