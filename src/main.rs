@@ -932,7 +932,11 @@ fn exit_status(e: &anyhow::Error) -> u8 {
         Some(RecordError::Servo(s)) => servo_gone(s),
         _ => false,
     };
-    if device_gone || recording_gone {
+    let check_gone = matches!(
+        e.downcast_ref::<check::CheckError>(),
+        Some(check::CheckError::Measure(c)) if calibrate_gone(c)
+    );
+    if device_gone || recording_gone || check_gone {
         EXIT_DEVICE_GONE
     } else {
         1

@@ -377,3 +377,26 @@ fn apply_keeps_the_model_before_and_revert_puts_it_back() {
     assert!(out.status.success(), "{out:?}");
     assert_eq!(std::fs::read_to_string(&grid).unwrap(), applied);
 }
+
+/// A check stopped half-way (Ctrl-C) with `--apply` asked for leaves the grid as it was and
+/// keeps no backup: nothing is written before the measurement is whole.
+#[test]
+fn a_check_interrupted_leaves_the_model_untouched() {
+    let dir = calibrated_point_mass();
+    let grid = dir.path().join("sim-point-mass.toml");
+    let calibrated = std::fs::read_to_string(&grid).unwrap();
+    let request = CheckRequest {
+        device: "sim:point-mass".parse().unwrap(),
+        pacing: Pacing::Virtual,
+        grid: None,
+        state_dir: dir.path().to_path_buf(),
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let stopper = stop.clone();
+    let found = check(&config("point-mass", PAYLOAD), &request, stop, &mut |_| {
+        stopper.store(true, std::sync::atomic::Ordering::SeqCst)
+    });
+    assert!(found.is_err(), "{found:?}");
+    assert_eq!(std::fs::read_to_string(&grid).unwrap(), calibrated);
+    assert!(!dir.path().join("sim-point-mass.toml.bak").exists());
+}
