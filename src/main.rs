@@ -417,7 +417,14 @@ fn real_main(cli: Cli) -> Result<()> {
         Ok(config)
     };
     match cli.command {
-        Command::Run(args) => run(&config()?, &args),
+        Command::Run(args) => {
+            // SIGHUP gives a simulated device the payload and gravity of this file again.
+            let file = cli
+                .config
+                .clone()
+                .or_else(|| Some(PathBuf::from(DEFAULT_CONFIG_PATH)).filter(|p| p.exists()));
+            run(&config()?, &args, file)
+        }
         Command::Calibrate(args) => calibrate_command(config()?, args),
         Command::Validate(args) => validate_command(&config()?, args),
         Command::Record(args) => record_command(&config()?, args),
@@ -564,7 +571,7 @@ fn status(config: &Config, device: Option<&str>) -> Result<()> {
 }
 
 /// `hgcd run`: the daemon, until a signal or `--duration`; prints the loop's statistics.
-fn run(config: &Config, args: &RunArgs) -> Result<()> {
+fn run(config: &Config, args: &RunArgs, config_file: Option<PathBuf>) -> Result<()> {
     if let Some(d) = args.duration {
         anyhow::ensure!(
             d.is_finite() && d > 0.0,
@@ -579,6 +586,7 @@ fn run(config: &Config, args: &RunArgs) -> Result<()> {
         } else {
             Pacing::RealTime
         },
+        config_file,
     };
     let signals = install_signal_handlers()?;
     let report = daemon::run(config, &request, signals)?;
