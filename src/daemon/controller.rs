@@ -32,6 +32,8 @@ pub struct Arbiter {
     offset_seq: u64,
     /// The gravity compensation the last tick rendered (zero when it rendered none).
     gravity: Vector3<f64>,
+    /// The last tick's force was the gravity model's alone.
+    gravity_only: bool,
 }
 
 impl Arbiter {
@@ -44,6 +46,7 @@ impl Arbiter {
             pending: None,
             offset_seq: 0,
             gravity: Vector3::zeros(),
+            gravity_only: false,
         }
     }
 
@@ -56,6 +59,12 @@ impl Arbiter {
     /// calibration, a hold).
     pub fn gravity(&self) -> Vector3<f64> {
         self.gravity
+    }
+
+    /// Whether the last tick's force was the gravity model's alone (a model, no offset, no
+    /// calibration, no hold).
+    pub fn gravity_only(&self) -> bool {
+        self.gravity_only
     }
 
     fn drop_offset(&mut self) {
@@ -119,12 +128,15 @@ impl Arbiter {
             self.offset_seq = offset.seq;
         }
         self.gravity = Vector3::zeros();
+        self.gravity_only = false;
         let Some(calibration) = self.calibration.as_mut() else {
             let force = match &self.hold {
                 Some(hold) => hold.force(s),
                 None => {
                     let (z_e, gravity) = self.compensation.parts(s);
                     self.gravity = gravity;
+                    self.gravity_only =
+                        self.compensation.model.is_some() && z_e == Vector3::zeros();
                     z_e + gravity
                 }
             };
@@ -195,6 +207,7 @@ impl Controller for DaemonController {
             force: *sent,
             gravity: self.arbiter.gravity(),
             offset_seq: self.arbiter.offset_seq(),
+            gravity_only: self.arbiter.gravity_only(),
         });
     }
 }
