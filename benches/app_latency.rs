@@ -262,6 +262,7 @@ fn main() {
         device: "sim:point-mass".parse().unwrap(),
         duration: None,
         pacing: Pacing::RealTime,
+        config_file: None,
     };
     let signals = Signals::default();
     let s2 = signals.clone();

@@ -678,7 +678,7 @@ pub(crate) mod tests {
         }
     }
 
-    fn delta() -> Arm {
+    pub(crate) fn delta() -> Arm {
         Arm {
             geometry: ArmGeometry::Delta(DeltaArm {
                 arm: 0.060,
@@ -689,6 +689,16 @@ pub(crate) mod tests {
                 legs: [180f64, -60.0, 60.0].map(f64::to_radians),
             }),
             frame: ArmFrame::offset(Vector3::zeros()),
+        }
+    }
+
+    /// Its gravity with a platform of 40 g and arms of the order of the Falcon's, level.
+    pub(crate) fn delta_gravity() -> ArmGravity {
+        ArmGravity {
+            arm: delta(),
+            parameters: [0.0012, 0.0, 0.0012, 0.0, 0.0012, 0.0, 0.04],
+            up: Vector3::z(),
+            g: 9.81,
         }
     }
 

@@ -190,6 +190,10 @@ pub const RANGES: &[(&str, Range)] = &[
     ("calibration.move_time_ms", Range::new(10.0, 60_000.0, "ms")),
     ("calibration.vertex_timeout_s", Range::new(0.1, 3600.0, "s")),
     ("calibration.max_iterations", Range::new(2.0, 1000.0, "")),
+    (
+        "compensation.auto_update_max_g",
+        Range::new(0.0, 1000.0, "g"),
+    ),
     ("app.stale_offset_ms", Range::new(1.0, 1000.0, "ms")),
     ("app.stale_ramp_ms", Range::new(1.0, 1000.0, "ms")),
     ("app.max_clients", Range::new(1.0, 1024.0, "")),
@@ -747,7 +751,7 @@ impl Default for CalibrationConfig {
     }
 }
 
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct CompensationConfig {
     /// "scalar" (paper: M(X) g v_G), "vector" (interpolated calibrated force vectors), "arm"
@@ -763,6 +767,24 @@ pub struct CompensationConfig {
     /// An `hgcd-model/1` file (`hgcd analyze`'s model.toml): its effect is added to the grid's
     /// compensation when it is a force of the position alone (payload, gravity tilt, spring).
     pub effect_file: Option<PathBuf>,
+    /// A payload the daemon notices in use (a released handle that keeps sinking or rising,
+    /// docs/calibration.md §2.3) is taken into the compensation it runs, not only reported.
+    pub auto_update: bool,
+    /// The largest payload `auto_update` takes in, g (either sign); one beyond is only reported.
+    pub auto_update_max_g: f64,
+}
+
+impl Default for CompensationConfig {
+    fn default() -> Self {
+        Self {
+            mode: None,
+            outside_grid: OutsideGrid::default(),
+            allow_uncompensated: false,
+            effect_file: None,
+            auto_update: false,
+            auto_update_max_g: 50.0,
+        }
+    }
 }
 
 #[derive(Clone, Debug, Deserialize, PartialEq)]
@@ -1261,6 +1283,11 @@ impl Config {
         in_range("calibration.move_time_ms", c.move_time_ms)?;
         in_range("calibration.vertex_timeout_s", c.vertex_timeout_s)?;
         in_range("calibration.max_iterations", c.max_iterations.into())?;
+
+        in_range(
+            "compensation.auto_update_max_g",
+            self.compensation.auto_update_max_g,
+        )?;
 
         let a = &self.app;
         self.socket_mode()?;

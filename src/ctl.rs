@@ -34,7 +34,7 @@ fn one_status(socket: &Path) -> Result<()> {
          servo loop    {} ticks in {:.1} s; late {}, missed {}, overruns {}, garbled {}, watchdog \
          faults {}; worst tick {:.1} µs, longest period {:.0} µs\n\
          lateness      worst {:.0} µs after the report's timestamp; {} report(s) more than a period \
-         late\n",
+         late\n{}",
         s.device,
         s.device_id,
         socket.display(),
@@ -57,7 +57,19 @@ fn one_status(socket: &Path) -> Result<()> {
         s.servo.worst_compute_us,
         s.servo.worst_period_us,
         s.servo.worst_lateness_us,
-        s.servo.late_wakeups
+        s.servo.late_wakeups,
+        s.model_stale.map_or(String::new(), |m| format!(
+            "model         STALE: a released handle drifted at {:.1} s; a payload of {:+.1} g \
+             explains it ({:.1} mN across gravity left){}\n",
+            m.device_time_s,
+            m.payload_g,
+            m.sideways_n * 1e3,
+            if m.auto_updated {
+                "; taken into the compensation (compensation.auto_update)"
+            } else {
+                "; run hgcd check, or calibrate"
+            }
+        ))
     ))
 }
 
@@ -102,7 +114,7 @@ pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
                     of.unwrap_or(0),
                 )),
                 CalibrationStage::TimeSpent => err(&format!("time: {message}\n")),
-                CalibrationStage::Other => {}
+                CalibrationStage::Stale | CalibrationStage::Other => {}
                 CalibrationStage::Finished => {
                     return out(&format!(
                         "calibration finished; the daemon now uses {message}\n"

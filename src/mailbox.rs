@@ -63,6 +63,9 @@ pub struct PublishedState {
     pub force: Vector3<f64>,
     /// `seq` of the last force offset applied (0: none).
     pub offset_seq: u64,
+    /// The force was the gravity model's alone: no application offset (or one of zero), no
+    /// calibration, no hold. The moments the model can be tested in use.
+    pub gravity_only: bool,
 }
 
 /// Commands a ring holds; a full ring means the servo thread is not ticking (device silent).

@@ -159,6 +159,13 @@ struct CheckArgs {
     /// Print one JSON object (verdict, payload_g, tilt_deg, tilt_axis, device_time_s, holds).
     #[arg(long)]
     json: bool,
+    /// Take a payload and tilt found into the grid, keeping the model before as GRID.bak.
+    #[arg(long, conflicts_with = "revert")]
+    apply: bool,
+    /// Put back the model kept as GRID.bak (before the last --apply or calibration); nothing is
+    /// measured.
+    #[arg(long)]
+    revert: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -421,7 +428,14 @@ fn real_main(cli: Cli) -> Result<()> {
         Ok(config)
     };
     match cli.command {
-        Command::Run(args) => run(&config()?, &args),
+        Command::Run(args) => {
+            // SIGHUP gives a simulated device the payload and gravity of this file again.
+            let file = cli
+                .config
+                .clone()
+                .or_else(|| Some(PathBuf::from(DEFAULT_CONFIG_PATH)).filter(|p| p.exists()));
+            run(&config()?, &args, file)
+        }
         Command::Calibrate(args) => calibrate_command(config()?, args),
         Command::Validate(args) => validate_command(&config()?, args),
         Command::Record(args) => record_command(&config()?, args),
@@ -570,7 +584,7 @@ fn status(config: &Config, device: Option<&str>) -> Result<()> {
 }
 
 /// `hgcd run`: the daemon, until a signal or `--duration`; prints the loop's statistics.
-fn run(config: &Config, args: &RunArgs) -> Result<()> {
+fn run(config: &Config, args: &RunArgs, config_file: Option<PathBuf>) -> Result<()> {
     if let Some(d) = args.duration {
         anyhow::ensure!(
             d.is_finite() && d > 0.0,
@@ -585,6 +599,7 @@ fn run(config: &Config, args: &RunArgs) -> Result<()> {
         } else {
             Pacing::RealTime
         },
+        config_file,
     };
     let signals = install_signal_handlers()?;
     let report = daemon::run(config, &request, signals)?;
@@ -652,12 +667,19 @@ fn check_command(config: &Config, args: &CheckArgs) -> Result<()> {
         grid: args.grid.clone(),
         state_dir: config.state_dir(),
     };
+    if args.revert {
+        let reverted = check::revert(config, &request)?;
+        return out(&progress::revert_summary(&reverted));
+    }
     let stop = install_stop_handler()?;
     // The initialisation, then the two holds, shown as a calibration's are.
     let mut display = progress::Display::new(2);
     let found = check::check(config, &request, stop, &mut |e| display.show(e));
     display.finish();
-    let found = found?;
+    let mut found = found?;
+    if args.apply && found.verdict == check::Verdict::Apply {
+        check::apply(&mut found)?;
+    }
     if args.json {
         out(&format!("{}\n", serde_json::to_string(&found)?))?;
     } else {
@@ -931,7 +953,11 @@ fn exit_status(e: &anyhow::Error) -> u8 {
         Some(RecordError::Servo(s)) => servo_gone(s),
         _ => false,
     };
-    if device_gone || recording_gone {
+    let check_gone = matches!(
+        e.downcast_ref::<check::CheckError>(),
+        Some(check::CheckError::Measure(c)) if calibrate_gone(c)
+    );
+    if device_gone || recording_gone || check_gone {
         EXIT_DEVICE_GONE
     } else {
         1

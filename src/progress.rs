@@ -6,10 +6,11 @@ use std::io::IsTerminal;
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::info;
 
-use hgcd::calibrate::check::{Check, Verdict};
+use hgcd::calibrate::check::{Check, Reverted, Verdict};
 use hgcd::calibrate::{CalibrationRun, TimeLeft};
 use hgcd::config::{Config, DeviceSpec};
 use hgcd::control::calibration::{unreachable_note, CalibrationEvent, CalibrationParams, GridPlan};
+use hgcd::grid::AppliedRecord;
 use hgcd::validate::ValidateEvent;
 
 pub struct Display {
@@ -353,12 +354,20 @@ pub fn check_summary(check: &Check) -> String {
         Verdict::Unchanged => "unchanged: the model fits both holds\n".to_string(),
         Verdict::Apply => format!(
             "changed: a payload of {:+.1} g and a tilt of {:.2}° about ({:.3}, {:.3}, {:.3}) \
-             explain it (hgcd calibrate to take it in)\n",
+             explain it{}\n",
             check.payload_g,
             check.tilt_deg,
             check.tilt_axis[0],
             check.tilt_axis[1],
-            check.tilt_axis[2]
+            check.tilt_axis[2],
+            match &check.applied {
+                Some(kept) => format!(
+                    "\napplied to the grid; the model before is kept as {} (hgcd check --revert \
+                     puts it back)",
+                    kept.display()
+                ),
+                None => " (hgcd check --apply takes it in)".to_string(),
+            }
         ),
         Verdict::Recalibrate => format!(
             "recalibrate: a payload and a tilt do not explain what changed (the closest: {:+.1} g, \
@@ -385,6 +394,31 @@ pub fn check_summary(check: &Check) -> String {
         check.grid.display()
     ));
     out
+}
+
+/// What `hgcd check --revert` prints: the model put back, and the changes each model holds.
+pub fn revert_summary(reverted: &Reverted) -> String {
+    let changes = |applied: &[AppliedRecord]| match applied {
+        [] => "no change applied since its calibration".to_string(),
+        records => records
+            .iter()
+            .map(|a| {
+                format!(
+                    "{:+.1} g, {:.2}° ({})",
+                    a.payload_g,
+                    a.tilt_deg,
+                    a.at.map_or("undated".to_string(), |t| t.to_string())
+                )
+            })
+            .collect::<Vec<_>>()
+            .join("; "),
+    };
+    format!(
+        "put back the model kept beside {}: {}\nthe model it replaced is kept in its turn: {}\n",
+        reverted.grid.display(),
+        changes(&reverted.applied_now),
+        changes(&reverted.applied_before)
+    )
 }
 
 /// What `hgcd calibrate` prints when it succeeds.

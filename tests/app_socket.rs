@@ -149,6 +149,7 @@ fn masked(line: &str, reply: &Reply) -> String {
                     | "calibrating"
                     | "clients"
                     | "owner"
+                    | "model_stale"
             )
         }),
         // The time left a vertex reports, and where the run's time went, depend on how long the

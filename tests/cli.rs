@@ -322,6 +322,10 @@ fn exit_status_says_whether_the_device_is_gone() {
         Some(3)
     );
     assert_eq!(
+        status(&["check", "--yes", "--device", "hid:dead:beef"]),
+        Some(3)
+    );
+    assert_eq!(
         status(&["run", "--duration", "1", "--device", &gone]),
         Some(3)
     );

@@ -35,6 +35,7 @@ fn the_daemon_refuses_an_out_of_range_watchdog_instead_of_panicking_its_servo_th
         device: "sim:point-mass".parse().unwrap(),
         duration: Some(0.1),
         pacing: Pacing::Virtual,
+        config_file: None,
     };
     let mut ready = false;
     let err = Daemon::new(config, &request)

@@ -11,7 +11,9 @@ use std::time::{Duration, Instant};
 use nalgebra::Vector3;
 
 use super::endpoint::{self, FindError};
-pub use super::protocol::{CalibrationStage, Compensating, Reply, Role, StateSample, Status};
+pub use super::protocol::{
+    CalibrationStage, Compensating, ModelStale, Reply, Role, StateSample, Status,
+};
 use super::protocol::{
     Request, APP_PROTOCOL_VERSION, MAX_DEVICE_ID_LEN, MAX_DEVICE_LEN, MAX_FORCE_N, MAX_RATE_HZ,
     MAX_REPLY_LEN, REPLY_LINE_TIME,

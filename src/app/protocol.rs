@@ -213,6 +213,10 @@ pub enum CalibrationStage {
     Finished,
     /// The calibration stopped (`message` says why); the previous grid is untouched.
     Failed,
+    /// Not a calibration's: the daemon noticed in use that its gravity model no longer fits
+    /// the device (a released handle that keeps sinking or rising); `mass_kg` is the payload
+    /// that would explain it, `message` says more (docs/calibration.md §2.3). Once per model.
+    Stale,
     /// An event this client does not know (a newer daemon's): to be ignored.
     #[serde(other)]
     Other,
@@ -236,9 +240,28 @@ pub struct Status {
     /// Name of the client that owns the force, if any.
     pub owner: Option<String>,
     pub uptime_s: f64,
+    /// What the daemon noticed in use against its gravity model, since it loaded it (null:
+    /// nothing).
+    #[serde(default)]
+    pub model_stale: Option<ModelStale>,
     /// The servo loop's counters, flattened into the status object.
     #[serde(flatten)]
     pub servo: StatsSnapshot,
+}
+
+/// A released handle that kept sinking or rising under compensation alone, as the daemon read
+/// it (docs/calibration.md §2.3).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelStale {
+    /// The payload that explains the force along gravity the model misses, g (negative: the
+    /// handle is lighter than the model holds).
+    pub payload_g: f64,
+    /// What the model misses across gravity, N (a tilt, a spring, a cable).
+    pub sideways_n: f64,
+    /// Device time when it was noticed, s.
+    pub device_time_s: f64,
+    /// The payload was taken into the compensation (`compensation.auto_update`).
+    pub auto_updated: bool,
 }
 
 /// Why a request line was refused.
@@ -313,6 +336,7 @@ mod tests {
             (TimeSpent, "time_spent"),
             (Finished, "finished"),
             (Failed, "failed"),
+            (Stale, "stale"),
         ] {
             assert_eq!(serde_json::to_value(stage).unwrap(), json!(name));
         }

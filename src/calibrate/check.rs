@@ -10,7 +10,7 @@
 //! force) from six equations, by Levenberg–Marquardt from zero: the three left over tell a
 //! payload and a tilt from anything else (a spring, a cable, another arm).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
@@ -25,6 +25,9 @@ use crate::control::calibration::{
     Calibration, CalibrationEvent, CalibrationParams, CalibrationResult, Holds,
 };
 use crate::control::compensation::{GravityModel, StaticEffect};
+use crate::grid::{
+    restore_backup, AppliedRecord, Change, ChangeError, DeviceIdentity, GridError, GridFile,
+};
 use crate::transport::{self, Pacing};
 
 /// A hold agrees with the model when they differ by at most this share of the model's force
@@ -107,6 +110,19 @@ pub struct Check {
     pub device_time_s: f64,
     /// The grid checked.
     pub grid: PathBuf,
+    /// Where the model before `--apply` was kept, once the change was taken in.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub applied: Option<PathBuf>,
+}
+
+impl Check {
+    /// The change found, as `--apply` takes it in.
+    pub fn change(&self) -> Change {
+        Change {
+            payload_kg: self.payload_g * 1e-3,
+            tilt: Vector3::from(self.tilt_axis) * self.tilt_deg.to_radians(),
+        }
+    }
 }
 
 /// Why a check has no answer.
@@ -118,6 +134,20 @@ pub enum CheckError {
     Measure(#[from] CalibrateError),
     #[error("check: a hold was not measured ({0}); nothing to compare")]
     NoHold(String),
+    #[error("check --apply: {}: {source}", path.display())]
+    Apply {
+        path: PathBuf,
+        #[source]
+        source: ChangeError,
+    },
+    #[error("check --apply: {0}")]
+    Save(GridError),
+    #[error(
+        "check --revert: nothing kept beside {}: no model was replaced there (by --apply or a \
+         calibration)",
+        path.display()
+    )]
+    NothingKept { path: PathBuf },
 }
 
 /// Measure the two holds on the device and compare them with its saved model. `progress` sees
@@ -181,6 +211,98 @@ pub fn check(
     check.device_time_s = result.duration;
     check.grid = path;
     Ok(check)
+}
+
+/// `hgcd check --apply`: take the change `found` (verdict [`Verdict::Apply`]) into the grid it
+/// was measured against, atomically, keeping the model before it as `<grid>.bak`
+/// (docs/calibration.md §2.2). Sets `found.applied` to the backup's path.
+///
+/// # Errors
+/// [`CheckError::Apply`] where the grid cannot take the change (the arm model cannot carry a
+/// payload at its handle, a result out of range), [`CheckError::Save`] where it cannot be read
+/// again or written; the grid is then as it was.
+pub fn apply(found: &mut Check) -> Result<(), CheckError> {
+    let path = &found.grid;
+    let file = GridFile::load(path).map_err(CheckError::Save)?;
+    let record = AppliedRecord {
+        at: humantime::format_rfc3339_seconds(std::time::SystemTime::now())
+            .to_string()
+            .parse()
+            .ok(),
+        hgcd_version: Some(env!("CARGO_PKG_VERSION").to_string()),
+        payload_g: found.payload_g,
+        tilt_deg: found.tilt_deg,
+        tilt_axis: found.tilt_axis,
+        device_time_s: Some(found.device_time_s),
+    };
+    let changed = file
+        .with_change(&found.change(), record)
+        .map_err(|source| CheckError::Apply {
+            path: path.clone(),
+            source,
+        })?;
+    changed.save_atomic(path).map_err(CheckError::Save)?;
+    info!(
+        "took a payload of {:+.1} g and a tilt of {:.2}° into {}",
+        found.payload_g,
+        found.tilt_deg,
+        path.display()
+    );
+    found.applied = Some(backup_of(path));
+    Ok(())
+}
+
+/// Where [`GridFile::save_atomic`] keeps the file it replaced.
+fn backup_of(path: &Path) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".bak");
+    path.with_file_name(name)
+}
+
+/// What `hgcd check --revert` put back.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Reverted {
+    pub grid: PathBuf,
+    /// The changes taken into the model put back, and into the one it replaced.
+    pub applied_now: Vec<AppliedRecord>,
+    pub applied_before: Vec<AppliedRecord>,
+}
+
+/// `hgcd check --revert`: put back the model kept beside the device's grid (or `request.grid`),
+/// the one the last `--apply` or calibration replaced; the replaced one is kept in its turn, so
+/// a second revert undoes the first. The device is opened to tell which grid is its own;
+/// nothing is measured.
+///
+/// # Errors
+/// [`CheckError::NothingKept`] where no model was kept; [`CheckError::Grid`] where either file is
+/// not a grid of this device; [`CheckError::Measure`] where the device cannot be opened.
+pub fn revert(config: &Config, request: &CheckRequest) -> Result<Reverted, CheckError> {
+    config.validate().map_err(CalibrateError::from)?;
+    let transport =
+        transport::open(&request.device, config, request.pacing).map_err(CalibrateError::Open)?;
+    let (device, _) = identified(transport.as_ref(), &request.device, config)?;
+    drop(transport);
+    revert_grid(request.grid.as_deref(), &request.state_dir, &device)
+}
+
+fn revert_grid(
+    grid: Option<&Path>,
+    state_dir: &Path,
+    device: &DeviceIdentity,
+) -> Result<Reverted, CheckError> {
+    let (current, path) = device_grid(grid, state_dir, device)?;
+    let kept = backup_of(&path);
+    let previous = match GridFile::load_for(&kept, device) {
+        Err(GridError::Missing { .. }) => return Err(CheckError::NothingKept { path }),
+        other => other.map_err(GridModelError::Grid)?,
+    };
+    restore_backup(&path).map_err(CheckError::Save)?;
+    info!("put back the model kept as {}", kept.display());
+    Ok(Reverted {
+        grid: path,
+        applied_now: previous.applied,
+        applied_before: current.applied,
+    })
 }
 
 /// A measured hold: where (m), and the force that held the handle there (N).
@@ -316,5 +438,6 @@ pub fn compare(model: &GravityModel, g: f64, holds: &[Measured]) -> Check {
         holds,
         device_time_s: 0.0,
         grid: PathBuf::new(),
+        applied: None,
     }
 }

@@ -589,4 +589,95 @@ mod tests {
         // And a host clock that stalls while the device runs on does not either.
         assert_eq!(o.at(&at(7.11, 100.0)), Vector3::zeros());
     }
+
+    // `hgcd check --apply` (issue 36): a payload and a tilt folded into a grid file's numbers.
+    mod applied {
+        use super::*;
+        use crate::grid::file_tests::calibrated;
+        use crate::grid::{AppliedRecord, ArmRecord, Change};
+        use nalgebra::Rotation3;
+
+        /// What `hgcd run` compensates with `change` as an effect on `file`'s model.
+        fn with_effect(file: &GridFile, mode: CompensationMode, change: &Change) -> GravityModel {
+            let model = GravityModel::new(file.clone(), mode, OutsideGrid::HoldNearest).unwrap();
+            let effect = StaticEffect {
+                tilt: Rotation3::new(change.tilt),
+                weight: model.up * (change.payload_kg * file.grid.g),
+                spring: None,
+                bound: f64::INFINITY,
+            };
+            model.with_effect_bounded(Some(effect), f64::INFINITY)
+        }
+
+        fn record() -> AppliedRecord {
+            AppliedRecord {
+                at: None,
+                hgcd_version: None,
+                payload_g: 30.0,
+                tilt_deg: 4.7,
+                tilt_axis: [0.24, 0.97, 0.0],
+                device_time_s: Some(41.0),
+            }
+        }
+
+        /// Points inside the sample grid (±40 mm) and at its corners.
+        fn points() -> Vec<Vector3<f64>> {
+            (0..125)
+                .map(|n| Vector3::new((n % 5) as f64, ((n / 5) % 5) as f64, (n / 25) as f64))
+                .map(|s| (s / 2.0).add_scalar(-1.0) * 0.04)
+                .collect()
+        }
+
+        const CHANGE: Change = Change {
+            payload_kg: 0.03,
+            tilt: Vector3::new(0.02, 0.08, 0.0),
+        };
+
+        /// Folded into the numbers, a change compensates as the same change added as an effect
+        /// (what `hgcd check` fitted it with) in every mode the file serves.
+        fn assert_folds_as_the_effect(file: &GridFile, modes: &[CompensationMode]) {
+            let changed = file.with_change(&CHANGE, record()).unwrap();
+            assert_eq!(changed.applied, vec![record()]);
+            let reloaded =
+                GridFile::from_toml_str(&changed.to_toml_string(), std::path::Path::new("t"))
+                    .unwrap();
+            assert_eq!(reloaded.applied, changed.applied);
+            for &mode in modes {
+                let folded =
+                    GravityModel::new(reloaded.clone(), mode, OutsideGrid::HoldNearest).unwrap();
+                let effect = with_effect(file, mode, &CHANGE);
+                for x in points() {
+                    let (a, b) = (folded.force(&x), effect.force(&x));
+                    assert!(
+                        (a - b).norm() < 1e-6,
+                        "{mode:?} at {x:?}: {a:?} against {b:?}"
+                    );
+                }
+            }
+        }
+
+        #[test]
+        fn a_lattice_takes_in_a_payload_and_a_tilt_as_its_compensation_adds_them() {
+            let file = calibrated();
+            assert_folds_as_the_effect(
+                &file,
+                &[CompensationMode::Scalar, CompensationMode::Vector],
+            );
+        }
+
+        #[test]
+        fn an_arm_takes_in_the_tilt_as_its_gravity_and_the_payload_at_its_handle() {
+            for gravity in [
+                crate::arm::tests::phantom_gravity(),
+                crate::arm::tests::delta_gravity(),
+            ] {
+                let mut file = calibrated();
+                file.arm = Some(ArmRecord::new("test", &gravity));
+                assert_folds_as_the_effect(
+                    &file,
+                    &[CompensationMode::Arm, CompensationMode::ArmResidual],
+                );
+            }
+        }
+    }
 }

@@ -30,6 +30,8 @@ pub struct Arbiter {
     /// The newest offset from the owner, applied at the next tick.
     pending: Option<OffsetCommand>,
     offset_seq: u64,
+    /// The last tick's force was the gravity model's alone.
+    gravity_only: bool,
 }
 
 impl Arbiter {
@@ -41,12 +43,19 @@ impl Arbiter {
             owner: None,
             pending: None,
             offset_seq: 0,
+            gravity_only: false,
         }
     }
 
     /// `seq` of the last force offset applied (0: none).
     pub fn offset_seq(&self) -> u64 {
         self.offset_seq
+    }
+
+    /// Whether the last tick's force was the gravity model's alone (a model, no offset, no
+    /// calibration, no hold).
+    pub fn gravity_only(&self) -> bool {
+        self.gravity_only
     }
 
     fn drop_offset(&mut self) {
@@ -109,10 +118,15 @@ impl Arbiter {
             self.compensation.offset.set(offset.force, s);
             self.offset_seq = offset.seq;
         }
+        self.gravity_only = false;
         let Some(calibration) = self.calibration.as_mut() else {
             let force = match &self.hold {
                 Some(hold) => hold.force(s),
-                None => self.compensation.tick(s).force,
+                None => {
+                    self.gravity_only = self.compensation.model.is_some()
+                        && self.compensation.offset.at(s) == Vector3::zeros();
+                    self.compensation.tick(s).force
+                }
             };
             return (force, None);
         };
@@ -177,6 +191,7 @@ impl Controller for DaemonController {
             state: *s,
             force: *sent,
             offset_seq: self.arbiter.offset_seq(),
+            gravity_only: self.arbiter.gravity_only(),
         });
     }
 }

@@ -7,6 +7,7 @@
 //! talks to systemd; the application server has a listener and two threads per client.
 
 pub mod controller;
+mod watch;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -15,11 +16,14 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender};
+use nalgebra::Vector3;
 use thiserror::Error;
 use tracing::{error, info, warn};
 
 use crate::app::endpoint;
-use crate::app::protocol::{CalibrationStage, Compensating, Reply, StateSample, Status};
+use crate::app::protocol::{
+    CalibrationStage, Compensating, ModelStale, Reply, StateSample, Status,
+};
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::calibrate::persist::{self, grid_file};
 use crate::calibrate::TimeLeft;
@@ -30,14 +34,18 @@ use crate::control::calibration::{
 use crate::control::compensation::{
     Compensation, ForceOffset, GravityModel, ModelError, StaticEffect,
 };
-use crate::grid::{grid_path, DeviceIdentity, GridError, GridFile, ModelFile, ModelFileError};
+use crate::grid::{
+    grid_path, DeviceIdentity, EffectRecord, GridError, GridFile, ModelFile, ModelFileError,
+};
 use crate::mailbox::{
     mailbox, CommandSender, HubMailbox, OffsetSender, PublishedState, ServoCommand, ServoReturn,
 };
 use crate::servo::thread::EventLog;
 use crate::servo::{self, ServoError, ServoEvent, ServoOptions, ServoReport};
+use crate::sim::LiveWorld;
 use crate::transport::{self, Pacing, Transport, TransportError};
 use controller::DaemonController;
+use watch::{ModelWatch, Noticed};
 
 /// What `hgcd run` was asked to do.
 #[derive(Clone, Debug)]
@@ -47,6 +55,9 @@ pub struct RunRequest {
     pub duration: Option<f64>,
     /// Pacing of simulated devices.
     pub pacing: Pacing,
+    /// The config file it was started with: on SIGHUP a simulated device takes its `[sim]`
+    /// payload and gravity direction from it again (docs/simulated-devices.md).
+    pub config_file: Option<PathBuf>,
 }
 
 /// Signals the daemon reacts to (set by handlers in the binary).
@@ -54,7 +65,8 @@ pub struct RunRequest {
 pub struct Signals {
     /// SIGINT/SIGTERM: write zero force and exit.
     pub stop: Arc<AtomicBool>,
-    /// SIGHUP: reload the grid from disk.
+    /// SIGHUP: reload the grid from disk (and a simulated device's payload and gravity from the
+    /// config file).
     pub reload: Arc<AtomicBool>,
 }
 
@@ -143,6 +155,17 @@ pub fn load_model(
     device: &DeviceIdentity,
     path: &Path,
 ) -> Result<Option<Box<GravityModel>>, RunError> {
+    load_model_with(config, device, path, 0.0)
+}
+
+/// [`load_model`] with a payload of `payload_kg` taken in as well (what
+/// `compensation.auto_update` noticed in use).
+fn load_model_with(
+    config: &Config,
+    device: &DeviceIdentity,
+    path: &Path,
+    payload_kg: f64,
+) -> Result<Option<Box<GravityModel>>, RunError> {
     let built: Result<GravityModel, UnusableGrid> = match GridFile::load_for(path, device) {
         Err(GridError::Missing { .. }) => {
             warn!(
@@ -167,7 +190,7 @@ pub fn load_model(
     };
     match built {
         Ok(model) => {
-            let model = with_effect(model, config)?;
+            let model = with_effect(model, config, payload_kg)?;
             info!(
                 "gravity compensation from {} ({:?} mode)",
                 path.display(),
@@ -187,24 +210,34 @@ pub fn load_model(
 }
 
 /// `model` with the effects of `compensation.effect_file` added, those that are forces of the
-/// position alone; a warning says why another is left out.
-fn with_effect(model: GravityModel, config: &Config) -> Result<GravityModel, RunError> {
-    let Some(path) = &config.compensation.effect_file else {
-        return Ok(model);
-    };
-    let file = ModelFile::load(path).map_err(RunError::EffectFile)?;
-    let grid = &model.grid;
-    let records = file.all_effects();
-    let (effect, refused) = StaticEffect::from_records(&records, &model.up, grid.g);
-    for (record, why) in refused {
-        warn!("{}: {record:?} is not compensated: {why}", path.display());
-    }
-    if effect.is_some() {
+/// position alone (a warning says why another is left out), and a payload of `payload_kg`.
+fn with_effect(
+    model: GravityModel,
+    config: &Config,
+    payload_kg: f64,
+) -> Result<GravityModel, RunError> {
+    let mut records = Vec::new();
+    if let Some(path) = &config.compensation.effect_file {
+        let file = ModelFile::load(path).map_err(RunError::EffectFile)?;
+        records = file.all_effects();
         info!(
             "compensating {:?} from {} as well as the grid",
             records,
             path.display()
         );
+    }
+    if payload_kg != 0.0 {
+        records.push(EffectRecord::Payload {
+            mass_kg: payload_kg,
+        });
+    }
+    if records.is_empty() {
+        return Ok(model);
+    }
+    let grid = &model.grid;
+    let (effect, refused) = StaticEffect::from_records(&records, &model.up, grid.g);
+    for (record, why) in refused {
+        warn!("{record:?} is not compensated: {why}");
     }
     Ok(model.with_effect(effect))
 }
@@ -247,6 +280,13 @@ struct Hub {
     calibration_time_left: TimeLeft,
     log: EventLog,
     last_housekeeping: Instant,
+    /// Whether the gravity model in use still fits, read from the published states (None
+    /// without a model).
+    watch: Option<ModelWatch>,
+    /// The payload `compensation.auto_update` took in since the grid was loaded, kg.
+    auto_payload: f64,
+    /// A simulated device's world, and the config file SIGHUP reads it from again.
+    world: Option<(Arc<LiveWorld>, PathBuf)>,
 }
 
 impl Hub {
@@ -277,6 +317,113 @@ impl Hub {
             calibration_time_left: TimeLeft::default(),
             log: EventLog::new(),
             last_housekeeping: Instant::now(),
+            watch: None,
+            auto_payload: 0.0,
+            world: None,
+        }
+    }
+
+    /// A watch over `model` (of the grid at `grid_path`), or None without one.
+    fn watch_of(grid_path: &Path, model: Option<&GravityModel>) -> Option<ModelWatch> {
+        let model = model?;
+        match GridFile::load(grid_path) {
+            Ok(file) => Some(ModelWatch::new(&file, model.up)),
+            Err(e) => {
+                warn!("not watching the gravity model in use: {}", chain(&e));
+                None
+            }
+        }
+    }
+
+    /// The model in use no longer fits the device: say so once (journal, status, a
+    /// `calibration` event `stale` to every client), and with `compensation.auto_update` take a
+    /// payload within its bound into the compensation.
+    fn noticed(&mut self, noticed: Noticed) {
+        let grams = noticed.payload_kg * 1e3;
+        let c = &self.config.compensation;
+        let take = c.auto_update && grams.abs() <= c.auto_update_max_g;
+        warn!(
+            "the gravity model no longer fits: a released handle kept {} at {:.1} s; a payload \
+             of {grams:+.1} g explains it ({:.1} mN across gravity left){}",
+            if grams >= 0.0 { "sinking" } else { "rising" },
+            noticed.time,
+            noticed.sideways_n * 1e3,
+            if take {
+                "; taking it in (compensation.auto_update; SIGHUP goes back to the grid)"
+            } else if c.auto_update {
+                "; over compensation.auto_update_max_g, not taken in: run hgcd check or calibrate"
+            } else {
+                "; run hgcd check, or calibrate"
+            }
+        );
+        let stale = ModelStale {
+            payload_g: grams,
+            sideways_n: noticed.sideways_n,
+            device_time_s: noticed.time,
+            auto_updated: false,
+        };
+        let event = Reply::Calibration {
+            event: CalibrationStage::Stale,
+            vertex: None,
+            of: None,
+            mass_kg: Some(noticed.payload_kg),
+            message: format!(
+                "the gravity model no longer fits: a payload of {grams:+.1} g explains what a \
+                 released handle did{}",
+                if take {
+                    "; taken into the compensation"
+                } else {
+                    ""
+                }
+            ),
+        };
+        let outbound: Vec<_> = lock(&self.registry)
+            .clients
+            .values()
+            .map(|c| c.outbound.clone())
+            .collect();
+        for tx in outbound {
+            let _ = tx.send_timeout(event.clone(), server::REPLY_WAIT);
+        }
+        if take {
+            let payload = self.auto_payload + noticed.payload_kg;
+            match load_model_with(&self.config, &self.device, &self.grid_path, payload) {
+                Ok(model) => {
+                    self.auto_payload = payload;
+                    self.swap_model(model);
+                }
+                Err(e) => error!("auto_update: cannot rebuild the model: {}", chain(&e)),
+            }
+        }
+        self.status.model_stale = Some(ModelStale {
+            auto_updated: take,
+            ..stale
+        });
+    }
+
+    /// SIGHUP on a simulated device: its payload and gravity direction from the config file.
+    fn reload_world(&self) {
+        let Some((world, path)) = &self.world else {
+            return;
+        };
+        match Config::load(path) {
+            Ok(config) => {
+                let sim = &config.sim;
+                info!(
+                    "SIGHUP: the simulated device now carries {:.1} g, gravity against ({:.4}, \
+                     {:.4}, {:.4}) (from {})",
+                    sim.probe_mass_kg * 1e3,
+                    sim.gravity_direction[0],
+                    sim.gravity_direction[1],
+                    sim.gravity_direction[2],
+                    path.display()
+                );
+                world.set(sim.probe_mass_kg, Vector3::from(sim.gravity_direction));
+            }
+            Err(e) => error!(
+                "SIGHUP: the simulated device keeps its world: {}",
+                chain(&e)
+            ),
         }
     }
 
@@ -323,6 +470,8 @@ impl Hub {
     }
 
     fn swap_model(&mut self, model: Option<Box<GravityModel>>) {
+        self.watch = Self::watch_of(&self.grid_path, model.as_deref());
+        self.status.model_stale = None;
         self.status.mode = mode_name(&model);
         self.status.held_out_pct = model.as_ref().and_then(|m| m.held_out_pct);
         self.status.grid = model.as_ref().map(|_| self.grid_path.display().to_string());
@@ -536,6 +685,9 @@ impl Hub {
                 break;
             };
             self.fan_out(&published);
+            if let Some(noticed) = self.watch.as_mut().and_then(|w| w.observe(&published)) {
+                self.noticed(noticed);
+            }
         }
         for e in events.try_iter() {
             if let ServoEvent::Stats(s) = &e {
@@ -578,9 +730,13 @@ impl Hub {
     }
 
     fn reload(&mut self) {
+        self.reload_world();
         info!("SIGHUP: reloading {}", self.grid_path.display());
         match load_model(&self.config, &self.device, &self.grid_path) {
-            Ok(model) => self.swap_model(model),
+            Ok(model) => {
+                self.auto_payload = 0.0;
+                self.swap_model(model);
+            }
             Err(e) => error!("reload failed, keeping the current grid: {e:#}"),
         }
     }
@@ -593,6 +749,8 @@ pub struct Daemon {
     /// How a simulated device keeps time.
     pub pacing: Pacing,
     pub duration: Option<f64>,
+    /// Where SIGHUP reads a simulated device's world again.
+    pub config_file: Option<PathBuf>,
 }
 
 impl Daemon {
@@ -602,6 +760,7 @@ impl Daemon {
             device: request.device.clone(),
             pacing: request.pacing,
             duration: request.duration,
+            config_file: request.config_file.clone(),
         }
     }
 
@@ -638,6 +797,8 @@ impl Daemon {
             );
         }
         let model = load_model(config, &device, &grid_path)?;
+        let watch = Hub::watch_of(&grid_path, model.as_deref());
+        let world = transport.sim_world().zip(self.config_file.clone());
         let mode = mode_name(&model);
         let held_out_pct = model.as_ref().and_then(|m| m.held_out_pct);
         let offset = ForceOffset::new(config.app.stale_offset(), config.app.stale_ramp());
@@ -683,6 +844,8 @@ impl Daemon {
             commands,
         );
         hub.status.held_out_pct = held_out_pct;
+        hub.watch = watch;
+        hub.world = world;
         let mut systemd = SystemdWatchdog::new(heartbeat);
         while !servo.is_finished() {
             hub.turn(&mut hub_mailbox, &events, &requests, &signals, &mut systemd);

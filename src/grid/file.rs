@@ -8,7 +8,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::lattice::{MassGrid, DIM_RANGE, G_RANGE, MAX_MASS_KG};
-use super::{store, DeviceIdentity, GridError, Problem};
+use super::{store, AppliedRecord, DeviceIdentity, GridError, Problem};
 use crate::arm::{ArmTable, MAX_PARAMETERS};
 use crate::config::CompensationMode;
 use crate::protocol::{MODEL_LEN, SERIAL_LEN};
@@ -336,6 +336,9 @@ pub struct GridFile {
     /// The arm model and the choice of model (format 2).
     pub arm: Option<ArmRecord>,
     pub model: Option<ModelRecord>,
+    /// `[[applied]]`: the changes `hgcd check --apply` took into the model since the
+    /// calibration, oldest first.
+    pub applied: Vec<AppliedRecord>,
     /// Root keys this version does not know: kept as read and written back (format §4).
     extra: toml::Table,
 }
@@ -350,6 +353,7 @@ impl From<MassGrid> for GridFile {
             vertices: VertexRecords::default(),
             arm: None,
             model: None,
+            applied: Vec::new(),
             extra: toml::Table::new(),
         }
     }
@@ -371,6 +375,8 @@ struct Raw {
     vertices: VertexRecords,
     arm: Option<ArmRecord>,
     model: Option<ModelRecord>,
+    #[serde(default)]
+    applied: Vec<AppliedRecord>,
     #[serde(flatten)]
     extra: toml::Table,
 }
@@ -384,6 +390,8 @@ struct Records<'a> {
     vertices: &'a VertexRecords,
     model: &'a Option<ModelRecord>,
     arm: &'a Option<ArmRecord>,
+    #[serde(skip_serializing_if = "<[_]>::is_empty")]
+    applied: &'a [AppliedRecord],
     #[serde(flatten)]
     extra: &'a toml::Table,
 }
@@ -507,6 +515,7 @@ impl GridFile {
             vertices: raw.vertices,
             arm: raw.arm,
             model: raw.model,
+            applied: raw.applied,
             extra: raw.extra,
         };
         file.check().map_err(invalid)?;
@@ -576,6 +585,7 @@ impl GridFile {
             vertices: &self.vertices,
             model: &self.model,
             arm: &self.arm,
+            applied: &self.applied,
             extra: &self.extra,
         };
         // Plain structs of numbers, strings, arrays and tables always serialise; the fallback

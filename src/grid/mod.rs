@@ -6,10 +6,12 @@
 //! - `store`: where grids live and how they are read and written: only regular files, bounded,
 //!   never blocking; atomic replace with a backup that needs no data space; a room check;
 //! - `effect`: the `hgcd-model/1` file, the effect `hgcd analyze` found beside a grid;
+//! - `change`: a payload and a base tilt taken into a grid file (`hgcd check --apply`);
 //! - `fill`: a lattice's unknown vertices filled from their neighbours;
 //! - `identity`: which device a grid belongs to ([`DeviceIdentity`]): its model and serial
 //!   number when the device names itself, else the spec it was opened with.
 
+mod change;
 mod effect;
 mod file;
 mod fill;
@@ -25,7 +27,11 @@ use thiserror::Error;
 
 use lattice::{DIM_RANGE, MAX_VERTICES};
 
+pub use change::{AppliedRecord, Change, ChangeError, PAYLOAD_FIT_SHARE};
 pub use effect::{EffectRecord, ModelFile, ModelFileError, MODEL_FORMAT};
+/// Grid files as a calibration writes them, for other modules' tests.
+#[cfg(test)]
+pub(crate) use file::tests as file_tests;
 pub use file::{
     ArmRecord, CalibrationRecord, DeviceRecord, GridFile, HeldOutRecord, ModelRecord, UnitRecord,
     VertexRecords, GRID_FORMAT, GRID_FORMAT_2,
@@ -33,7 +39,7 @@ pub use file::{
 pub use fill::{extrapolate_from_neighbours, fill_from_neighbours, Field};
 pub use identity::DeviceIdentity;
 pub use lattice::{CellWeights, MassGrid, G_RANGE, MAX_MASS_KG, SPACING_RANGE};
-pub use store::{check_room, grid_path};
+pub use store::{check_room, grid_path, restore_backup};
 
 /// Why a grid could not be loaded, built or saved.
 #[derive(Debug, Error)]

@@ -161,6 +161,16 @@ pub(super) fn replace_atomically(path: &Path, bytes: &[u8]) -> Result<(), GridEr
     result.map_err(write_error)
 }
 
+/// Put the file kept as `<name>.bak` back at `path`, byte for byte, atomically, keeping the file
+/// it replaces as `<name>.bak` in its turn. Errors: those of reading the backup
+/// ([`GridError::Missing`] where none is kept) and of [`replace_atomically`].
+pub fn restore_backup(path: &Path) -> Result<(), GridError> {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".bak");
+    let text = read_regular(&path.with_file_name(name))?;
+    replace_atomically(path, text.as_bytes())
+}
+
 fn copy_synced(from: &Path, to: &Path) -> io::Result<()> {
     let mut source = File::open(from)?;
     let mut copy = File::create(to)?;

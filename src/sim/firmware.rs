@@ -5,10 +5,12 @@
 //! injection). `sim:woodenhaptics` speaks its own joint-space protocol instead
 //! ([`JointFirmware`]), with the same clock, pacing and fault injection.
 
+use std::sync::Arc;
+
 use nalgebra::Vector3;
 
 use super::woodenhaptics::{self, JointFirmware};
-use super::{delta, phantom, Encoder, Plant, PointMass, SimError};
+use super::{delta, phantom, Encoder, LiveWorld, Plant, PointMass, SimError};
 use crate::config::{Config, DeviceSpec};
 use crate::profile::{self, Profile, Wire};
 use crate::protocol::{
@@ -74,6 +76,9 @@ pub struct SimDevice {
     watchdog_tripped: bool,
     last_output: Option<OutputReport>,
     rejected_outputs: u64,
+    /// Changes of payload and gravity made while it runs, and the last one taken.
+    world: Arc<LiveWorld>,
+    world_seen: u64,
 }
 
 impl SimDevice {
@@ -126,7 +131,15 @@ impl SimDevice {
             watchdog_tripped: false,
             last_output: None,
             rejected_outputs: 0,
+            world: Arc::default(),
+            world_seen: 0,
         }
+    }
+
+    /// Where the payload on its handle and the direction of gravity can be changed while it
+    /// runs; the device takes a change before its next period.
+    pub fn world(&self) -> Arc<LiveWorld> {
+        self.world.clone()
     }
 
     /// The device `sim:MODEL` a config describes (`[sim]` section, report rate from `[servo]`).
@@ -315,6 +328,12 @@ impl SimDevice {
     /// Integrate one report period under the latched command (clamped; zero after the device
     /// watchdog trips) and advance the clock and sequence number.
     pub fn advance(&mut self) {
+        if let Some((payload, up)) = self.world.changed(&mut self.world_seen) {
+            match &mut self.body {
+                Body::Cartesian { plant, .. } => plant.set_world(payload, &up),
+                Body::Joints(firmware) => firmware.set_world(payload, &up),
+            }
+        }
         if let Body::Joints(firmware) = &mut self.body {
             firmware.advance(self.period, self.substeps);
             self.clock_us += (self.period * 1e6).round() as u64;

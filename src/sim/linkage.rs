@@ -755,6 +755,11 @@ impl<M: Mechanism> Plant for Linkage<M> {
             .handle(&counts.component_mul(&self.resolution), &Vector3::zeros())
             .position
     }
+
+    fn set_world(&mut self, payload_kg: f64, up: &Vector3<f64>) {
+        self.env.payload = payload_kg;
+        self.env.gravity = -up * self.env.gravity.norm();
+    }
 }
 
 /// Checks every linkage plant's tests run: kinematics against finite differences, gravity as the

@@ -22,6 +22,8 @@ pub use encoder::Encoder;
 pub use firmware::SimDevice;
 pub use point_mass::PointMass;
 
+use std::sync::atomic::{AtomicU64, Ordering};
+
 use nalgebra::Vector3;
 
 use crate::grid::GridError;
@@ -48,6 +50,65 @@ pub trait Plant: Send {
     /// Every time the handle met a mechanical stop or an obstacle, and how fast (ground truth
     /// for tests: no contact faster than exploration's bound).
     fn contacts(&self) -> &ContactLog;
+    /// From now on the handle carries `payload_kg` (the `sim.probe_mass_kg` of a changed
+    /// config) and gravity pulls against the unit `up` (a tilted base), with the same g.
+    fn set_world(&mut self, payload_kg: f64, up: &Vector3<f64>);
+}
+
+/// A change of a running simulated device's world: the payload on its handle and the direction
+/// of gravity. Set from another thread (`hgcd run` on SIGHUP, a test) and taken by the device
+/// before its next report, without a lock: a sequence counter, odd while a change is written.
+#[derive(Debug, Default)]
+pub struct LiveWorld {
+    version: AtomicU64,
+    payload_kg: AtomicU64,
+    up: [AtomicU64; 3],
+}
+
+impl LiveWorld {
+    /// The handle carries `payload_kg` from now on, and gravity pulls against `up` (normalised;
+    /// a zero or non-finite `up`, or a payload that is not finite, changes nothing).
+    pub fn set(&self, payload_kg: f64, up: Vector3<f64>) {
+        let norm = up.norm();
+        if !(payload_kg.is_finite() && norm.is_finite() && norm > 0.0) {
+            return;
+        }
+        let up = up / norm;
+        // Writers take turns: whoever makes the counter odd writes.
+        loop {
+            let v = self.version.load(Ordering::Acquire);
+            if v % 2 == 0
+                && self
+                    .version
+                    .compare_exchange(v, v + 1, Ordering::AcqRel, Ordering::Relaxed)
+                    .is_ok()
+            {
+                break;
+            }
+            std::hint::spin_loop();
+        }
+        self.payload_kg
+            .store(payload_kg.to_bits(), Ordering::Release);
+        for (cell, c) in self.up.iter().zip(up.iter()) {
+            cell.store(c.to_bits(), Ordering::Release);
+        }
+        self.version.fetch_add(1, Ordering::Release);
+    }
+
+    /// The change made since the version `seen` (which it updates), if a whole one is there.
+    pub fn changed(&self, seen: &mut u64) -> Option<(f64, Vector3<f64>)> {
+        let before = self.version.load(Ordering::Acquire);
+        if before == *seen || before % 2 == 1 {
+            return None;
+        }
+        let payload = f64::from_bits(self.payload_kg.load(Ordering::Acquire));
+        let up = Vector3::from_fn(|i, _| f64::from_bits(self.up[i].load(Ordering::Acquire)));
+        if self.version.load(Ordering::Acquire) != before {
+            return None;
+        }
+        *seen = before;
+        Some((payload, up))
+    }
 }
 
 /// One contact: the handle met a mechanical stop or an obstacle it was not touching before.
@@ -155,6 +216,19 @@ pub enum SimError {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_live_change_is_taken_once_and_whole() {
+        let world = LiveWorld::default();
+        let mut seen = 0;
+        assert_eq!(world.changed(&mut seen), None);
+        world.set(0.03, Vector3::new(0.0, 0.0, 2.0));
+        assert_eq!(world.changed(&mut seen), Some((0.03, Vector3::z())));
+        assert_eq!(world.changed(&mut seen), None);
+        world.set(f64::NAN, Vector3::z());
+        world.set(0.01, Vector3::zeros());
+        assert_eq!(world.changed(&mut seen), None);
+    }
 
     #[test]
     fn the_contact_log_keeps_its_room_then_counts_and_keeps_the_fastest() {

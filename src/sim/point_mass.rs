@@ -192,6 +192,11 @@ impl Plant for PointMass {
             x
         }
     }
+
+    fn set_world(&mut self, payload_kg: f64, up: &Vector3<f64>) {
+        self.payload = payload_kg;
+        self.field.gravity_direction = *up;
+    }
 }
 
 #[cfg(test)]

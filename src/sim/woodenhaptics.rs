@@ -144,6 +144,11 @@ pub struct JointFirmware {
 impl JointFirmware {
     /// Firmware around `arm`, powered on with its counters homed (reading the arm's absolute
     /// counts, as after the host's set-encoders command at the calibration pose).
+    /// The arm carries `payload_kg` at its handle and gravity pulls against `up` from now on.
+    pub fn set_world(&mut self, payload_kg: f64, up: &Vector3<f64>) {
+        self.arm.set_world(payload_kg, up);
+    }
+
     pub fn new(arm: Linkage<WoodenArm>, encoder: Encoder) -> Self {
         Self {
             model: arm.mechanism().model,

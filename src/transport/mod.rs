@@ -187,6 +187,12 @@ pub trait Transport: Send {
     /// Human-readable description for logs.
     fn describe(&self) -> String;
 
+    /// For a simulated device in this process, where its payload and gravity can be changed
+    /// while it runs (`hgcd run` on SIGHUP; docs/simulated-devices.md). None for real devices.
+    fn sim_world(&self) -> Option<std::sync::Arc<crate::sim::LiveWorld>> {
+        None
+    }
+
     /// The spec of the device actually opened, when it says more than the one asked for (a HID
     /// device's serial number). Grids are named after it, so a device opened with or without its
     /// serial finds the same grid.

@@ -55,6 +55,10 @@ impl SimTransport {
 }
 
 impl Transport for SimTransport {
+    fn sim_world(&self) -> Option<std::sync::Arc<crate::sim::LiveWorld>> {
+        Some(self.device.world())
+    }
+
     fn read_input(
         &mut self,
         buf: &mut [u8; MAX_REPORT_LEN],

@@ -263,9 +263,10 @@ pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, V
         request.modes = Mode::defaults(has_arm);
     }
     let simulated = matches!(request.device, DeviceSpec::Sim { .. });
-    // On a simulated device the probe mass is part of the plant; on hardware the user attaches it.
+    // On a simulated device the probe mass is part of the plant, beside any payload its handle
+    // carries (`sim.probe_mass_kg`); on hardware the user attaches it.
     let mut device_config = config.clone();
-    device_config.sim.probe_mass_kg = request.probe_mass;
+    device_config.sim.probe_mass_kg += request.probe_mass;
     let transport = transport::open(&request.device, &device_config, request.pacing)
         .map_err(ValidateError::Open)?;
     let up = surface_normal(&request.device, &device_config)?;
@@ -581,7 +582,8 @@ impl Prepared {
     }
 }
 
-/// Calibrate the simulated device (without the probe mass) into `path`.
+/// Calibrate the simulated device (without the probe mass; with the payload its config gives
+/// the handle) into `path`.
 fn calibrate_simulated(
     config: &Config,
     request: &ValidateRequest,
@@ -589,15 +591,13 @@ fn calibrate_simulated(
     stop: Arc<AtomicBool>,
     progress: &mut dyn FnMut(ValidateEvent),
 ) -> Result<CalibrationRun, ValidateError> {
-    let mut config = config.clone();
-    config.sim.probe_mass_kg = 0.0;
     let calibrate_request = CalibrateRequest {
         device: request.device.clone(),
         pacing: request.pacing,
         output: Some(path.to_path_buf()),
         state_dir: config.state_dir(),
     };
-    calibrate(&config, &calibrate_request, stop, &mut |e| {
+    calibrate(config, &calibrate_request, stop, &mut |e| {
         progress(ValidateEvent::Calibration(e))
     })
     .map_err(ValidateError::Calibration)

@@ -23,6 +23,8 @@ pub struct TestDaemon {
     truth: Option<MassGrid>,
     pacing: Pacing,
     duration: Option<f64>,
+    /// The config file SIGHUP reads a simulated device's world from.
+    config_file: Option<PathBuf>,
 }
 
 impl TestDaemon {
@@ -38,7 +40,14 @@ impl TestDaemon {
             truth: Some(truth_field_27()),
             pacing: Pacing::Virtual,
             duration: None,
+            config_file: None,
         }
+    }
+
+    /// The config file the daemon was started with (`hgcd run --config`).
+    pub fn config_file(mut self, path: &std::path::Path) -> Self {
+        self.config_file = Some(path.to_path_buf());
+        self
     }
 
     /// Store `grid` as the device's calibration before the daemon starts.
@@ -96,6 +105,7 @@ impl TestDaemon {
             device: "sim:point-mass".parse().unwrap(),
             duration: self.duration,
             pacing: self.pacing,
+            config_file: self.config_file.clone(),
         };
         if let Some(grid) = &self.grid {
             // Where the daemon looks for it: named after the device (`sim.serial` included).

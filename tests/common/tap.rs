@@ -162,6 +162,10 @@ impl<T: Transport> Transport for Tap<T> {
     fn codec(&self) -> Codec {
         self.inner.codec()
     }
+
+    fn sim_world(&self) -> Option<std::sync::Arc<hgcd::sim::LiveWorld>> {
+        self.inner.sim_world()
+    }
 }
 
 #[derive(Debug, Default)]

@@ -1,0 +1,333 @@
+//! Noticed in use (docs/calibration.md §2.3): is the gravity model still right, read from the
+//! states the servo thread publishes, on the hub's thread.
+//!
+//! While the force sent is the model's alone (no application offset, no calibration), a handle
+//! the model holds exactly does not accelerate, apart from friction. Under a payload the model
+//! does not know, a released handle keeps sinking: (M + m_p) a = −m_p g v_G − c v − f sgn(v),
+//! with M the moving mass and f the friction the calibration measured (its `[calibration]`
+//! record) and c a viscous damping it did not. Over windows of [`WINDOW`] the velocity's slope
+//! gives a; [`WINDOWS`] windows in a row that one missed force and one damping explain within
+//! [`AGREEMENT`] give the force the model misses: the payload's weight along v_G, something
+//! else across it. A hand on the handle, a stop, a bump do not move it that way for long.
+
+use nalgebra::Vector3;
+
+use crate::grid::GridFile;
+use crate::mailbox::PublishedState;
+use crate::protocol::Status;
+
+/// Length of one window of states, s.
+pub const WINDOW: f64 = 0.04;
+/// Windows in a row that one missed force and one damping must explain.
+pub const WINDOWS: usize = 4;
+/// How far each window may be from that explanation, as a share of the force missed.
+pub const AGREEMENT: f64 = 0.1;
+/// The smallest force missed that is reported, N (about half a gram's weight), and as a share
+/// of the model's force there: a model within its calibration's accuracy (0.5 % at the worst
+/// vertex, docs/calibration.md §7.1) between its vertices, read through a moving mass and a
+/// damping estimated on the way, must not raise an alarm.
+pub const MIN_FORCE: f64 = 0.005;
+pub const MIN_SHARE: f64 = 0.05;
+/// A velocity component below this is not moving against friction, m/s.
+const MOVING: f64 = 0.001;
+/// States further apart than this many of the shortest step seen break a window (dropped
+/// samples, a pause).
+const GAP_STEPS: f64 = 3.0;
+
+/// What a watch noticed: the force the model misses, read as a payload and what is left.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Noticed {
+    /// The payload whose weight explains the missed force along v_G, kg.
+    pub payload_kg: f64,
+    /// The missed force across v_G, N.
+    pub sideways_n: f64,
+    /// Device time of the last state read, s.
+    pub time: f64,
+}
+
+/// The running fit of one window: sums of t, t², v and t v (t from the window's start).
+#[derive(Clone, Copy, Debug, Default)]
+struct Window {
+    start: f64,
+    last: f64,
+    n: f64,
+    t: f64,
+    tt: f64,
+    v: Vector3<f64>,
+    tv: Vector3<f64>,
+    /// Σ |F| of the forces sent (the model's), N.
+    force: f64,
+}
+
+/// The watch over one gravity model.
+#[derive(Clone, Debug)]
+pub struct ModelWatch {
+    /// Moving mass along each axis, kg, and friction along each, N (the calibration's).
+    moving_mass: Vector3<f64>,
+    friction: Vector3<f64>,
+    up: Vector3<f64>,
+    g: f64,
+    window: Option<Window>,
+    /// Accelerations and mean velocities of the last windows in a row, oldest first.
+    recent: Vec<(Vector3<f64>, Vector3<f64>)>,
+    /// The mean force the model gave in the last window, N.
+    model_force: f64,
+    /// Windows in a row whose acceleration alone shows a force of [`MIN_FORCE`].
+    moving: usize,
+    step: f64,
+    noticed: bool,
+}
+
+impl ModelWatch {
+    /// A watch over the model of `file`, whose v_G is `up`: the moving mass and friction its
+    /// calibration recorded (without them, the apparent mass at its centre and no friction).
+    pub fn new(file: &GridFile, up: Vector3<f64>) -> Self {
+        let grid = &file.grid;
+        let record = file.calibration.as_ref();
+        let centre = (grid.origin + grid.far_corner()) / 2.0;
+        let mass = grid.mass_at(&centre).abs().max(0.001);
+        Self {
+            moving_mass: record
+                .and_then(|c| c.inertia_kg)
+                .map_or(Vector3::repeat(mass), Vector3::from),
+            friction: record
+                .and_then(|c| c.friction_n)
+                .map_or(Vector3::zeros(), Vector3::from),
+            up,
+            g: grid.g,
+            window: None,
+            recent: Vec::with_capacity(WINDOWS + 1),
+            moving: 0,
+            model_force: 0.0,
+            step: f64::INFINITY,
+            noticed: false,
+        }
+    }
+
+    /// Read one published state; what it noticed, once per watch.
+    pub fn observe(&mut self, p: &PublishedState) -> Option<Noticed> {
+        let s = &p.state;
+        let disturbed = s.status.bits()
+            & (Status::FAULT | Status::FORCE_SATURATED | Status::DEVICE_WATCHDOG)
+            != 0;
+        let finite = s.time.is_finite() && s.velocity.iter().all(|v| v.is_finite());
+        if self.noticed || !p.gravity_only || disturbed || !finite {
+            self.window = None;
+            self.recent.clear();
+            self.moving = 0;
+            return None;
+        }
+        if let Some(w) = &self.window {
+            let step = s.time - w.last;
+            if step > 0.0 {
+                self.step = self.step.min(step);
+            }
+            if step <= 0.0 || step > GAP_STEPS * self.step {
+                self.window = None;
+                self.recent.clear();
+                self.moving = 0;
+            }
+        }
+        let w = self.window.get_or_insert(Window {
+            start: s.time,
+            ..Window::default()
+        });
+        let t = s.time - w.start;
+        w.last = s.time;
+        w.n += 1.0;
+        w.t += t;
+        w.tt += t * t;
+        w.v += s.velocity;
+        w.tv += s.velocity * t;
+        w.force += p.force.norm();
+        if t < WINDOW {
+            return None;
+        }
+        let w = self.window.take().expect("a window");
+        let spread = w.n * w.tt - w.t * w.t;
+        if spread <= 0.0 {
+            return None;
+        }
+        let acceleration = (w.tv * w.n - w.v * w.t) / spread;
+        let velocity = w.v / w.n;
+        self.model_force = w.force / w.n;
+        if self.moving_mass.component_mul(&acceleration).norm() >= MIN_FORCE {
+            self.moving += 1;
+        } else {
+            self.moving = 0;
+        }
+        self.recent.push((acceleration, velocity));
+        if self.recent.len() > WINDOWS {
+            self.recent.remove(0);
+        }
+        self.judge(s.time)
+    }
+
+    /// The last [`WINDOWS`] windows, all moving and not the first of their motion: a missed
+    /// force that a steady model explains. Per window,
+    /// M a + f sgn(v) = −F − c v with F the force missed and c a viscous damping, both
+    /// unknown: F and c by least squares over the windows (c ≥ 0), which only a handle
+    /// whose speed changes tells apart (from rest, as a released handle starts).
+    fn judge(&mut self, time: f64) -> Option<Noticed> {
+        // The first window of a motion holds its onset (and the velocity filter's): not read.
+        if self.recent.len() < WINDOWS || self.moving <= WINDOWS {
+            return None;
+        }
+        let n = self.recent.len() as f64;
+        // l = −M a − f sgn(v) = F + c v, per window.
+        let l: Vec<Vector3<f64>> = self
+            .recent
+            .iter()
+            .map(|(a, v)| {
+                let sliding = v.map(|v| if v.abs() > MOVING { v.signum() } else { 0.0 });
+                -self.moving_mass.component_mul(a) - self.friction.component_mul(&sliding)
+            })
+            .collect();
+        let l_mean = l.iter().sum::<Vector3<f64>>() / n;
+        let v_mean = self.recent.iter().map(|(_, v)| v).sum::<Vector3<f64>>() / n;
+        let (mut covariance, mut variance) = (0.0, 0.0);
+        for (l, (_, v)) in l.iter().zip(&self.recent) {
+            covariance += (l - l_mean).dot(&(v - v_mean));
+            variance += (v - v_mean).norm_squared();
+        }
+        let damping = if variance > 0.0 {
+            (covariance / variance).max(0.0)
+        } else {
+            0.0
+        };
+        let missed = l_mean - v_mean * damping;
+        let steady = l
+            .iter()
+            .zip(&self.recent)
+            .all(|(l, (_, v))| (l - missed - v * damping).norm() <= AGREEMENT * missed.norm());
+        if !steady || missed.norm() < MIN_FORCE.max(MIN_SHARE * self.model_force) {
+            return None;
+        }
+        // A payload m_p also rides along: l = (m_p g v_G + c v) M / (M + m_p) along v_G.
+        let along = missed.dot(&self.up);
+        let mass = self.up.dot(&self.moving_mass.component_mul(&self.up));
+        let payload_kg = along * mass / (self.g * mass - along);
+        self.noticed = true;
+        Some(Noticed {
+            payload_kg,
+            sideways_n: (missed - self.up * along).norm(),
+            time,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::DeviceState;
+    use crate::grid::MassGrid;
+
+    fn watch() -> ModelWatch {
+        let grid = MassGrid::uniform(
+            0.12,
+            9.81,
+            Vector3::z(),
+            Vector3::repeat(-0.04),
+            0.04,
+            [3, 3, 3],
+        );
+        ModelWatch::new(&GridFile::from(grid), Vector3::z())
+    }
+
+    /// A handle released at `t0` under a force `missed` the model does not hold, 1 kHz.
+    fn falling(missed: Vector3<f64>, mass: f64, ticks: u64) -> Vec<PublishedState> {
+        (0..ticks)
+            .map(|n| {
+                let time = n as f64 * 1e-3;
+                let state = DeviceState {
+                    tick: n,
+                    time,
+                    host_time: time,
+                    position: Vector3::zeros(),
+                    velocity: -missed / mass * time,
+                    status: Status::default().with(Status::MOTORS_ENABLED, true),
+                };
+                PublishedState {
+                    state,
+                    force: Vector3::z() * (0.12 * 9.81),
+                    offset_seq: 0,
+                    gravity_only: true,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_steady_sinking_is_read_as_a_payload_once() {
+        let mut w = watch();
+        // Without damping the handle sinks at a constant acceleration.
+        // 30 g more than the model holds: m_p g down, on a moving mass of 0.15 kg.
+        let weight = Vector3::z() * (0.03 * 9.81);
+        let found: Vec<Noticed> = falling(weight, 0.15, 400)
+            .iter()
+            .filter_map(|p| w.observe(p))
+            .collect();
+        assert_eq!(found.len(), 1, "{found:?}");
+        // The watch knows the moving mass without the payload (0.12 kg) and takes it in.
+        assert!((found[0].payload_kg - 0.03).abs() < 1e-3, "{found:?}");
+        assert!(found[0].sideways_n < 1e-9, "{found:?}");
+    }
+
+    /// With viscous damping c the handle approaches its sinking speed: v = −(F / c)(1 − e^{−t/τ}),
+    /// τ = (M + m_p) / c; what it does before it gets there tells F from c.
+    #[test]
+    fn a_damped_sinking_is_read_as_a_payload() {
+        let (weight, moving, damping) = (0.03 * 9.81, 0.15, 1.0);
+        let tau = moving / damping;
+        let mut w = watch();
+        let found: Vec<Noticed> = (0..400u64)
+            .map(|n| {
+                let time = n as f64 * 1e-3;
+                let sinking = -weight / damping * (1.0 - (-time / tau).exp());
+                PublishedState {
+                    state: DeviceState {
+                        tick: n,
+                        time,
+                        host_time: time,
+                        position: Vector3::zeros(),
+                        velocity: Vector3::z() * sinking,
+                        status: Status::default().with(Status::MOTORS_ENABLED, true),
+                    },
+                    force: Vector3::z() * (0.12 * 9.81),
+                    offset_seq: 0,
+                    gravity_only: true,
+                }
+            })
+            .filter_map(|p| w.observe(&p))
+            .collect();
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert!((found[0].payload_kg - 0.03).abs() < 1e-3, "{found:?}");
+    }
+
+    /// A model 2 % off (a calibration a little out between its vertices) is not stale.
+    #[test]
+    fn a_model_within_its_accuracy_raises_no_alarm() {
+        let mut w = watch();
+        let off = Vector3::z() * (0.02 * 0.12 * 9.81);
+        assert!(falling(off, 0.12, 1000)
+            .iter()
+            .all(|p| w.observe(p).is_none()));
+    }
+
+    #[test]
+    fn a_handle_at_rest_or_held_by_an_application_says_nothing() {
+        let mut w = watch();
+        assert!(falling(Vector3::zeros(), 0.12, 1000)
+            .iter()
+            .all(|p| w.observe(p).is_none()));
+        let mut w = watch();
+        let held = falling(Vector3::z() * 0.3, 0.15, 1000);
+        assert!(held
+            .iter()
+            .map(|p| PublishedState {
+                gravity_only: false,
+                ..*p
+            })
+            .all(|p| w.observe(&p).is_none()));
+    }
+}
