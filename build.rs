@@ -1,14 +1,21 @@
 //! Names the git commit hgcd is built from (`hgcd --version`): `HGCD_GIT_COMMIT` is
 //! `git rev-parse --short HEAD`, or "unknown" outside a git checkout (a source tarball).
 
-use std::path::Path;
+use std::path::PathBuf;
 use std::process::Command;
+
+/// The crate's directory, as Cargo gives it to this run. (Not `env!`, which is where the build
+/// script was compiled: a target directory shared with another checkout, as `.ci/package`'s fresh
+/// clones share this one's, reruns a build script compiled there, whose directory may be gone.)
+fn crate_dir() -> PathBuf {
+    PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("Cargo sets CARGO_MANIFEST_DIR"))
+}
 
 /// `git ARGS` in the crate's directory: its first line of output, if git ran and succeeded.
 fn git(args: &[&str]) -> Option<String> {
     let out = Command::new("git")
         .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .current_dir(crate_dir())
         .output()
         .ok()?;
     let text = String::from_utf8(out.stdout).ok()?;
@@ -27,7 +34,7 @@ fn main() {
         for name in watched {
             if let Some(path) = git(&["rev-parse", "--git-path", &name]) {
                 // A path that does not exist would rerun this script at every build.
-                let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(path);
+                let path = crate_dir().join(path);
                 if path.exists() {
                     println!("cargo:rerun-if-changed={}", path.display());
                 }

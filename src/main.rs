@@ -282,6 +282,17 @@ static VERSION: LazyLock<String> = LazyLock::new(|| {
     )
 });
 
+/// The version the man pages give: the release and the HID report protocol, without the git
+/// commit, so that the pages committed in packaging/generated/ (built into the package without
+/// running hgcd) are the same whichever commit generated them.
+static RELEASE: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "{} (HID protocol v{})",
+        env!("CARGO_PKG_VERSION"),
+        hgcd::protocol::PROTOCOL_VERSION
+    )
+});
+
 /// The command line, each subcommand's help listing only the global options it uses.
 fn command() -> clap::Command {
     let mut cmd = Cli::command().version(VERSION.as_str());
@@ -463,10 +474,12 @@ fn visible_command() -> clap::Command {
 fn man_pages(dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     // `hgcd help` has no page of its own: `--help` is on every page.
-    let mut cmd = command().disable_help_subcommand(true);
+    let mut cmd = command()
+        .version(RELEASE.as_str())
+        .disable_help_subcommand(true);
     // Building gives each subcommand the global options it accepts.
     cmd.build();
-    let source = format!("hgcd {}", *VERSION);
+    let source = format!("hgcd {}", *RELEASE);
     let write = |name: &str, page: clap::Command| -> Result<()> {
         let path = dir.join(format!("{name}.1"));
         let mut roff = Vec::new();

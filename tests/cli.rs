@@ -838,3 +838,72 @@ fn man_pages_and_completions_are_generated_from_the_command_line() {
     let help = succeeded(&hgcd().arg("--help").output().unwrap());
     assert!(!help.contains("completions"), "{help}");
 }
+
+/// The completion scripts the package ships: shell, file name in packaging/generated/completions/
+/// (the name each shell looks for; Cargo.toml's `[package.metadata.deb]` installs them).
+const COMPLETION_FILES: [(&str, &str); 3] = [
+    ("bash", "hgcd.bash"),
+    ("zsh", "_hgcd"),
+    ("fish", "hgcd.fish"),
+];
+
+/// Issue 37: the man pages and completions the package ships are committed in
+/// packaging/generated/, so that a bare `cargo deb` finds them in a fresh clone, and are exactly
+/// what this hgcd generates (`hgcd man`, `hgcd completions`): never edited by hand, never stale.
+/// `HGCD_REFRESH_GENERATED=1 cargo test --release --test cli packaged` writes them afresh.
+#[test]
+fn the_packaged_man_pages_and_completions_are_what_hgcd_generates() {
+    let committed = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("packaging/generated");
+    let refresh = std::env::var_os("HGCD_REFRESH_GENERATED").is_some();
+    let fresh = tempfile::tempdir().unwrap();
+    let out = if refresh {
+        // Pages of subcommands that are gone go too.
+        for dir in ["man", "completions"] {
+            if committed.join(dir).exists() {
+                std::fs::remove_dir_all(committed.join(dir)).unwrap();
+            }
+        }
+        committed.clone()
+    } else {
+        fresh.path().to_path_buf()
+    };
+    succeeded(
+        &hgcd()
+            .args(["man", "--out"])
+            .arg(out.join("man"))
+            .output()
+            .unwrap(),
+    );
+    std::fs::create_dir_all(out.join("completions")).unwrap();
+    for (shell, file) in COMPLETION_FILES {
+        let script = succeeded(&hgcd().args(["completions", shell]).output().unwrap());
+        std::fs::write(out.join("completions").join(file), script).unwrap();
+    }
+    if refresh {
+        return;
+    }
+    // Each file of either tree that the other lacks or has with other contents.
+    let files = |root: &std::path::Path| -> std::collections::BTreeSet<std::path::PathBuf> {
+        ["man", "completions"]
+            .iter()
+            .flat_map(|dir| std::fs::read_dir(root.join(dir)).into_iter().flatten())
+            .map(|entry| {
+                let path = entry.unwrap().path();
+                path.strip_prefix(root).unwrap().to_path_buf()
+            })
+            .collect()
+    };
+    let differ: Vec<String> = files(&committed)
+        .union(&files(fresh.path()))
+        .filter(|name| {
+            std::fs::read(committed.join(name)).ok() != std::fs::read(fresh.path().join(name)).ok()
+        })
+        .map(|name| name.display().to_string())
+        .collect();
+    assert!(
+        differ.is_empty(),
+        "packaging/generated/ is not what this hgcd generates ({}): refresh it with \
+         `HGCD_REFRESH_GENERATED=1 cargo test --release --test cli packaged` and commit the result",
+        differ.join(", ")
+    );
+}
