@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Result};
 
+use hgcd::calibrate::check::Check;
 use hgcd::client::{CalibrationStage, Client, Reply, Role};
 
 use crate::{err, out};
@@ -73,55 +74,65 @@ fn one_status(socket: &Path) -> Result<()> {
     ))
 }
 
-/// Ask the daemon to calibrate and follow its progress until it finishes.
-///
-/// Errors: the client's, a refusal, or the calibration's failure as the daemon reports it.
+/// `hgcd calibrate --via-daemon`: the daemon calibrates its device; progress on stderr.
 pub fn calibrate_via_daemon(socket: &Path) -> Result<()> {
     let mut client = Client::connect(socket, Role::Observe, "hgcd calibrate")?;
     client.request_calibration()?;
+    match follow(&mut client, "calibration", "vertex")? {
+        Reply::Calibration { message, .. } => out(&format!(
+            "calibration finished; the daemon now uses {message}\n"
+        )),
+        other => bail!("the daemon answered a calibration with {other:?}"),
+    }
+}
+
+/// `hgcd check --via-daemon`: the daemon checks its device against its grid (and with `apply`
+/// takes a change found into it); progress on stderr, the answer returned.
+pub fn check_via_daemon(socket: &Path, apply: bool) -> Result<Check> {
+    let mut client = Client::connect(socket, Role::Observe, "hgcd check")?;
+    client.request_check(apply)?;
+    match follow(&mut client, "check", "hold")? {
+        Reply::Checked(found) => Ok(*found),
+        other => bail!("the daemon answered a check with {other:?}"),
+    }
+}
+
+/// Print the progress of the daemon's calibration or check (`what`, whose holds are each a
+/// `unit`) on stderr until it ends: its last reply (`finished`, or `checked`).
+fn follow(client: &mut Client, what: &str, unit: &str) -> Result<Reply> {
     loop {
         let reply = client.next_reply()?;
-        if let Reply::Error { message, .. } = &reply {
-            bail!("the daemon refused: {message}");
-        }
-        if let Reply::Calibration {
-            event,
-            vertex,
-            of,
-            mass_kg,
-            message,
-        } = reply
-        {
-            match event {
-                CalibrationStage::Started => {
-                    err(&format!("calibration started on {}\n", client.device))
-                }
-                CalibrationStage::InitDone => err(&format!(
-                    "gravity direction found; rough mass {:.1} g\n",
-                    mass_kg.unwrap_or(0.0) * 1e3
-                )),
-                CalibrationStage::VertexDone => err(&format!(
-                    "vertex {}/{}: {:.2} g{}{}\n",
-                    vertex.unwrap_or(0) + 1,
-                    of.unwrap_or(0),
-                    mass_kg.unwrap_or(0.0) * 1e3,
-                    if message.is_empty() { "" } else { "; " },
-                    message
-                )),
-                CalibrationStage::VertexUnreachable => err(&format!(
-                    "vertex {}/{}: {message}\n",
-                    vertex.unwrap_or(0) + 1,
-                    of.unwrap_or(0),
-                )),
-                CalibrationStage::TimeSpent => err(&format!("time: {message}\n")),
-                CalibrationStage::Stale | CalibrationStage::Other => {}
-                CalibrationStage::Finished => {
-                    return out(&format!(
-                        "calibration finished; the daemon now uses {message}\n"
-                    ));
-                }
-                CalibrationStage::Failed => bail!("calibration failed: {message}"),
-            }
+        let (event, vertex, of, mass_kg, message) = match &reply {
+            Reply::Error { message, .. } => bail!("the daemon refused: {message}"),
+            Reply::Checked(_) => return Ok(reply),
+            Reply::Calibration {
+                event,
+                vertex,
+                of,
+                mass_kg,
+                message,
+            } => (*event, vertex, of, mass_kg, message),
+            _ => continue,
+        };
+        let position = || format!("{unit} {}/{}", vertex.unwrap_or(0) + 1, of.unwrap_or(0));
+        match event {
+            CalibrationStage::Started => err(&format!("{what} started on {}\n", client.device)),
+            CalibrationStage::InitDone => err(&format!(
+                "gravity direction found; rough mass {:.1} g\n",
+                mass_kg.unwrap_or(0.0) * 1e3
+            )),
+            CalibrationStage::VertexDone => err(&format!(
+                "{}: {:.2} g{}{}\n",
+                position(),
+                mass_kg.unwrap_or(0.0) * 1e3,
+                if message.is_empty() { "" } else { "; " },
+                message
+            )),
+            CalibrationStage::VertexUnreachable => err(&format!("{}: {message}\n", position())),
+            CalibrationStage::TimeSpent => err(&format!("time: {message}\n")),
+            CalibrationStage::Stale | CalibrationStage::Other => {}
+            CalibrationStage::Finished => return Ok(reply),
+            CalibrationStage::Failed => bail!("{what} failed: {message}"),
         }
     }
 }

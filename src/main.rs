@@ -144,7 +144,8 @@ struct CalibrateArgs {
 
 #[derive(clap::Args, Debug)]
 struct CheckArgs {
-    /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`).
+    /// Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`);
+    /// with --via-daemon, which daemon (a device id or spec; default: the only one running).
     #[arg(long, value_name = "SPEC")]
     device: Option<String>,
     /// Check this grid (default: the device's stored grid).
@@ -166,6 +167,10 @@ struct CheckArgs {
     /// measured.
     #[arg(long)]
     revert: bool,
+    /// Ask the running daemon to check its device against its grid (with --apply it takes the
+    /// change in and compensates it at once); --device then names the daemon.
+    #[arg(long, conflicts_with_all = ["revert", "grid", "real_time"])]
+    via_daemon: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -659,27 +664,19 @@ struct CheckVerdict(u8);
 
 /// `hgcd check`: the two holds, the verdict, and the exit status that says it.
 fn check_command(config: &Config, args: &CheckArgs) -> Result<()> {
-    let device = device_spec(args.device.as_deref(), config)?;
-    let pacing = confirmed_pacing(&device, args.real_time, args.yes)?;
-    let request = CheckRequest {
-        device,
-        pacing,
-        grid: args.grid.clone(),
-        state_dir: config.state_dir(),
-    };
     if args.revert {
-        let reverted = check::revert(config, &request)?;
+        let reverted = check::revert(config, &check_request(config, args)?)?;
         return out(&progress::revert_summary(&reverted));
     }
-    let stop = install_stop_handler()?;
-    // The initialisation, then the two holds, shown as a calibration's are.
-    let mut display = progress::Display::new(2);
-    let found = check::check(config, &request, stop, &mut |e| display.show(e));
-    display.finish();
-    let mut found = found?;
-    if args.apply && found.verdict == check::Verdict::Apply {
-        check::apply(&mut found)?;
-    }
+    let found = if args.via_daemon {
+        let socket = daemon_socket(config, args.device.as_deref())?;
+        if !args.yes {
+            confirm_start()?;
+        }
+        ctl::check_via_daemon(&socket, args.apply)?
+    } else {
+        check_here(config, args)?
+    };
     if args.json {
         out(&format!("{}\n", serde_json::to_string(&found)?))?;
     } else {
@@ -689,6 +686,33 @@ fn check_command(config: &Config, args: &CheckArgs) -> Result<()> {
         0 => Ok(()),
         code => Err(CheckVerdict(code).into()),
     }
+}
+
+/// What `hgcd check` in this process (or `--revert`) works on.
+fn check_request(config: &Config, args: &CheckArgs) -> Result<CheckRequest> {
+    let device = device_spec(args.device.as_deref(), config)?;
+    let pacing = confirmed_pacing(&device, args.real_time, args.yes)?;
+    Ok(CheckRequest {
+        device,
+        pacing,
+        grid: args.grid.clone(),
+        state_dir: config.state_dir(),
+    })
+}
+
+/// `hgcd check` in this process: the two holds, and `--apply`.
+fn check_here(config: &Config, args: &CheckArgs) -> Result<check::Check> {
+    let request = check_request(config, args)?;
+    let stop = install_stop_handler()?;
+    // The initialisation, then the two holds, shown as a calibration's are.
+    let mut display = progress::Display::new(2);
+    let found = check::check(config, &request, stop, &mut |e| display.show(e));
+    display.finish();
+    let mut found = found?;
+    if args.apply && found.verdict == check::Verdict::Apply {
+        check::apply(&mut found)?;
+    }
+    Ok(found)
 }
 
 /// `hgcd record`: the identification run; says where the log went.

@@ -159,6 +159,8 @@ fn masked(line: &str, reply: &Reply) -> String {
             ..
         } => mask(line, |k| k != "mass_kg" && k != "message"),
         Reply::Calibration { .. } => mask(line, |k| k != "mass_kg"),
+        // Measured forces and times: only its shape is the transcript's.
+        Reply::Checked(_) => mask(line, |k| k == "type" || k == "verdict"),
         Reply::Welcome { .. } | Reply::Error { .. } => line.to_string(),
     }
 }

@@ -400,3 +400,111 @@ fn a_check_interrupted_leaves_the_model_untouched() {
     assert_eq!(std::fs::read_to_string(&grid).unwrap(), calibrated);
     assert!(!dir.path().join("sim-point-mass.toml.bak").exists());
 }
+
+/// `hgcd check --via-daemon` (issue 36 item 1): the running daemon measures the two holds on its
+/// own device; with `--apply` it takes the payload into its grid and compensates it at once, so a
+/// second check finds the device unchanged. The daemon runs `sim:point-mass` in virtual time
+/// with 30 g more than its calibration saw.
+#[test]
+fn a_running_daemon_checks_its_device_and_applies_what_it_finds() {
+    let dir = calibrated_point_mass();
+    let state = dir.path().to_str().unwrap();
+    let elsewhere = tempfile::tempdir().unwrap();
+    let heavier = elsewhere.path().join("heavier.toml");
+    std::fs::write(&heavier, format!("[sim]\n{PAYLOAD}")).unwrap();
+    let socket = elsewhere.path().join("hgcd.sock");
+    let with_daemon = |level: &str, args: &[&str]| {
+        let mut c = hgcd();
+        c.args(["--log-level", level, "--config"])
+            .arg(&heavier)
+            .args(["--state-dir", state, "--socket"])
+            .arg(&socket)
+            .args(args);
+        c
+    };
+    let (daemon, stderr, _) = common::spawn_until(
+        &mut with_daemon(
+            "info",
+            &["run", "--device", "sim:point-mass", "--virtual-time"],
+        ),
+        "hgcd running on",
+    );
+    // Stopped however the test ends (it runs in virtual time until then).
+    struct Killed(std::process::Child);
+    impl Drop for Killed {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let daemon = Killed(daemon);
+    // Its log, read so that it never blocks on a full pipe.
+    let log = std::thread::spawn(move || std::io::read_to_string(stderr).unwrap_or_default());
+    let check = |args: &[&str]| {
+        let out = with_daemon(
+            "warn",
+            &[&["check", "--via-daemon", "--yes", "--json"], args].concat(),
+        )
+        .output()
+        .unwrap();
+        let json: serde_json::Value =
+            serde_json::from_slice(&out.stdout).unwrap_or_else(|_| panic!("{out:?}"));
+        (out.status.code(), json)
+    };
+    let (code, found) = check(&[]);
+    assert_eq!(code, Some(4), "{found}");
+    assert!(
+        (found["payload_g"].as_f64().unwrap() - 30.0).abs() <= 2.0,
+        "{found}"
+    );
+    let grid = grid_in(dir.path());
+    let before = std::fs::read_to_string(&grid).unwrap();
+    let (code, applied) = check(&["--apply"]);
+    assert_eq!(code, Some(4), "{applied}");
+    assert!(!applied["applied"].is_null(), "{applied}");
+    let after = GridFile::load(&grid).unwrap();
+    assert_eq!(after.applied.len(), 1);
+    assert_ne!(std::fs::read_to_string(&grid).unwrap(), before);
+    // The daemon compensates the changed grid at once: the gravity force it renders is the
+    // changed grid's, 30 g heavier than the one before, and a check finds nothing left.
+    let config = Config::default();
+    let model = |file: GridFile| {
+        let c = &config.compensation;
+        hgcd::control::compensation::GravityModel::configured(file, c.mode, c.outside_grid).unwrap()
+    };
+    let (changed, stale) = (
+        model(after),
+        model(GridFile::from_toml_str(&before, &grid).unwrap()),
+    );
+    let mut observer =
+        hgcd::client::Client::connect(&socket, hgcd::client::Role::Observe, "observer").unwrap();
+    observer.set_read_timeout(Some(common::WAIT)).unwrap();
+    observer.subscribe(1000.0).unwrap();
+    let s = observer.next_state().unwrap();
+    let (x, rendered) = (
+        nalgebra::Vector3::from(s.position),
+        nalgebra::Vector3::from(s.gravity.expect("the gravity force rendered")),
+    );
+    assert!((rendered - changed.force(&x)).norm() < 1e-9, "{s:?}");
+    let added = (changed.force(&x) - stale.force(&x)).norm();
+    assert!((added - 0.03 * 9.81).abs() < 0.003, "{added} N added");
+    drop(observer);
+    let (code, again) = check(&[]);
+    assert_eq!(code, Some(0), "{again}");
+    // Another client owning the force keeps a check from moving the handle.
+    let mut owner =
+        hgcd::client::Client::connect(&socket, hgcd::client::Role::Control, "owner").unwrap();
+    owner.set_read_timeout(Some(common::WAIT)).unwrap();
+    let out = with_daemon("warn", &["check", "--via-daemon", "--yes"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("only it may start a check"),
+        "{out:?}"
+    );
+    drop(owner);
+    drop(daemon);
+    let log = log.join().unwrap();
+    assert!(log.contains("check: Apply"), "{log}");
+}

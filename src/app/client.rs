@@ -262,6 +262,15 @@ impl Client {
         self.send(&Request::Calibrate {})
     }
 
+    /// Ask the daemon to check its device against its grid (`hgcd check --via-daemon`), taking
+    /// a payload and tilt found into the grid with `apply`; progress arrives as
+    /// `Reply::Calibration`, the answer as `Reply::Checked`.
+    ///
+    /// Errors: [`ClientError::Io`] when the daemon is gone.
+    pub fn request_check(&mut self, apply: bool) -> Result<(), ClientError> {
+        self.send(&Request::Check { apply })
+    }
+
     /// Ask for the daemon's status without waiting for it: it arrives as a `Reply::Status`.
     ///
     /// Errors: [`ClientError::Io`] when the daemon is gone.
@@ -300,10 +309,17 @@ impl Client {
                 .chain(s.grid.as_mut())
                 .chain(s.owner.as_mut())
                 .collect(),
-            Reply::Welcome { .. } | Reply::State(_) => Vec::new(),
+            Reply::Welcome { .. } | Reply::State(_) | Reply::Checked(_) => Vec::new(),
         };
         for text in texts {
             text.retain(|c| !c.is_control());
+        }
+        if let Reply::Checked(found) = &mut reply {
+            for path in std::iter::once(&mut found.grid).chain(found.applied.as_mut()) {
+                let mut text = path.to_string_lossy().into_owned();
+                text.retain(|c| !c.is_control());
+                *path = text.into();
+            }
         }
         match reply {
             Reply::Error {

@@ -2,6 +2,7 @@
 //! stream socket. Every request and reply is one JSON object on one line, with a `type` field.
 //! Units are SI: metres, newtons, seconds.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
@@ -57,6 +58,12 @@ pub enum Request {
     Subscribe { rate_hz: f64 },
     /// Run the autocalibration now and switch to the new grid when it finishes.
     Calibrate {},
+    /// `hgcd check` on the daemon's device against its grid: two holds, then a `checked`
+    /// reply; with `apply`, a payload and tilt found are taken into the grid and compensated.
+    Check {
+        #[serde(default)]
+        apply: bool,
+    },
     /// One status reply.
     Status {},
 }
@@ -80,6 +87,8 @@ pub enum Reply {
     /// One servo tick.
     State(StateSample),
     Status(Box<Status>),
+    /// The answer of a `check`, after its progress as `calibration` events.
+    Checked(Box<Check>),
     /// Calibration progress.
     Calibration {
         event: CalibrationStage,
@@ -270,6 +279,50 @@ pub struct ModelStale {
     pub auto_updated: bool,
 }
 
+// `hgcd check`'s answer, as `--json` prints it and the daemon replies it (`Reply::Checked`).
+
+/// The answer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Verdict {
+    /// Every hold agrees with the model.
+    Unchanged,
+    /// A payload and a tilt explain what changed (`--apply` can take them in).
+    Apply,
+    /// Something a payload and a tilt do not explain: calibrate again.
+    Recalibrate,
+}
+
+/// One hold: where, what it measured, what the model says there (N).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Hold {
+    pub position_m: [f64; 3],
+    pub measured_n: [f64; 3],
+    pub model_n: [f64; 3],
+    /// What the payload and tilt found leave of the difference, N.
+    pub unexplained_n: f64,
+    /// The agreement asked of this hold (`calibrate::check::TOLERANCE_SHARE`, `TOLERANCE_MIN`), N.
+    pub tolerance_n: f64,
+}
+
+/// What a check found.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Check {
+    pub verdict: Verdict,
+    /// The payload's mass found, g (negative: something was taken off the handle).
+    pub payload_g: f64,
+    /// The base's tilt found, degrees, about `tilt_axis` (a unit vector of the device frame).
+    pub tilt_deg: f64,
+    pub tilt_axis: [f64; 3],
+    pub holds: Vec<Hold>,
+    pub device_time_s: f64,
+    /// The grid checked.
+    pub grid: PathBuf,
+    /// Where the model before `--apply` was kept, once the change was taken in.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub applied: Option<PathBuf>,
+}
+
 /// Why a request line was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RequestError {
@@ -442,7 +495,10 @@ mod tests {
                 Request::Subscribe { rate_hz } => {
                     prop_assert!(rate_hz.is_finite() && (0.0..=MAX_RATE).contains(rate_hz));
                 }
-                Request::Hello { .. } | Request::Calibrate {} | Request::Status {} => {}
+                Request::Hello { .. }
+                | Request::Calibrate {}
+                | Request::Check { .. }
+                | Request::Status {} => {}
             }
         }
         Ok(parsed.ok())
@@ -470,6 +526,7 @@ mod tests {
             prop_oneof![0.0..=MAX_RATE, Just(0.0), Just(MAX_RATE)]
                 .prop_map(|rate_hz| Request::Subscribe { rate_hz }),
             Just(Request::Calibrate {}),
+            any::<bool>().prop_map(|apply| Request::Check { apply }),
             Just(Request::Status {}),
         ]
     }

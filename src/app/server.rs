@@ -79,8 +79,17 @@ pub fn lock(registry: &SharedRegistry) -> MutexGuard<'_, Registry> {
 /// Requests the daemon's hub answers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum HubRequest {
-    Calibrate { client: u64 },
-    Status { client: u64 },
+    Calibrate {
+        client: u64,
+    },
+    /// `hgcd check --via-daemon`; `apply` takes what it finds into the grid.
+    Check {
+        client: u64,
+        apply: bool,
+    },
+    Status {
+        client: u64,
+    },
 }
 
 /// Everything client threads share.
@@ -441,7 +450,11 @@ fn serve_client(
                 Ok(())
             }
             Request::Calibrate {} => {
-                session.calibrate();
+                session.calibrate(HubRequest::Calibrate { client: id });
+                Ok(())
+            }
+            Request::Check { apply } => {
+                session.calibrate(HubRequest::Check { client: id, apply });
                 Ok(())
             }
         };
@@ -556,14 +569,20 @@ impl Session<'_> {
         }
     }
 
-    /// `calibrate`: refused while another client owns the force; otherwise the hub decides.
-    fn calibrate(&self) {
+    /// `calibrate` and `check` (both move the handle): refused while another client owns the
+    /// force; otherwise the hub decides.
+    fn calibrate(&self, request: HubRequest) {
         let owner = lock(&self.ctx.registry).owner;
         if owner.is_some_and(|o| o != self.id) {
-            self.refuse("another client owns the force: only it may start a calibration");
+            self.refuse(match request {
+                HubRequest::Check { .. } => {
+                    "another client owns the force: only it may start a check"
+                }
+                _ => "another client owns the force: only it may start a calibration",
+            });
             return;
         }
-        let _ = self.ctx.hub.send(HubRequest::Calibrate { client: self.id });
+        let _ = self.ctx.hub.send(request);
     }
 }
 

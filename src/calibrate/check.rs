@@ -15,7 +15,6 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use nalgebra::{Matrix3, Rotation3, SMatrix, Vector3};
-use serde::Serialize;
 use thiserror::Error;
 use tracing::info;
 
@@ -29,6 +28,8 @@ use crate::grid::{
     restore_backup, AppliedRecord, Change, ChangeError, DeviceIdentity, GridError, GridFile,
 };
 use crate::transport::{self, Pacing};
+
+pub use crate::app::protocol::{Check, Hold, Verdict};
 
 /// A hold agrees with the model when they differ by at most this share of the model's force
 /// there, or [`TOLERANCE_MIN`], whichever is larger: twice the calibration's own accuracy
@@ -62,18 +63,6 @@ pub struct CheckRequest {
     pub state_dir: PathBuf,
 }
 
-/// The answer.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Verdict {
-    /// Every hold agrees with the model.
-    Unchanged,
-    /// A payload and a tilt explain what changed (`--apply` can take them in).
-    Apply,
-    /// Something a payload and a tilt do not explain: calibrate again.
-    Recalibrate,
-}
-
 impl Verdict {
     /// The exit status `hgcd check` ends with (docs/calibration.md §2).
     pub fn exit_code(self) -> u8 {
@@ -83,36 +72,6 @@ impl Verdict {
             Verdict::Recalibrate => 5,
         }
     }
-}
-
-/// One hold: where, what it measured, what the model says there (N).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct Hold {
-    pub position_m: [f64; 3],
-    pub measured_n: [f64; 3],
-    pub model_n: [f64; 3],
-    /// What the payload and tilt found leave of the difference, N.
-    pub unexplained_n: f64,
-    /// The agreement asked of this hold ([`TOLERANCE_SHARE`], [`TOLERANCE_MIN`]), N.
-    pub tolerance_n: f64,
-}
-
-/// What a check found.
-#[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct Check {
-    pub verdict: Verdict,
-    /// The payload's mass found, g (negative: something was taken off the handle).
-    pub payload_g: f64,
-    /// The base's tilt found, degrees, about `tilt_axis` (a unit vector of the device frame).
-    pub tilt_deg: f64,
-    pub tilt_axis: [f64; 3],
-    pub holds: Vec<Hold>,
-    pub device_time_s: f64,
-    /// The grid checked.
-    pub grid: PathBuf,
-    /// Where the model before `--apply` was kept, once the change was taken in.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub applied: Option<PathBuf>,
 }
 
 impl Check {
@@ -164,15 +123,51 @@ pub fn check(
     let (device, config) = identified(transport.as_ref(), &request.device, config)?;
     let config = &config;
     let (file, path) = device_grid(request.grid.as_deref(), &request.state_dir, &device)?;
+    let planned = plan(config, &request.device, file, path)?;
+    let (tx, rx) = crossbeam_channel::bounded(4096);
+    let calibration =
+        Calibration::new(planned.params.clone(), Some(tx)).map_err(CalibrateError::from)?;
+    let (result, _) = drive(
+        transport,
+        (calibration, rx),
+        config,
+        request.pacing.set_by_device(&device),
+        stop,
+        progress,
+    )?;
+    planned.conclude(&result)
+}
+
+/// What a check measures against, and how: the saved model, and the calibration parameters
+/// that hold the two ends of the main diagonal of the largest cube its grid holds about its
+/// centre. `hgcd check` and the daemon's `check` request both start here.
+pub struct Planned {
+    pub model: GravityModel,
+    /// m/s², the grid's.
+    pub g: f64,
+    pub params: CalibrationParams,
+    /// The grid file checked.
+    pub grid: PathBuf,
+}
+
+/// The check of `file` (read from `path`) on `device`.
+///
+/// # Errors
+/// [`CheckError::Calibrate`] where the grid's model cannot be built.
+pub fn plan(
+    config: &Config,
+    device: &DeviceSpec,
+    file: GridFile,
+    path: PathBuf,
+) -> Result<Planned, CheckError> {
     let c = &config.compensation;
-    let model = GravityModel::configured(file.clone(), c.mode, c.outside_grid)
+    let g = file.grid.g;
+    let grid = file.grid.clone();
+    let model = GravityModel::configured(file, c.mode, c.outside_grid)
         .map_err(GridModelError::model(&path))?;
-    // The holds: the ends of the main diagonal of the largest cube the grid holds about its
-    // centre.
-    let grid = &file.grid;
     // Half the smallest side, in cells (a 2-vertex side: half a cell).
     let half_cells = grid.dims.iter().map(|&n| n - 1).min().unwrap_or(0) as f64 / 2.0;
-    let mut params = CalibrationParams::for_device(config, &request.device);
+    let mut params = CalibrationParams::for_device(config, device);
     params.holds = Holds::Diagonal;
     params.half_size = 1;
     params.spacing = grid.spacing * half_cells;
@@ -196,21 +191,26 @@ pub fn check(
         hi.y,
         hi.z,
     );
-    let (tx, rx) = crossbeam_channel::bounded(4096);
-    let calibration = Calibration::new(params, Some(tx)).map_err(CalibrateError::from)?;
-    let (result, _) = drive(
-        transport,
-        (calibration, rx),
-        config,
-        request.pacing.set_by_device(&device),
-        stop,
-        progress,
-    )?;
-    let holds = holds_of(&result)?;
-    let mut check = compare(&model, grid.g, &holds);
-    check.device_time_s = result.duration;
-    check.grid = path;
-    Ok(check)
+    Ok(Planned {
+        model,
+        g,
+        params,
+        grid: path,
+    })
+}
+
+impl Planned {
+    /// The answer, from the finished calibration of the two holds.
+    ///
+    /// # Errors
+    /// [`CheckError::NoHold`] where a hold was not measured.
+    pub fn conclude(&self, result: &CalibrationResult) -> Result<Check, CheckError> {
+        let holds = holds_of(result)?;
+        let mut check = compare(&self.model, self.g, &holds);
+        check.device_time_s = result.duration;
+        check.grid = self.grid.clone();
+        Ok(check)
+    }
 }
 
 /// `hgcd check --apply`: take the change `found` (verdict [`Verdict::Apply`]) into the grid it

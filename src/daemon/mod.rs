@@ -25,6 +25,7 @@ use crate::app::protocol::{
     CalibrationStage, Compensating, ModelStale, Reply, StateSample, Status,
 };
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
+use crate::calibrate::check::{self, Verdict};
 use crate::calibrate::persist::{self, grid_file};
 use crate::calibrate::TimeLeft;
 use crate::config::{Config, ConfigError, DeviceSpec};
@@ -276,6 +277,9 @@ struct Hub {
     /// Client waiting for the calibration in progress, and the events channel of that run.
     calibration: Option<(u64, Receiver<CalibrationEvent>)>,
     abort_sent: bool,
+    /// The running calibration is a check's (`hgcd check --via-daemon`), and whether to apply
+    /// what it finds.
+    checking: Option<(check::Planned, bool)>,
     /// The time the running calibration has left, reported with each vertex.
     calibration_time_left: TimeLeft,
     log: EventLog,
@@ -314,6 +318,7 @@ impl Hub {
             started: Instant::now(),
             calibration: None,
             abort_sent: false,
+            checking: None,
             calibration_time_left: TimeLeft::default(),
             log: EventLog::new(),
             last_housekeeping: Instant::now(),
@@ -491,60 +496,88 @@ impl Hub {
                 status.uptime_s = self.started.elapsed().as_secs_f64();
                 self.reply(client, Reply::Status(Box::new(status)));
             }
-            HubRequest::Calibrate { client } => {
-                if self.calibration.is_some() {
-                    self.reply(
+            HubRequest::Calibrate { client } => self.start_calibration(client, None),
+            HubRequest::Check { client, apply } => {
+                let planned = GridFile::load_for(&self.grid_path, &self.device)
+                    .map_err(|e| format!("nothing to check against: {}", chain(&e)))
+                    .and_then(|file| {
+                        check::plan(
+                            &self.config,
+                            &self.device.spec,
+                            file,
+                            self.grid_path.clone(),
+                        )
+                        .map_err(|e| chain(&e))
+                    });
+                match planned {
+                    Ok(planned) => self.start_calibration(client, Some((planned, apply))),
+                    Err(message) => self.reply(
                         client,
-                        self.calibration_reply(
-                            CalibrationStage::Failed,
-                            "a calibration is already running".into(),
-                        ),
-                    );
-                    return;
-                }
-                let (tx, rx) = crossbeam_channel::bounded(4096);
-                match Calibration::new(
-                    CalibrationParams::for_device(&self.config, &self.device.spec),
-                    Some(tx),
-                ) {
-                    Ok(calibration) => {
-                        // Fail now rather than after minutes of calibration.
-                        let plan = calibration.plan();
-                        let room = persist::check_room(&self.grid_path, plan, &self.device.spec);
-                        if let Err(e) = room {
-                            let message = chain(&e);
-                            self.reply(
-                                client,
-                                self.calibration_reply(CalibrationStage::Failed, message),
-                            );
-                            return;
-                        }
-                        let start = ServoCommand::StartCalibration(Box::new(calibration));
-                        if self.command(start) {
-                            info!("calibration requested by application client {client}");
-                            self.calibration_time_left = TimeLeft::default();
-                            self.calibration = Some((client, rx));
-                            self.status.calibrating = true;
-                            self.reply(
-                                client,
-                                self.calibration_reply(CalibrationStage::Started, String::new()),
-                            );
-                        } else {
-                            self.reply(
-                                client,
-                                self.calibration_reply(
-                                    CalibrationStage::Failed,
-                                    "the servo loop is not taking commands (device silent?)".into(),
-                                ),
-                            );
-                        }
-                    }
-                    Err(e) => self.reply(
-                        client,
-                        self.calibration_reply(CalibrationStage::Failed, e.to_string()),
+                        self.calibration_reply(CalibrationStage::Failed, message),
                     ),
                 }
             }
+        }
+    }
+
+    /// Start a calibration on the servo thread for `client`: the daemon's own, or a check's
+    /// two holds.
+    fn start_calibration(&mut self, client: u64, checking: Option<(check::Planned, bool)>) {
+        if self.calibration.is_some() {
+            self.reply(
+                client,
+                self.calibration_reply(
+                    CalibrationStage::Failed,
+                    "a calibration or a check is already running".into(),
+                ),
+            );
+            return;
+        }
+        let params = match &checking {
+            Some((planned, _)) => planned.params.clone(),
+            None => CalibrationParams::for_device(&self.config, &self.device.spec),
+        };
+        let (tx, rx) = crossbeam_channel::bounded(4096);
+        let calibration = match Calibration::new(params, Some(tx)) {
+            Ok(calibration) => calibration,
+            Err(e) => {
+                let reply = self.calibration_reply(CalibrationStage::Failed, e.to_string());
+                self.reply(client, reply);
+                return;
+            }
+        };
+        if checking.is_none() {
+            // Fail now rather than after minutes of calibration.
+            let room = persist::check_room(&self.grid_path, calibration.plan(), &self.device.spec);
+            if let Err(e) = room {
+                let reply = self.calibration_reply(CalibrationStage::Failed, chain(&e));
+                self.reply(client, reply);
+                return;
+            }
+        }
+        let what = if checking.is_some() {
+            "check"
+        } else {
+            "calibration"
+        };
+        if self.command(ServoCommand::StartCalibration(Box::new(calibration))) {
+            info!("{what} requested by application client {client}");
+            self.calibration_time_left = TimeLeft::default();
+            self.calibration = Some((client, rx));
+            self.checking = checking;
+            self.status.calibrating = true;
+            self.reply(
+                client,
+                self.calibration_reply(CalibrationStage::Started, String::new()),
+            );
+        } else {
+            self.reply(
+                client,
+                self.calibration_reply(
+                    CalibrationStage::Failed,
+                    "the servo loop is not taking commands (device silent?)".into(),
+                ),
+            );
         }
     }
 
@@ -621,6 +654,10 @@ impl Hub {
                 let client = self.calibration.take().map(|(c, _)| c);
                 self.status.calibrating = false;
                 self.abort_sent = false;
+                if let Some((planned, apply)) = self.checking.take() {
+                    self.finish_check(client, &calibration, &planned, apply);
+                    return;
+                }
                 let outcome = match calibration.outcome() {
                     Some(Ok(result)) => {
                         if let Some(c) = client {
@@ -672,6 +709,67 @@ impl Hub {
                     }
                 }
             }
+        }
+    }
+
+    /// A check's holds are done: its answer to the client; with `apply`, a change found taken
+    /// into the grid and the model rebuilt from it. Compensation resumes either way.
+    fn finish_check(
+        &mut self,
+        client: Option<u64>,
+        calibration: &Calibration,
+        planned: &check::Planned,
+        apply: bool,
+    ) {
+        let outcome = match calibration.outcome() {
+            Some(Ok(result)) => planned.conclude(&result).map_err(|e| chain(&e)),
+            Some(Err(failure)) => Err(failure.to_string()),
+            None => Err("check aborted (its requester disconnected); nothing was written".into()),
+        }
+        .and_then(|mut found| {
+            if apply && found.verdict == Verdict::Apply {
+                check::apply(&mut found).map_err(|e| chain(&e))?;
+            }
+            Ok(found)
+        });
+        let found = match outcome {
+            Ok(found) => found,
+            Err(e) => {
+                self.command(ServoCommand::ReleaseHold);
+                error!("check failed: {e}; the model in use stays");
+                if let Some(c) = client {
+                    self.reply(c, self.calibration_reply(CalibrationStage::Failed, e));
+                }
+                return;
+            }
+        };
+        info!(
+            "check: {:?}: payload {:+.1} g, tilt {:.2}°{}",
+            found.verdict,
+            found.payload_g,
+            found.tilt_deg,
+            if found.applied.is_some() {
+                "; applied to the grid"
+            } else {
+                ""
+            }
+        );
+        if found.applied.is_some() {
+            match load_model(&self.config, &self.device, &self.grid_path) {
+                Ok(model) => {
+                    self.auto_payload = 0.0;
+                    self.swap_model(model);
+                }
+                Err(e) => {
+                    self.command(ServoCommand::ReleaseHold);
+                    error!("the applied grid cannot be loaded; the model in use stays: {e:#}");
+                }
+            }
+        } else {
+            self.command(ServoCommand::ReleaseHold);
+        }
+        if let Some(c) = client {
+            self.reply(c, Reply::Checked(Box::new(found)));
         }
     }
 

@@ -749,7 +749,7 @@ fn daemon_loop(
                         warn!("the daemon says: {message}{}", more(n));
                     }
                 }
-                Reply::Welcome { .. } | Reply::State(_) => {}
+                Reply::Welcome { .. } | Reply::State(_) | Reply::Checked(_) => {}
             }
         }
         thread::sleep(Duration::from_millis(5));

@@ -209,7 +209,7 @@ _hgcd() {
             return 0
             ;;
         hgcd__subcmd__check)
-            opts="-h --device --grid --real-time --yes --json --apply --revert --config --state-dir --socket --profile --log-level --help"
+            opts="-h --device --grid --real-time --yes --json --apply --revert --via-daemon --config --state-dir --socket --profile --log-level --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0

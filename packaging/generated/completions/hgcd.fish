@@ -99,7 +99,7 @@ complete -c hgcd -n "__fish_hgcd_using_subcommand analyze" -l socket -d 'Applica
 complete -c hgcd -n "__fish_hgcd_using_subcommand analyze" -l profile -d 'Device profile: a built-in name (cartesian-v1, woodenhaptics_v2015, polhem_v1), a user profile\'s name or a profile file (default: config `device.profile`, else chosen by the device; docs/devices.md)' -r
 complete -c hgcd -n "__fish_hgcd_using_subcommand analyze" -l log-level -d 'Log level: error, warn, info, debug or trace (RUST_LOG overrides)' -r
 complete -c hgcd -n "__fish_hgcd_using_subcommand analyze" -s h -l help -d 'Print help'
-complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l device -d 'Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`)' -r
+complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l device -d 'Device: hid:VID:PID[:SERIAL], sim:MODEL or socket:PATH (default: config `device.spec`); with --via-daemon, which daemon (a device id or spec; default: the only one running)' -r
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l grid -d 'Check this grid (default: the device\'s stored grid)' -r -F
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l config -d 'Configuration file (default: /etc/hgcd/hgcd.toml if it exists, else built-in defaults)' -r -F
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l state-dir -d 'Directory of calibration grids (default: config `paths.state_dir`, $STATE_DIRECTORY, /var/lib/hgcd if this user may write there, else ~/.local/state/hgcd)' -r -F
@@ -111,6 +111,7 @@ complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l yes -d 'Do not ask f
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l json -d 'Print one JSON object (verdict, payload_g, tilt_deg, tilt_axis, device_time_s, holds)'
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l apply -d 'Take a payload and tilt found into the grid, keeping the model before as GRID.bak'
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l revert -d 'Put back the model kept as GRID.bak (before the last --apply or calibration); nothing is measured'
+complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l via-daemon -d 'Ask the running daemon to check its device against its grid (with --apply it takes the change in and compensates it at once); --device then names the daemon'
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -s h -l help -d 'Print help'
 complete -c hgcd -n "__fish_hgcd_using_subcommand status" -l device -d 'Only the daemon of this device (a device id or spec; default: every daemon running)' -r
 complete -c hgcd -n "__fish_hgcd_using_subcommand status" -l state-dir -d 'Directory of calibration grids (default: config `paths.state_dir`, $STATE_DIRECTORY, /var/lib/hgcd if this user may write there, else ~/.local/state/hgcd)' -r -F
