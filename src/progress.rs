@@ -375,6 +375,9 @@ pub fn check_summary(check: &Check) -> String {
             check.payload_g, check.tilt_deg
         ),
     };
+    if let Some(warning) = &check.warning {
+        out.push_str(&format!("warning: {warning}\n"));
+    }
     out.push_str("hold at (mm)                  measured (N)                  model (N)                     left (mN)  allowed (mN)\n");
     for h in &check.holds {
         let v =

@@ -273,6 +273,10 @@ fn a_payload_and_tilt_applied_on_the_phantom_compensate_as_a_fresh_calibration()
     let (stale, _) = validate_with("phantom", dir.path(), &changed);
     let mut found = check_with("phantom", dir.path(), &changed);
     check::apply(&mut found).unwrap();
+    // A serial arm's base moments, measured on a level base, now act: the user is told
+    // (the whole-workspace sweep of docs/calibration.md §2.2 shows why).
+    let warning = found.warning.as_deref().unwrap_or_default();
+    assert!(warning.contains("base moments"), "{found:?}");
     let (mean, worst) = validate_with("phantom", dir.path(), &changed);
     println!(
         "phantom: stale model {:+.1} %; applied {:+.1} %, worst point {:.1} %",
@@ -462,6 +466,10 @@ fn a_running_daemon_checks_its_device_and_applies_what_it_finds() {
     let (code, applied) = check(&["--apply"]);
     assert_eq!(code, Some(4), "{applied}");
     assert!(!applied["applied"].is_null(), "{applied}");
+    assert!(
+        applied["warning"].is_null(),
+        "a point mass has no base: {applied}"
+    );
     let after = GridFile::load(&grid).unwrap();
     assert_eq!(after.applied.len(), 1);
     assert_ne!(std::fs::read_to_string(&grid).unwrap(), before);

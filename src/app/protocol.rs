@@ -321,6 +321,9 @@ pub struct Check {
     /// Where the model before `--apply` was kept, once the change was taken in.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub applied: Option<PathBuf>,
+    /// What the user should know of the change applied, for people (absent when nothing).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
 }
 
 /// Why a request line was refused.

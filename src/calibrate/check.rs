@@ -84,6 +84,25 @@ impl Check {
     }
 }
 
+/// A serial arm's base moments act only under a tilted base, so a calibration on a level one
+/// measures them poorly. Where the change tilts the arm's base further than it was when they
+/// were measured, the applied model holds the calibrated cube but may miss beyond it by a few
+/// percent (docs/calibration.md §2.2): say so.
+fn base_moments_warning(before: &GridFile, after: &GridFile) -> Option<String> {
+    let (was, now) = (before.arm.as_ref()?, after.arm.as_ref()?);
+    let names = now.gravity().ok()?.arm.parameter_names();
+    let base = names.iter().any(|n| n.starts_with("base"));
+    (base && now.tilt_deg >= 1.0 && now.tilt_deg > was.tilt_deg).then(|| {
+        format!(
+            "the arm's base now leans {:.1}° (it leaned {:.1}° at its calibration): its base \
+             moments, which act only when it leans, were measured under less tilt, so beyond the \
+             calibrated cube the applied model may be a few percent off; hgcd calibrate measures \
+             them",
+            now.tilt_deg, was.tilt_deg
+        )
+    })
+}
+
 /// Why a check has no answer.
 #[derive(Debug, Error)]
 pub enum CheckError {
@@ -241,6 +260,7 @@ pub fn apply(found: &mut Check) -> Result<(), CheckError> {
             path: path.clone(),
             source,
         })?;
+    found.warning = base_moments_warning(&file, &changed);
     changed.save_atomic(path).map_err(CheckError::Save)?;
     info!(
         "took a payload of {:+.1} g and a tilt of {:.2}° into {}",
@@ -439,5 +459,6 @@ pub fn compare(model: &GravityModel, g: f64, holds: &[Measured]) -> Check {
         device_time_s: 0.0,
         grid: PathBuf::new(),
         applied: None,
+        warning: None,
     }
 }
