@@ -333,12 +333,17 @@ fn err(text: &str) {
     let _ = std::io::stderr().lock().write_all(text.as_bytes());
 }
 
-fn load_config(path: Option<&Path>) -> Result<Config> {
+/// The config file hgcd reads: `--config`, else the default path where it exists.
+fn config_file(path: Option<&Path>) -> Option<PathBuf> {
     match path {
-        Some(p) => Ok(Config::load(p)?),
-        None if Path::new(DEFAULT_CONFIG_PATH).exists() => {
-            Ok(Config::load(Path::new(DEFAULT_CONFIG_PATH))?)
-        }
+        Some(p) => Some(p.to_path_buf()),
+        None => Some(PathBuf::from(DEFAULT_CONFIG_PATH)).filter(|p| p.exists()),
+    }
+}
+
+fn load_config(path: Option<&Path>) -> Result<Config> {
+    match config_file(path) {
+        Some(p) => Ok(Config::load(&p)?),
         None => Ok(Config::default()),
     }
 }
@@ -435,11 +440,7 @@ fn real_main(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Run(args) => {
             // SIGHUP gives a simulated device the payload and gravity of this file again.
-            let file = cli
-                .config
-                .clone()
-                .or_else(|| Some(PathBuf::from(DEFAULT_CONFIG_PATH)).filter(|p| p.exists()));
-            run(&config()?, &args, file)
+            run(&config()?, &args, config_file(cli.config.as_deref()))
         }
         Command::Calibrate(args) => calibrate_command(config()?, args),
         Command::Validate(args) => validate_command(&config()?, args),

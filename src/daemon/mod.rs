@@ -30,7 +30,7 @@ use crate::calibrate::persist::{self, grid_file};
 use crate::calibrate::TimeLeft;
 use crate::config::{Config, ConfigError, DeviceSpec};
 use crate::control::calibration::{
-    unreachable_note, Calibration, CalibrationEvent, CalibrationParams,
+    unreachable_note, Calibration, CalibrationEvent, CalibrationParams, CalibrationResult,
 };
 use crate::control::compensation::{
     Compensation, ForceOffset, GravityModel, ModelError, StaticEffect,
@@ -207,6 +207,18 @@ fn load_model_with(
             Ok(None)
         }
         Err(e) => Err(RunError::Grid(e)),
+    }
+}
+
+/// What the calibration the servo thread gave back for `what` (a calibration, a check) found,
+/// or why it found nothing (its failure, or its requester's disconnecting).
+fn result_of(calibration: &Calibration, what: &str) -> Result<CalibrationResult, String> {
+    match calibration.outcome() {
+        Some(Ok(result)) => Ok(result),
+        Some(Err(failure)) => Err(failure.to_string()),
+        None => Err(format!(
+            "{what} aborted (its requester disconnected); nothing was written"
+        )),
     }
 }
 
@@ -394,8 +406,8 @@ impl Hub {
             let payload = self.auto_payload + noticed.payload_kg;
             match load_model_with(&self.config, &self.device, &self.grid_path, payload) {
                 Ok(model) => {
-                    self.auto_payload = payload;
                     self.swap_model(model);
+                    self.auto_payload = payload;
                 }
                 Err(e) => error!("auto_update: cannot rebuild the model: {}", chain(&e)),
             }
@@ -475,6 +487,7 @@ impl Hub {
     }
 
     fn swap_model(&mut self, model: Option<Box<GravityModel>>) {
+        self.auto_payload = 0.0;
         self.watch = Self::watch_of(&self.grid_path, model.as_deref());
         self.status.model_stale = None;
         self.status.mode = mode_name(&model);
@@ -658,31 +671,21 @@ impl Hub {
                     self.finish_check(client, &calibration, &planned, apply);
                     return;
                 }
-                let outcome = match calibration.outcome() {
-                    Some(Ok(result)) => {
-                        if let Some(c) = client {
-                            let time = format!("{}", result.time_spent);
-                            self.reply(
-                                c,
-                                self.calibration_reply(CalibrationStage::TimeSpent, time),
-                            );
-                        }
-                        let mut file = grid_file(&result, &self.config, &self.device.spec);
-                        self.device.stamp(&mut file);
-                        let c = &self.config.compensation;
-                        file.save_atomic(&self.grid_path)
-                            .map_err(|e| chain(&e))
-                            .and_then(|_| {
-                                GravityModel::configured(file, c.mode, c.outside_grid)
-                                    .map_err(|e| chain(&e))
-                            })
+                let outcome = result_of(&calibration, "calibration").and_then(|result| {
+                    if let Some(c) = client {
+                        let time = format!("{}", result.time_spent);
+                        self.reply(c, self.calibration_reply(CalibrationStage::TimeSpent, time));
                     }
-                    Some(Err(failure)) => Err(failure.to_string()),
-                    None => Err(
-                        "calibration aborted (its requester disconnected); nothing was written"
-                            .to_string(),
-                    ),
-                };
+                    let mut file = grid_file(&result, &self.config, &self.device.spec);
+                    self.device.stamp(&mut file);
+                    let c = &self.config.compensation;
+                    file.save_atomic(&self.grid_path)
+                        .map_err(|e| chain(&e))
+                        .and_then(|_| {
+                            GravityModel::configured(file, c.mode, c.outside_grid)
+                                .map_err(|e| chain(&e))
+                        })
+                });
                 match outcome {
                     Ok(model) => {
                         info!(
@@ -700,15 +703,23 @@ impl Hub {
                             );
                         }
                     }
-                    Err(e) => {
-                        self.command(ServoCommand::ReleaseHold);
-                        error!("calibration failed: {e}; the previous grid stays in use");
-                        if let Some(c) = client {
-                            self.reply(c, self.calibration_reply(CalibrationStage::Failed, e));
-                        }
-                    }
+                    Err(e) => self.ended_without_result(
+                        client,
+                        &format!("calibration failed: {e}; the previous grid stays in use"),
+                        e,
+                    ),
                 }
             }
+        }
+    }
+
+    /// A calibration or check that ended without a result: the hold after it released
+    /// (compensation resumes with the model in use), `log` logged, the requester told `why`.
+    fn ended_without_result(&mut self, client: Option<u64>, log: &str, why: String) {
+        self.command(ServoCommand::ReleaseHold);
+        error!("{log}");
+        if let Some(c) = client {
+            self.reply(c, self.calibration_reply(CalibrationStage::Failed, why));
         }
     }
 
@@ -721,25 +732,19 @@ impl Hub {
         planned: &check::Planned,
         apply: bool,
     ) {
-        let outcome = match calibration.outcome() {
-            Some(Ok(result)) => planned.conclude(&result).map_err(|e| chain(&e)),
-            Some(Err(failure)) => Err(failure.to_string()),
-            None => Err("check aborted (its requester disconnected); nothing was written".into()),
-        }
-        .and_then(|mut found| {
-            if apply && found.verdict == Verdict::Apply {
-                check::apply(&mut found).map_err(|e| chain(&e))?;
-            }
-            Ok(found)
-        });
+        let outcome = result_of(calibration, "check")
+            .and_then(|result| planned.conclude(&result).map_err(|e| chain(&e)))
+            .and_then(|mut found| {
+                if apply && found.verdict == Verdict::Apply {
+                    check::apply(&mut found).map_err(|e| chain(&e))?;
+                }
+                Ok(found)
+            });
         let found = match outcome {
             Ok(found) => found,
             Err(e) => {
-                self.command(ServoCommand::ReleaseHold);
-                error!("check failed: {e}; the model in use stays");
-                if let Some(c) = client {
-                    self.reply(c, self.calibration_reply(CalibrationStage::Failed, e));
-                }
+                let log = format!("check failed: {e}; the model in use stays");
+                self.ended_without_result(client, &log, e);
                 return;
             }
         };
@@ -756,10 +761,7 @@ impl Hub {
         );
         if found.applied.is_some() {
             match load_model(&self.config, &self.device, &self.grid_path) {
-                Ok(model) => {
-                    self.auto_payload = 0.0;
-                    self.swap_model(model);
-                }
+                Ok(model) => self.swap_model(model),
                 Err(e) => {
                     self.command(ServoCommand::ReleaseHold);
                     error!("the applied grid cannot be loaded; the model in use stays: {e:#}");
@@ -831,10 +833,7 @@ impl Hub {
         self.reload_world();
         info!("SIGHUP: reloading {}", self.grid_path.display());
         match load_model(&self.config, &self.device, &self.grid_path) {
-            Ok(model) => {
-                self.auto_payload = 0.0;
-                self.swap_model(model);
-            }
+            Ok(model) => self.swap_model(model),
             Err(e) => error!("reload failed, keeping the current grid: {e:#}"),
         }
     }
