@@ -488,7 +488,12 @@ fn a_running_daemon_checks_its_device_and_applies_what_it_finds() {
         hgcd::client::Client::connect(&socket, hgcd::client::Role::Observe, "observer").unwrap();
     observer.set_read_timeout(Some(common::WAIT)).unwrap();
     observer.subscribe(1000.0).unwrap();
-    let s = observer.next_state().unwrap();
+    // The hub swaps the model in before it answers, and the servo thread takes it at its next
+    // tick: until then it holds the handle where the check left it, rendering no gravity.
+    let s = (0..10_000)
+        .map(|_| observer.next_state().unwrap())
+        .find(|s| s.gravity.is_some_and(|g| g != [0.0; 3]))
+        .expect("the hold after the check ends");
     let (x, rendered) = (
         nalgebra::Vector3::from(s.position),
         nalgebra::Vector3::from(s.gravity.expect("the gravity force rendered")),
