@@ -24,6 +24,9 @@ const PAYLOAD: f64 = 0.03;
 /// Ticks at 1 kHz.
 const TEN_SECONDS: u64 = 10_000;
 const BATCH: u64 = 50;
+/// Ticks between two looks at the status while waiting for the watch: the model is swapped
+/// (with `auto_update`) within this many ticks of the watch noticing.
+const NOTICE_BATCH: u64 = 10;
 
 /// A uniform 120 g handle, gravity tilted, on a ±80 mm lattice: the plant's field and, exactly,
 /// the daemon's grid (without a calibration record: the watch takes its moving mass from it).
@@ -118,19 +121,21 @@ fn noticed(rig: &Rig, client: &mut Client) -> (u64, hgcd::client::ModelStale, f6
     let start = rig.gate.passed();
     let mut event = None;
     loop {
-        rig.gate.advance(BATCH);
-        // The hub reads the published states on its own thread: ask until it has.
+        rig.gate.advance(NOTICE_BATCH);
+        // The hub reads the published states on its own thread, one after the other as it fans
+        // them out: once the client has the last tick's, a status asked for now is answered
+        // after the watch has read them all, whatever the machine's load.
+        let last = rig.gate.passed() - 1;
+        read_until(
+            client,
+            &mut event,
+            |r| matches!(r, Reply::State(s) if s.tick == last),
+        );
         client.request_status().unwrap();
-        let status = loop {
-            match client.next_reply().unwrap() {
-                Reply::Status(status) => break status,
-                Reply::Calibration {
-                    event: CalibrationStage::Stale,
-                    mass_kg,
-                    ..
-                } => event = mass_kg,
-                _ => {}
-            }
+        let Reply::Status(status) =
+            read_until(client, &mut event, |r| matches!(r, Reply::Status(_)))
+        else {
+            unreachable!("read_until stops at a status")
         };
         if let Some(stale) = status.model_stale {
             // The event goes out before the status changes.
@@ -141,6 +146,27 @@ fn noticed(rig: &Rig, client: &mut Client) -> (u64, hgcd::client::ModelStale, f6
             rig.gate.passed() - start < TEN_SECONDS,
             "not noticed within 10 s of device time"
         );
+    }
+}
+
+/// Replies until one `stop` accepts (returned), the mass of a `stale` event on the way kept.
+fn read_until(
+    client: &mut Client,
+    event: &mut Option<f64>,
+    stop: impl Fn(&Reply) -> bool,
+) -> Reply {
+    loop {
+        let reply = client.next_reply().unwrap();
+        if let Reply::Calibration {
+            event: CalibrationStage::Stale,
+            mass_kg,
+            ..
+        } = reply
+        {
+            *event = mass_kg;
+        } else if stop(&reply) {
+            return reply;
+        }
     }
 }
 
