@@ -21,7 +21,7 @@ use tracing::info;
 use super::{device_grid, drive, identified, CalibrateError, GridModelError};
 use crate::config::{Config, DeviceSpec};
 use crate::control::calibration::{
-    Calibration, CalibrationEvent, CalibrationParams, CalibrationResult, Holds,
+    Calibration, CalibrationEvent, CalibrationParams, CalibrationResult, Holds, Prior,
 };
 use crate::control::compensation::{GravityModel, StaticEffect};
 use crate::grid::{
@@ -182,12 +182,26 @@ pub fn plan(
     let c = &config.compensation;
     let g = file.grid.g;
     let grid = file.grid.clone();
+    let record = file.calibration.clone().unwrap_or_default();
     let model = GravityModel::configured(file, c.mode, c.outside_grid)
         .map_err(GridModelError::model(&path))?;
     // Half the smallest side, in cells (a 2-vertex side: half a cell).
     let half_cells = grid.dims.iter().map(|&n| n - 1).min().unwrap_or(0) as f64 / 2.0;
     let mut params = CalibrationParams::for_device(config, device);
     params.holds = Holds::Diagonal;
+    // The calibration measured the friction and moving mass at this centre: the check starts
+    // its holds once the handle is caught.
+    params.prior = match Prior::from_record(&record, params.max_force) {
+        Ok(prior) => Some(prior),
+        Err(why) => {
+            info!(
+                "{} cannot shorten the check's initialisation: {why}; measuring the friction \
+                 and moving mass again",
+                path.display()
+            );
+            None
+        }
+    };
     params.half_size = 1;
     params.spacing = grid.spacing * half_cells;
     params.centre = grid.origin
@@ -196,6 +210,9 @@ pub fn plan(
             grid.dims[1] as f64 - 1.0,
             grid.dims[2] as f64 - 1.0,
         ) * (grid.spacing / 2.0);
+    if let Some(prior) = &mut params.prior {
+        prior.model = Some(model.clone());
+    }
     let (lo, hi) = (
         (params.centre.add_scalar(-params.spacing)) * 1e3,
         (params.centre.add_scalar(params.spacing)) * 1e3,

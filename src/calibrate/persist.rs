@@ -94,6 +94,7 @@ pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpe
         friction_n: Some(i.friction.into()),
         inertia_kg: Some(i.inertia.into()),
         noise_mm: Some(i.noise * 1e3),
+        step_mm: Some(i.step * 1e3),
         stiffness_n_per_mm: Some((i.stiffness * 1e-3).into()),
     });
     file.vertices = VertexRecords {

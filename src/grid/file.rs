@@ -103,11 +103,13 @@ pub struct CalibrationRecord {
     pub extrapolated_vertices: Option<Vec<[i32; 3]>>,
     /// What the initialisation measured at X_C: the load (holding force), N; the friction (half
     /// the stick band) along x, y, z, N; the moving mass along x, y, z, kg; the position noise
-    /// (standard deviation), mm; and the hold stiffness built from them, N/mm.
+    /// (standard deviation), mm; the encoder's step (or a few standard deviations of noise
+    /// without one), mm; and the hold stiffness built from them, N/mm.
     pub load_n: Option<[f64; 3]>,
     pub friction_n: Option<[f64; 3]>,
     pub inertia_kg: Option<[f64; 3]>,
     pub noise_mm: Option<f64>,
+    pub step_mm: Option<f64>,
     pub stiffness_n_per_mm: Option<[f64; 3]>,
 }
 
@@ -1039,6 +1041,7 @@ pub(crate) mod tests {
                 friction_n: Some([longest; 3]),
                 inertia_kg: Some([longest; 3]),
                 noise_mm: Some(longest),
+                step_mm: Some(longest),
                 stiffness_n_per_mm: Some([longest; 3]),
             });
             file.vertices = VertexRecords {

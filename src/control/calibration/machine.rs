@@ -805,19 +805,10 @@ impl Calibration {
         // An encoder step larger than the velocity filter's noise bound reads as a burst of
         // speed: raise the bound to the step and look again.
         let step = self.noise.step();
-        if step > self.filter_bound {
-            if let Ok(filter) = Foaw::new(
-                self.params.foaw_variant,
-                step,
-                self.params.max_window,
-                self.params.period,
-            ) {
-                self.filter = filter;
-                self.filter_bound = step;
-                self.speed_square = 0.0;
-                self.detector = self.init_detector();
-                return None;
-            }
+        if self.raise_filter_bound(step) {
+            self.speed_square = 0.0;
+            self.detector = self.init_detector();
+            return None;
         }
         let flicker = if step.is_finite() {
             step / FLICKER_TIME
@@ -832,6 +823,25 @@ impl Calibration {
             return None;
         }
         Some(steady)
+    }
+
+    /// The velocity filter's noise bound raised to an encoder `step` larger than it (a step
+    /// reads as a burst of speed otherwise): whether it was.
+    fn raise_filter_bound(&mut self, step: f64) -> bool {
+        if step <= self.filter_bound {
+            return false;
+        }
+        let Ok(filter) = Foaw::new(
+            self.params.foaw_variant,
+            step,
+            self.params.max_window,
+            self.params.period,
+        ) else {
+            return false;
+        };
+        self.filter = filter;
+        self.filter_bound = step;
+        true
     }
 
     /// Initialisation, catch (§3.1): the elastic field k_init (X_C − X) plus damping (an
@@ -868,9 +878,40 @@ impl Calibration {
             // A step adopted from the bands' slips (below) stands if the handle is caught again.
             self.initial.step = self.noise.step().max(self.initial.step);
             self.set_slip();
+            if self.params.prior.is_some() {
+                return self.initialised_from(self.field_force(&field.to, s), s);
+            }
             self.phase = self.init_band_along(0, t);
         }
         ControlOutput::force(force)
+    }
+
+    /// The initialisation from an earlier calibration's ([`super::Prior`]), the handle caught
+    /// at X_C by the force `caught`: the load is the prior's, moved to within the prior
+    /// friction of `caught` (where the handle came to rest, the field held the load to within
+    /// the friction); then the first vertex.
+    fn initialised_from(&mut self, caught: Vector3<f64>, s: &DeviceState) -> ControlOutput {
+        let Some(prior) = &self.params.prior else {
+            return ControlOutput::force(caught);
+        };
+        // The saved model's force at X_C where it gives one (the record's load is a band's
+        // middle, a few tens of millinewtons off on a linkage).
+        let load = prior.expected_at(&self.rest_point).unwrap_or(prior.load);
+        self.initial.load = Vector3::from_fn(|a, _| {
+            load[a].clamp(caught[a] - prior.friction[a], caught[a] + prior.friction[a])
+        });
+        self.initial.friction = prior.friction;
+        self.initial.inertia = prior.inertia;
+        // The encoder's step the calibration saw (a handle caught at once shows none).
+        self.initial.step = self.initial.step.max(prior.step);
+        self.set_slip();
+        self.raise_filter_bound(self.initial.step);
+        self.initialised();
+        self.report_initialisation();
+        self.catch_force = self.initial.load;
+        self.vertex = 0;
+        self.start_move(self.rest_point, s.time);
+        ControlOutput::force(caught)
     }
 
     /// Initialisation, load and friction: the stick band along each axis under the initial
@@ -1129,6 +1170,15 @@ impl Calibration {
     fn start_move(&mut self, from: Vector3<f64>, t: f64) {
         let to = self.plan.path[self.vertex].position;
         self.approach = from;
+        // With a saved model, the hold starts from the force last measured plus the model's
+        // change from there (where the previous hold was measured, or X_C) to the vertex.
+        let measured_there =
+            self.vertex == 0 || self.results[self.vertex - 1].is_some_and(|r| r.reached);
+        if let Some(prior) = self.params.prior.as_ref().filter(|_| measured_there) {
+            if let (Some(there), Some(here)) = (prior.expected_at(&to), prior.expected_at(&from)) {
+                self.estimate += there - here;
+            }
+        }
         // An explored grid's path jumps where it skips extrapolated vertices: start from the
         // force of the closest vertex calibrated so far (Eq. 12), not of the last one.
         if self.explorer.is_some() {
@@ -1264,6 +1314,14 @@ impl Calibration {
                         walked,
                         then: [after, None],
                     };
+                }
+                // With a saved model F̂ is its force here, carried from the last measurement:
+                // under friction the strokes measure at once (and again if they moved F̂ far),
+                // with no rests or bands first.
+                _ if self.params.prior.is_some() && self.next_band_axis(None).is_some() => {
+                    let vertex = self.plan.path[self.vertex];
+                    let error = (vertex.position - s.position).norm();
+                    return self.stroke(s, vertex, StrokeRun::first(error, None));
                 }
                 _ => self.settle_from(s.time),
             }

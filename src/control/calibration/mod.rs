@@ -45,6 +45,7 @@ pub use plan::{GridPlan, PlanError, Vertex};
 
 use nalgebra::Vector3;
 
+use super::compensation::GravityModel;
 use super::pd::LinearisedGains;
 use crate::arm::Arm;
 use crate::config::{Config, DeviceSpec, HoldPlan, WorkspaceMode};
@@ -114,6 +115,72 @@ pub struct CalibrationParams {
     /// Strokes that moved F̂ by more than 30 mN and this share of the force they found are
     /// measured once more (not a config key: 0.1, see `machine.rs`).
     pub strokes_again_share: f64,
+    /// What an earlier calibration of this device measured at X_C (`hgcd check`): with it, the
+    /// initialisation ends once the handle is caught.
+    pub prior: Option<Prior>,
+}
+
+/// What an earlier calibration's initialisation measured at X_C (its grid file's
+/// `[calibration]` record). A run given it skips the stick bands, the moving-mass pulses and the
+/// survey strokes: the handle is caught, and the holds begin with the gains built from the
+/// prior friction and moving mass. The load is the prior's where the catch agrees with it
+/// within the friction, else the nearest value the catch allows (a payload, a tilt: what a
+/// check is for), per axis.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Prior {
+    /// Holding force at X_C, N.
+    pub load: Vector3<f64>,
+    /// Friction along x, y, z, N.
+    pub friction: Vector3<f64>,
+    /// Moving mass along x, y, z, kg.
+    pub inertia: Vector3<f64>,
+    /// The encoder's step, m.
+    pub step: f64,
+    /// The saved model: each hold starts from the force last measured plus the model's change
+    /// from there to the vertex, where the paper's calibration starts from the force last
+    /// measured (its Eq. 12).
+    pub model: Option<GravityModel>,
+}
+
+impl Prior {
+    /// A prior from a grid file's record, if it holds every value and each is one a device can
+    /// have (finite; friction and step not negative; moving mass positive; none beyond
+    /// `max_force` N, a tonne or a millimetre): else why not.
+    pub fn from_record(
+        record: &crate::grid::CalibrationRecord,
+        max_force: f64,
+    ) -> Result<Self, &'static str> {
+        let (Some(load), Some(friction), Some(inertia), Some(step)) = (
+            record.load_n,
+            record.friction_n,
+            record.inertia_kg,
+            record.step_mm,
+        ) else {
+            return Err("its [calibration] record lacks load_n, friction_n, inertia_kg or step_mm");
+        };
+        let prior = Self {
+            load: Vector3::from(load),
+            friction: Vector3::from(friction),
+            inertia: Vector3::from(inertia),
+            step: step * 1e-3,
+            model: None,
+        };
+        let within = |v: &Vector3<f64>, lo: f64, hi: f64| v.iter().all(|x| (lo..=hi).contains(x));
+        let plausible = within(&prior.load, -max_force, max_force)
+            && within(&prior.friction, 0.0, max_force)
+            && within(&prior.inertia, f64::MIN_POSITIVE, 1000.0)
+            && (0.0..=1e-3).contains(&prior.step);
+        if plausible {
+            Ok(prior)
+        } else {
+            Err("its [calibration] record's load_n, friction_n, inertia_kg or step_mm is out of range")
+        }
+    }
+
+    /// The holding force the saved model expects at `x` (allocation-free).
+    pub fn expected_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
+        self.model.as_ref().map(|model| model.force(x))
+    }
 }
 
 impl CalibrationParams {
@@ -149,6 +216,7 @@ impl CalibrationParams {
             },
             arm: None,
             strokes_again_share: STROKES_AGAIN_SHARE,
+            prior: None,
         }
     }
 
@@ -164,5 +232,50 @@ impl CalibrationParams {
             params.holds = Holds::Corners;
         }
         params
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::CalibrationRecord;
+
+    fn record() -> CalibrationRecord {
+        CalibrationRecord {
+            load_n: Some([0.01, -0.02, 1.2]),
+            friction_n: Some([0.1, 0.1, 0.12]),
+            inertia_kg: Some([0.05, 0.07, 0.06]),
+            step_mm: Some(0.01),
+            ..CalibrationRecord::default()
+        }
+    }
+
+    #[test]
+    fn a_prior_is_taken_from_a_whole_record_in_si_units() {
+        let prior = Prior::from_record(&record(), 8.0).unwrap();
+        assert_eq!(prior.load, Vector3::new(0.01, -0.02, 1.2));
+        assert_eq!(prior.inertia, Vector3::new(0.05, 0.07, 0.06));
+        assert!((prior.step - 1e-5).abs() < 1e-18);
+        assert_eq!(prior.expected_at(&Vector3::zeros()), None);
+    }
+
+    /// A record from before `step_mm`, or one a hand or a fault spoiled, gives no prior: the
+    /// check measures the initialisation again rather than build its gains on it.
+    #[test]
+    fn a_partial_or_implausible_record_gives_no_prior() {
+        let spoiled: [fn(&mut CalibrationRecord); 7] = [
+            |r| r.step_mm = None,
+            |r| r.inertia_kg = None,
+            |r| r.friction_n = Some([0.1, f64::NAN, 0.1]),
+            |r| r.friction_n = Some([0.1, -0.1, 0.1]),
+            |r| r.inertia_kg = Some([0.05, 0.0, 0.06]),
+            |r| r.load_n = Some([0.0, 0.0, 1e300]),
+            |r| r.step_mm = Some(5.0),
+        ];
+        for (n, spoil) in spoiled.iter().enumerate() {
+            let mut r = record();
+            spoil(&mut r);
+            assert!(Prior::from_record(&r, 8.0).is_err(), "case {n}: {r:?}");
+        }
     }
 }
