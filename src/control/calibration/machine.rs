@@ -1,6 +1,9 @@
 //! The calibration controller: a state machine with one method per phase, which `tick` only
 //! dispatches to. Start → Catch → InitBand (x, y, z) → (Recentre → Pulse) per axis → Recentre →
-//! (Move → Settle ⇄ Band / Push) per vertex → Finished, or Failed from any phase.
+//! InitStrokes → (Move → Settle ⇄ Band / Push → Strokes) per vertex → Finished, or Failed from
+//! any phase. Under friction, a vertex whose force the vertices measured before it predict
+//! ([`Calibration::predicted_force`]) goes from Move straight to Strokes; with a
+//! [`super::Prior`] (`hgcd check`) the initialisation ends at Catch and every vertex does.
 //!
 //! Like every [`Controller`], it runs on the servo thread: it must not allocate, lock, block or
 //! log, so progress leaves through a bounded channel with `try_send`.
@@ -112,6 +115,19 @@ pub enum CalibrationEvent {
     Failed(CalibrationFailure),
 }
 
+/// The friction at X_C, N, from which vertices are predicted and measured by their strokes
+/// alone: there the bands take 3–4 s a vertex. Below it the run is the paper's (Eq. 12, rests,
+/// bands): the simulated PHANToM with frictionless joints reads 0.014–0.024 N at X_C (the bands'
+/// own lag), and started from predictions its rests and bands left a vertex 2.1 % off
+/// vertically where they leave 1.9 %; with 0.02 N at the handle it reads 0.03 N or more.
+const STROKES_AT_ONCE: f64 = 0.03;
+/// Two vertices within this share of the spacing are the same vertex (a prediction's stencil).
+const PREDICT_MATCH: f64 = 1e-3;
+/// The largest stencil a prediction is made from: the sum of its three vertices' distances to
+/// the vertex predicted, in spacings (a cell's parallelogram: 1 + 1 + √2; a straight line
+/// through two neighbours: 1 + 1 + 2). The corners' cube's faces (2 + 2 + 2√2) predict the
+/// fourth corner 30 mN or more off on the simulated linkages: their strokes ran twice.
+const PREDICT_REACH: f64 = 4.0;
 /// Smallest displacement of the smoothed position that counts as a slip, m (on top of three
 /// standard deviations of the measured position noise).
 const MIN_SLIP: f64 = 5e-6;
@@ -487,6 +503,9 @@ pub struct Calibration {
     /// The rest the band is measured at, m, and the band's half-widths, N.
     rest: Vector3<f64>,
     band_friction: Vector3<f64>,
+    /// The current vertex's F̂ was predicted from the vertices measured before it
+    /// ([`Calibration::predicted_force`]): the strokes measure at once.
+    predicted: bool,
     /// The force the previous round found, when this round followed it directly.
     /// The forces the rounds before this one found, summed, and how many, when this round
     /// followed them directly.
@@ -594,6 +613,7 @@ impl Calibration {
             one_sided: None,
             rest: Vector3::zeros(),
             band_friction: Vector3::zeros(),
+            predicted: false,
             constraints: [None; 3],
             strict: [None; 3],
             joint_friction: false,
@@ -1196,6 +1216,13 @@ impl Calibration {
             }
         }
         let duration = self.glide(from, to, t).duration;
+        let prediction = (self.params.predict_from_neighbours
+            && self.explorer.is_none()
+            && self.params.prior.is_none()
+            && self.friction_kind.contains(&Friction::Dominant)
+            && self.initial.friction.max() >= STROKES_AT_ONCE)
+            .then(|| self.predicted_force(&to))
+            .flatten();
         // An explored workspace may end short of a vertex the map holds: move no faster than
         // the walk's moves (minimum-jerk peak speed 1.875 d / T), so a stop met on the way is
         // met slowly; along an edge the walk travelled, as fast as its returns. The extra time
@@ -1222,6 +1249,10 @@ impl Calibration {
         self.vertex_start = t + (slowed - duration);
         self.vertex_began = t;
         self.fresh_attempt();
+        if let Some(force) = prediction {
+            self.estimate = force;
+            self.predicted = true;
+        }
         self.emit(CalibrationEvent::VertexStarted {
             vertex: self.vertex,
             of: self.plan.path.len(),
@@ -1238,7 +1269,39 @@ impl Calibration {
         self.previous_offset = None;
         self.near_rests = 0;
         self.one_sided = None;
+        self.band_friction = Vector3::zeros();
+        self.predicted = false;
         self.detector = self.vertex_detector();
+    }
+
+    /// The holding force at `to` predicted from three vertices measured so far that make a
+    /// parallelogram with it, to = a + b − c (a = b: a straight line through c and a): F(a) +
+    /// F(b) − F(c), exact for a field linear over the stencil; the most compact such stencil.
+    /// None while no three do.
+    fn predicted_force(&self, to: &Vector3<f64>) -> Option<Vector3<f64>> {
+        let same = PREDICT_MATCH * self.params.spacing;
+        let reached = || self.results.iter().flatten().filter(|r| r.reached);
+        let mut best: Option<(f64, Vector3<f64>)> = None;
+        for a in reached() {
+            for c in reached() {
+                let at_b = to - a.vertex.position + c.vertex.position;
+                if (c.vertex.position - a.vertex.position).norm() < same {
+                    continue;
+                }
+                let Some(b) = reached().find(|b| (b.vertex.position - at_b).norm() < same) else {
+                    continue;
+                };
+                let spread = (to - a.vertex.position).norm()
+                    + (to - b.vertex.position).norm()
+                    + (to - c.vertex.position).norm();
+                if spread <= PREDICT_REACH * self.params.spacing
+                    && best.is_none_or(|(s, _)| spread < s)
+                {
+                    best = Some((spread, a.force + b.force - c.force));
+                }
+            }
+        }
+        best.map(|(_, force)| force)
     }
 
     /// The steady-state test at vertices: n_M samples within ε_M, window means agreeing within
@@ -1315,10 +1378,14 @@ impl Calibration {
                         then: [after, None],
                     };
                 }
-                // With a saved model F̂ is its force here, carried from the last measurement:
-                // under friction the strokes measure at once (and again if they moved F̂ far),
-                // with no rests or bands first.
-                _ if self.params.prior.is_some() && self.next_band_axis(None).is_some() => {
+                // With a saved model F̂ is its force here, carried from the last measurement;
+                // predicted, it is the field the vertices before it measured, carried here.
+                // Where friction dominates (and is at least `STROKES_AT_ONCE` at X_C: where
+                // a vertex is predicted), the strokes measure at once (and again if they moved
+                // F̂ far), with no rests or bands first.
+                _ if self.predicted
+                    || (self.params.prior.is_some() && self.next_band_axis(None).is_some()) =>
+                {
                     let vertex = self.plan.path[self.vertex];
                     let error = (vertex.position - s.position).norm();
                     return self.stroke(s, vertex, StrokeRun::first(error, None));

@@ -115,6 +115,10 @@ pub struct CalibrationParams {
     /// Strokes that moved F̂ by more than 30 mN and this share of the force they found are
     /// measured once more (not a config key: 0.1, see `machine.rs`).
     pub strokes_again_share: f64,
+    /// Whether a vertex's force is predicted from the vertices measured before it, and then
+    /// measured by strokes alone, where friction dominates (not a config key: true, see
+    /// `machine.rs`; false runs the paper's Eq. 12 and the bands at every vertex).
+    pub predict_from_neighbours: bool,
     /// What an earlier calibration of this device measured at X_C (`hgcd check`): with it, the
     /// initialisation ends once the handle is caught.
     pub prior: Option<Prior>,
@@ -216,6 +220,7 @@ impl CalibrationParams {
             },
             arm: None,
             strokes_again_share: STROKES_AGAIN_SHARE,
+            predict_from_neighbours: true,
             prior: None,
         }
     }
