@@ -121,7 +121,8 @@ pub enum CalibrationEvent {
 /// own lag), and started from predictions its rests and bands left a vertex 2.1 % off
 /// vertically where they leave 1.9 %; with 0.02 N at the handle it reads 0.03 N or more.
 const STROKES_AT_ONCE: f64 = 0.03;
-/// Two vertices within this share of the spacing are the same vertex (a prediction's stencil).
+/// A vertex within this share of the spacing of a lattice point is at it (a prediction's
+/// stencil).
 const PREDICT_MATCH: f64 = 1e-3;
 /// The largest stencil a prediction is made from: the sum of its three vertices' distances to
 /// the vertex predicted, in spacings (a cell's parallelogram: 1 + 1 + √2; a straight line
@@ -1277,27 +1278,53 @@ impl Calibration {
     /// The holding force at `to` predicted from three vertices measured so far that make a
     /// parallelogram with it, to = a + b − c (a = b: a straight line through c and a): F(a) +
     /// F(b) − F(c), exact for a field linear over the stencil; the most compact such stencil.
-    /// None while no three do.
+    /// None while no three do. A stencil within [`PREDICT_REACH`] has every vertex within two
+    /// spacings of `to` along each axis: those are set out on a 5 × 5 × 5 table of offsets
+    /// first, so the search costs the same on any grid (no allocation: it runs on the servo
+    /// thread).
     fn predicted_force(&self, to: &Vector3<f64>) -> Option<Vector3<f64>> {
-        let same = PREDICT_MATCH * self.params.spacing;
-        let reached = || self.results.iter().flatten().filter(|r| r.reached);
+        const SIDE: i32 = 5;
+        let spacing = self.params.spacing;
+        // The offset of `x` from `to` in whole spacings, -2..=2 along each axis, if it is one.
+        let cell = |x: &Vector3<f64>| -> Option<[i32; 3]> {
+            let steps = (x - to) / spacing;
+            let rounded = steps.map(f64::round);
+            let inside = rounded.iter().all(|k| k.abs() <= 2.0);
+            ((steps - rounded).norm() < PREDICT_MATCH && inside)
+                .then(|| [0, 1, 2].map(|a| rounded[a] as i32))
+        };
+        let slot =
+            |o: [i32; 3]| ((o[0] + 2) * SIDE * SIDE + (o[1] + 2) * SIDE + (o[2] + 2)) as usize;
+        let mut table = [None; (SIDE * SIDE * SIDE) as usize];
+        let mut near = [[0; 3]; (SIDE * SIDE * SIDE) as usize];
+        let mut count = 0;
+        for r in self.results.iter().flatten().filter(|r| r.reached) {
+            if let Some(o) = cell(&r.vertex.position) {
+                if table[slot(o)].is_none() {
+                    near[count] = o;
+                    count += 1;
+                }
+                table[slot(o)] = Some(r.force);
+            }
+        }
+        let near = &near[..count];
+        let length = |o: [i32; 3]| f64::from(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]).sqrt();
         let mut best: Option<(f64, Vector3<f64>)> = None;
-        for a in reached() {
-            for c in reached() {
-                let at_b = to - a.vertex.position + c.vertex.position;
-                if (c.vertex.position - a.vertex.position).norm() < same {
+        for &a in near {
+            for &c in near {
+                // to = a + b − c, with `to` at the origin of the offsets: b = c − a.
+                let b = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+                if a == c || b.iter().any(|k| k.abs() > 2) {
                     continue;
                 }
-                let Some(b) = reached().find(|b| (b.vertex.position - at_b).norm() < same) else {
+                let (Some(force_a), Some(force_b), Some(force_c)) =
+                    (table[slot(a)], table[slot(b)], table[slot(c)])
+                else {
                     continue;
                 };
-                let spread = (to - a.vertex.position).norm()
-                    + (to - b.vertex.position).norm()
-                    + (to - c.vertex.position).norm();
-                if spread <= PREDICT_REACH * self.params.spacing
-                    && best.is_none_or(|(s, _)| spread < s)
-                {
-                    best = Some((spread, a.force + b.force - c.force));
+                let spread = length(a) + length(b) + length(c);
+                if spread <= PREDICT_REACH && best.is_none_or(|(s, _)| spread < s) {
+                    best = Some((spread, force_a + force_b - force_c));
                 }
             }
         }
