@@ -65,17 +65,35 @@ fn realtime_permitted() -> bool {
     .unwrap()
 }
 
+/// Runs of each kind: a VM stalls the odd tick by 20 ms or more now and then, in a quiet run or a
+/// flooded one (CI once saw 23.7 ms flooded against 2.1 ms quiet), while the contention this
+/// guards against showed in most runs (2 of 3). The median run of each kind is compared.
+const RUNS: usize = 3;
+
 #[test]
 fn an_offset_flood_does_not_delay_the_servo_loop() {
-    let (quiet, _) = run(3.0, false);
-    let (flooded, sent) = run(3.0, true);
     let worst = |r: &ServoReport| r.stats.period.max_us() * 1e-3;
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let (mut quiet, mut flooded, mut lateness) = (Vec::new(), Vec::new(), Vec::new());
+    let mut sent = u64::MAX;
+    for _ in 0..RUNS {
+        let (q, _) = run(2.0, false);
+        let (f, n) = run(2.0, true);
+        quiet.push(worst(&q));
+        flooded.push(worst(&f));
+        lateness.push((
+            q.stats.lateness.max_us() * 1e-3,
+            f.stats.lateness.max_us() * 1e-3,
+        ));
+        sent = sent.min(n);
+        assert_eq!(f.stats.watchdog_faults, 0);
+    }
     eprintln!(
-        "worst period quiet {:.2} ms, flooded {:.2} ms ({sent} offsets sent); lateness max {:.2} / {:.2} ms",
-        worst(&quiet),
-        worst(&flooded),
-        quiet.stats.lateness.max_us() * 1e-3,
-        flooded.stats.lateness.max_us() * 1e-3
+        "worst periods quiet {quiet:.2?} ms, flooded {flooded:.2?} ms (at least {sent} offsets \
+         sent a run); lateness max (quiet, flooded) {lateness:.2?} ms"
     );
     assert!(sent > 10_000, "the flood was a flood: {sent} offsets");
     if !realtime_permitted() {
@@ -87,12 +105,10 @@ fn an_offset_flood_does_not_delay_the_servo_loop() {
     // Before the servo side was made wait-free, floods gave ticks of 28.7 and 59.7 ms. A quiet
     // run on a busy VM shows a few ms at worst, and up to 12 ms with two busy loops beside it
     // (either run, flooded or not, at random): allow twice that, or 15 ms more.
-    let allowed = (2.0 * worst(&quiet)).max(worst(&quiet) + 15.0);
+    let (quiet, flooded) = (median(quiet), median(flooded));
+    let allowed = (2.0 * quiet).max(quiet + 15.0);
     assert!(
-        worst(&flooded) <= allowed,
-        "flooded worst period {:.2} ms, quiet {:.2} ms",
-        worst(&flooded),
-        worst(&quiet)
+        flooded <= allowed,
+        "median flooded worst period {flooded:.2} ms, quiet {quiet:.2} ms"
     );
-    assert_eq!(flooded.stats.watchdog_faults, 0);
 }
