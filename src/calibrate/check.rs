@@ -192,7 +192,10 @@ pub fn plan(
     // The calibration measured the friction and moving mass at this centre: the check starts
     // its holds once the handle is caught.
     params.prior = match Prior::from_record(&record, params.max_force) {
-        Ok(prior) => Some(prior),
+        Ok(prior) => Some(Prior {
+            model: Some(model.clone()),
+            ..prior
+        }),
         Err(why) => {
             info!(
                 "{} cannot shorten the check's initialisation: {why}; measuring the friction \
@@ -210,9 +213,6 @@ pub fn plan(
             grid.dims[1] as f64 - 1.0,
             grid.dims[2] as f64 - 1.0,
         ) * (grid.spacing / 2.0);
-    if let Some(prior) = &mut params.prior {
-        prior.model = Some(model.clone());
-    }
     let (lo, hi) = (
         (params.centre.add_scalar(-params.spacing)) * 1e3,
         (params.centre.add_scalar(params.spacing)) * 1e3,

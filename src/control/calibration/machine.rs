@@ -504,9 +504,10 @@ pub struct Calibration {
     /// The rest the band is measured at, m, and the band's half-widths, N.
     rest: Vector3<f64>,
     band_friction: Vector3<f64>,
-    /// The current vertex's F̂ was predicted from the vertices measured before it
-    /// ([`Calibration::predicted_force`]): the strokes measure at once.
-    predicted: bool,
+    /// The current vertex's F̂ starts from a prediction under friction (the saved model's, with a
+    /// [`super::Prior`], or its neighbours', [`Calibration::predicted_force`]): the strokes
+    /// measure at once, without rests or bands.
+    strokes_at_once: bool,
     /// The force the previous round found, when this round followed it directly.
     /// The forces the rounds before this one found, summed, and how many, when this round
     /// followed them directly.
@@ -614,7 +615,7 @@ impl Calibration {
             one_sided: None,
             rest: Vector3::zeros(),
             band_friction: Vector3::zeros(),
-            predicted: false,
+            strokes_at_once: false,
             constraints: [None; 3],
             strict: [None; 3],
             joint_friction: false,
@@ -1252,7 +1253,7 @@ impl Calibration {
         self.fresh_attempt();
         if let Some(force) = prediction {
             self.estimate = force;
-            self.predicted = true;
+            self.strokes_at_once = true;
         }
         self.emit(CalibrationEvent::VertexStarted {
             vertex: self.vertex,
@@ -1271,7 +1272,8 @@ impl Calibration {
         self.near_rests = 0;
         self.one_sided = None;
         self.band_friction = Vector3::zeros();
-        self.predicted = false;
+        // With a saved model every hold under friction starts from its force (`start_move`).
+        self.strokes_at_once = self.params.prior.is_some() && self.next_band_axis(None).is_some();
         self.detector = self.vertex_detector();
     }
 
@@ -1405,14 +1407,9 @@ impl Calibration {
                         then: [after, None],
                     };
                 }
-                // With a saved model F̂ is its force here, carried from the last measurement;
-                // predicted, it is the field the vertices before it measured, carried here.
-                // Where friction dominates (and is at least `STROKES_AT_ONCE` at X_C: where
-                // a vertex is predicted), the strokes measure at once (and again if they moved
-                // F̂ far), with no rests or bands first.
-                _ if self.predicted
-                    || (self.params.prior.is_some() && self.next_band_axis(None).is_some()) =>
-                {
+                // F̂ predicted under friction: the strokes measure at once (and again if they
+                // moved F̂ far), with no rests or bands first.
+                _ if self.strokes_at_once => {
                     let vertex = self.plan.path[self.vertex];
                     let error = (vertex.position - s.position).norm();
                     return self.stroke(s, vertex, StrokeRun::first(error, None));
