@@ -16,11 +16,16 @@ use crate::arm::{Arm, ArmGravity, MAX_PARAMETERS};
 /// A singular value below this share of the largest, in the column-scaled design, is a
 /// direction the holds leave unconstrained: dropped, and reported.
 const UNIDENTIFIED: f64 = 1e-6;
-/// The largest first moment a parameter may plausibly have, kg m (a kilogram a metre out): a
-/// parameter that at this size would move the holds by less than one noise's worth (its
-/// noise-weighted column shorter than 1 / this) is unconstrained, as a base moment under a level
-/// base is, and dropped rather than fitted to the noise.
-const PLAUSIBLE_MOMENT: f64 = 1.0;
+/// The largest first moment a parameter may plausibly have, kg m (a kilogram 10 cm out: a
+/// desktop arm's links have 0.01–0.03 kg m, the delta's platform 0.03–0.1 kg): a parameter that
+/// at this size would move the holds by less than one noise's worth (its noise-weighted column
+/// shorter than 1 / this) is unconstrained, as a base moment under a level base is, and dropped
+/// rather than fitted to the noise. With a kilogram a metre out, the simulated WoodenHaptics
+/// arm's base moment was kept from a base 0.02° off level, fitted to the holds' sub-millinewton
+/// noise (−0.006 or −0.03 kg m from one calibration to the next), and a 5° tilt taken in by
+/// `hgcd check --apply` then left the whole workspace 2.9–14 % off at p95 (1.7 % with it
+/// dropped; docs/calibration.md §2.2).
+const PLAUSIBLE_MOMENT: f64 = 0.1;
 /// The fit is refused when the directions it keeps are conditioned worse than this: its
 /// parameters would carry the holds' noise, amplified, everywhere the arm goes.
 pub const MAX_CONDITION: f64 = 1e4;
