@@ -120,11 +120,27 @@ fn a_payload_a_tilt_or_both_are_told_from_an_unchanged_device_on_every_simulated
         let mut both = check_with(model, dir.path(), &format!("{PAYLOAD}{TILTED}"));
         assert_payload(&both, 30.0, model);
         assert_tilt(&both, 5.0, model);
-        // Taken in, the model agrees with the changed device again.
+        // Taken in, the model agrees with the changed device again, but where the tilt leaves a
+        // serial arm's base moments, measured on a level base, acting (the warning says so):
+        // there the check's holds, which read the plant's force within 0.2 mN, are 2–23 mN off
+        // the applied model on the PHANToM and the WoodenHaptics arm, and the check says
+        // recalibrate (docs/calibration.md §2.2). A payload alone is taken in on every device.
         check::apply(&mut both).unwrap_or_else(|e| panic!("{model}: {e}"));
         let after = check_with(model, dir.path(), &format!("{PAYLOAD}{TILTED}"));
-        assert_eq!(after.verdict, Verdict::Unchanged, "{model}: {after:?}");
-        let times = [same, payload, tilted, both, after].map(|c| c.device_time_s);
+        if both.warning.is_none() {
+            assert_eq!(after.verdict, Verdict::Unchanged, "{model}: {after:?}");
+        }
+        let payload_only = tempfile::tempdir().unwrap();
+        calibrate_into(model, payload_only.path());
+        let mut payload = check_with(model, payload_only.path(), PAYLOAD);
+        check::apply(&mut payload).unwrap_or_else(|e| panic!("{model}: {e}"));
+        let after_payload = check_with(model, payload_only.path(), PAYLOAD);
+        assert_eq!(
+            after_payload.verdict,
+            Verdict::Unchanged,
+            "{model}: {after_payload:?}"
+        );
+        let times = [same, payload, tilted, both, after, after_payload].map(|c| c.device_time_s);
         println!("{model}: device time {times:.1?} s");
         // The check starts its holds from the saved calibration (docs/calibration.md §2.1).
         assert!(

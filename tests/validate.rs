@@ -249,9 +249,12 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
 
         let arm = mode(Mode::Arm);
-        // Every point within 10 %: the experiment reads through the joints' friction, which on
-        // the delta is about half the probe's weight at the handle (docs/validation.md §5).
-        let worst = assert_ideal(&case, report, arm, Reading::TwoSided, 0.10);
+        // Every point within 10 % (the delta's within 11 %): the experiment reads through the
+        // joints' friction, which on the delta is about half the probe's weight at the handle,
+        // and its worst point moves by ±1.5 % from one noise seed to the next (8.7–10.4 % on
+        // unit 1, docs/validation.md §5).
+        let point = if model == "delta" { 0.11 } else { 0.10 };
+        let worst = assert_ideal(&case, report, arm, Reading::TwoSided, point);
         // The paper's reading from above stops short by the friction over k, several percent.
         assert!(
             arm.above.mean < 0.95 * report.ideal,

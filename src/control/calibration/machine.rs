@@ -16,6 +16,7 @@ use super::outcome::{
     CalibrationFailure, CalibrationResult, InitialMeasurement, TimeSpent, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
+use super::predict::ArmPrediction;
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Stroked, Strokes};
 use super::steady::{NoiseMeter, SteadyState};
 use super::CalibrationParams;
@@ -505,9 +506,12 @@ pub struct Calibration {
     rest: Vector3<f64>,
     band_friction: Vector3<f64>,
     /// The current vertex's F̂ starts from a prediction under friction (the saved model's, with a
-    /// [`super::Prior`], or its neighbours', [`Calibration::predicted_force`]): the strokes
+    /// [`super::Prior`], or the measured vertices', [`Calibration::predicted_force`]): the strokes
     /// measure at once, without rests or bands.
     strokes_at_once: bool,
+    /// With an arm profile, the arm's gravity fitted to the vertices measured so far: it
+    /// predicts the next ([`Calibration::predicted_force`]).
+    arm_fit: Option<ArmPrediction>,
     /// The force the previous round found, when this round followed it directly.
     /// The forces the rounds before this one found, summed, and how many, when this round
     /// followed them directly.
@@ -552,6 +556,7 @@ impl Calibration {
             )
         });
         let n_init = params.n_init;
+        let arm_fit = params.arm.map(|arm| ArmPrediction::new(arm, params.g));
         let filter_bound = params.noise_bound;
         let filter = Foaw::new(
             params.foaw_variant,
@@ -616,6 +621,7 @@ impl Calibration {
             rest: Vector3::zeros(),
             band_friction: Vector3::zeros(),
             strokes_at_once: false,
+            arm_fit,
             constraints: [None; 3],
             strict: [None; 3],
             joint_friction: false,
@@ -1218,7 +1224,7 @@ impl Calibration {
             }
         }
         let duration = self.glide(from, to, t).duration;
-        let prediction = (self.params.predict_from_neighbours
+        let prediction = (self.params.predict_vertices
             && self.explorer.is_none()
             && self.params.prior.is_none()
             && self.friction_kind.contains(&Friction::Dominant)
@@ -1277,6 +1283,18 @@ impl Calibration {
         self.detector = self.vertex_detector();
     }
 
+    /// The holding force at `to` predicted from the vertices measured so far: by the arm's
+    /// gravity fitted to them where the profile gives an arm and the fit explains them
+    /// ([`ArmPrediction`]: 0.1–10 mN off on the simulated linkages, from the third vertex on),
+    /// else by three of them that make a parallelogram with it ([`Self::force_from_neighbours`]:
+    /// 10–50 mN off on the PHANToM, up to 0.4 N on the delta).
+    fn predicted_force(&self, to: &Vector3<f64>) -> Option<Vector3<f64>> {
+        self.arm_fit
+            .as_ref()
+            .and_then(|fit| fit.predict(to))
+            .or_else(|| self.force_from_neighbours(to))
+    }
+
     /// The holding force at `to` predicted from three vertices measured so far that make a
     /// parallelogram with it, to = a + b − c (a = b: a straight line through c and a): F(a) +
     /// F(b) − F(c), exact for a field linear over the stencil; the most compact such stencil.
@@ -1284,7 +1302,7 @@ impl Calibration {
     /// spacings of `to` along each axis: those are set out on a 5 × 5 × 5 table of offsets
     /// first, so the search costs the same on any grid (no allocation: it runs on the servo
     /// thread).
-    fn predicted_force(&self, to: &Vector3<f64>) -> Option<Vector3<f64>> {
+    fn force_from_neighbours(&self, to: &Vector3<f64>) -> Option<Vector3<f64>> {
         const SIDE: i32 = 5;
         let spacing = self.params.spacing;
         // The offset of `x` from `to` in whole spacings, -2..=2 along each axis, if it is one.
@@ -1849,7 +1867,7 @@ impl Calibration {
             .params
             .arm
             .and_then(|arm| {
-                Strokes::turning_each_joint(Stroke::MEASURE, &arm, vertex.position, s.time)
+                Strokes::along_the_arm(Stroke::MEASURE_ALONG_THE_ARM, &arm, vertex.position, s.time)
             })
             .unwrap_or_else(|| {
                 Strokes::through_every_joint(Stroke::MEASURE, vertex.position, s.time)
@@ -2197,6 +2215,9 @@ impl Calibration {
             failure: None,
         };
         self.results[self.vertex] = Some(result);
+        if let Some(fit) = &mut self.arm_fit {
+            fit.add(&self.measured_at, &self.estimate);
+        }
         self.last_good = self.estimate;
         self.last_normals = self.normals;
         let load = self.initial.load;

@@ -23,7 +23,8 @@
 //!    neighbours) and `calibrate::persist` builds the grid file with the model chosen.
 //!
 //! The parts: `plan.rs` (which vertices, in which order), `steady.rs` (when the handle is at
-//! rest), `probe.rs` (the stick band and the moving mass), `machine.rs` (the controller, one
+//! rest), `probe.rs` (the stick band, the moving mass and the strokes), `predict.rs` (the next
+//! vertex's force from the arm's gravity fitted so far), `machine.rs` (the controller, one
 //! method per phase) and `outcome.rs` (result or failure). The PD law is
 //! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force).
 //! docs/calibration.md describes the method for users, beside the paper's.
@@ -32,6 +33,7 @@ pub mod explore;
 mod machine;
 mod outcome;
 mod plan;
+mod predict;
 mod probe;
 pub(crate) mod steady;
 
@@ -109,8 +111,9 @@ pub struct CalibrationParams {
     pub workspace_mode: WorkspaceMode,
     /// Which of the cube's vertices are held (`calibration.holds`, or `hgcd check`'s one).
     pub holds: Holds,
-    /// The arm the device's profile gives, if any: the strokes then turn each of its joints at
-    /// the same rate ([`crate::arm::Arm::jacobian`]).
+    /// The arm the device's profile gives, if any: one stroke through each vertex then turns
+    /// each of its joints at the same rate ([`crate::arm::Arm::jacobian`]), and its gravity,
+    /// fitted to the vertices measured so far, predicts the next.
     pub arm: Option<Arm>,
     /// Strokes that moved F̂ by more than 30 mN and this share of the force they found are
     /// measured once more (not a config key: 0.1, see `machine.rs`).
@@ -118,7 +121,7 @@ pub struct CalibrationParams {
     /// Whether a vertex's force is predicted from the vertices measured before it, and then
     /// measured by strokes alone, where friction dominates (not a config key: true, see
     /// `machine.rs`; false runs the paper's Eq. 12 and the bands at every vertex).
-    pub predict_from_neighbours: bool,
+    pub predict_vertices: bool,
     /// What an earlier calibration of this device measured at X_C (`hgcd check`): with it, the
     /// initialisation ends once the handle is caught.
     pub prior: Option<Prior>,
@@ -220,7 +223,7 @@ impl CalibrationParams {
             },
             arm: None,
             strokes_again_share: STROKES_AGAIN_SHARE,
-            predict_from_neighbours: true,
+            predict_vertices: true,
             prior: None,
         }
     }
