@@ -86,8 +86,8 @@ impl Check {
 
 /// A serial arm's base moments act only under a tilted base, so a calibration on a level one
 /// measures them poorly. Where the change tilts the arm's base further than it was when they
-/// were measured, the applied model holds the calibrated cube but may miss beyond it by a few
-/// percent (docs/calibration.md §2.2): say so.
+/// were measured, the applied model may miss by a few millinewtons at the calibrated cube's
+/// corners and by a few percent beyond it (docs/calibration.md §2.2): say so.
 fn base_moments_warning(before: &GridFile, after: &GridFile) -> Option<String> {
     let (was, now) = (before.arm.as_ref()?, after.arm.as_ref()?);
     let names = now.gravity().ok()?.arm.parameter_names();
@@ -95,9 +95,9 @@ fn base_moments_warning(before: &GridFile, after: &GridFile) -> Option<String> {
     (base && now.tilt_deg >= 1.0 && now.tilt_deg > was.tilt_deg).then(|| {
         format!(
             "the arm's base now leans {:.1}° (it leaned {:.1}° at its calibration): its base \
-             moments, which act only when it leans, were measured under less tilt, so beyond the \
-             calibrated cube the applied model may be a few percent off; hgcd calibrate measures \
-             them",
+             moments, which act only when it leans, were measured under less tilt, so the applied \
+             model may be a few percent off, most beyond the calibrated cube; hgcd calibrate \
+             measures them",
             now.tilt_deg, was.tilt_deg
         )
     })

@@ -146,8 +146,8 @@ fn duration_for_people(seconds: f64) -> String {
 #[derive(Clone, Copy, Debug, Default)]
 pub struct TimeLeft {
     first_vertex: Option<f64>,
-    /// The device time at the end of the last [`RECENT_VERTICES`] vertices, and how many were
-    /// done then, newest last.
+    /// How many vertices were done, and the device time, at the end of each of the last
+    /// [`RECENT_VERTICES`] vertices (the first vertex's start counting as 0 done), newest last.
     recent: [Option<(usize, f64)>; RECENT_VERTICES],
 }
 
@@ -158,7 +158,10 @@ impl TimeLeft {
             CalibrationEvent::VertexStarted {
                 vertex: 0, elapsed, ..
             } => {
-                self.first_vertex.get_or_insert(elapsed);
+                if self.first_vertex.is_none() {
+                    self.first_vertex = Some(elapsed);
+                    self.recent[RECENT_VERTICES - 1] = Some((0, elapsed));
+                }
                 return None;
             }
             CalibrationEvent::VertexDone {
@@ -175,14 +178,8 @@ impl TimeLeft {
             } => (vertex, of, elapsed),
             _ => return None,
         };
-        let first = (0, self.first_vertex?);
-        let (done, since) = self
-            .recent
-            .iter()
-            .flatten()
-            .next()
-            .copied()
-            .unwrap_or(first);
+        self.first_vertex?;
+        let (done, since) = self.recent.iter().flatten().next().copied()?;
         self.recent.rotate_left(1);
         self.recent[RECENT_VERTICES - 1] = Some((vertex + 1, elapsed));
         let pace = (elapsed - since) / (vertex + 1).saturating_sub(done).max(1) as f64;
@@ -419,7 +416,14 @@ mod tests {
             elapsed: 10.0,
         };
         assert_eq!(left.update(&started), None);
-        // Three vertices in 30 s: 10 s each for the 24 to come.
+        // The first vertex in 20 s: 20 s each for the 26 to come.
+        assert_eq!(
+            left.update(&done(0, 30.0)).as_deref(),
+            Some("about 8 min 40 s of device time left")
+        );
+        // Three vertices in 30 s, the first one's start still among the last three: 10 s each
+        // for the 24 to come.
+        left.update(&done(1, 35.0));
         assert_eq!(
             left.update(&done(2, 40.0)).as_deref(),
             Some("about 4 min 00 s of device time left")

@@ -1285,7 +1285,7 @@ impl Calibration {
 
     /// The holding force at `to` predicted from the vertices measured so far: by the arm's
     /// gravity fitted to them where the profile gives an arm and the fit explains them
-    /// ([`ArmPrediction`]: 0.1–10 mN off on the simulated linkages, from the third vertex on),
+    /// ([`ArmPrediction`]: 0.1–10 mN off on the simulated linkages, once three are measured),
     /// else by three of them that make a parallelogram with it ([`Self::force_from_neighbours`]:
     /// 10–50 mN off on the PHANToM, up to 0.4 N on the delta).
     fn predicted_force(&self, to: &Vector3<f64>) -> Option<Vector3<f64>> {

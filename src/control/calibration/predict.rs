@@ -19,7 +19,8 @@ type Column = SMatrix<f64, MAX_PARAMETERS, 1>;
 /// holds leave unconstrained (a base moment under a level base has no column at all) to zero
 /// without moving the rest.
 const RIDGE: f64 = 1e-9;
-/// A fit whose holds' RMS residual per component exceeds this predicts nothing, N: its arm is not
+/// A fit whose holds' residual per degree of freedom it leaves exceeds this (RMS) predicts
+/// nothing, N: its arm is not
 /// this device's, or the base is tilted far, and the neighbours predict as well. The strokes
 /// tolerate a feedforward 30 mN off (`STROKE_REPEAT` in `machine.rs`); the simulated linkages'
 /// holds leave 0.2–2.5 mN.
@@ -67,7 +68,8 @@ impl ArmPrediction {
     /// of reach.
     pub fn predict(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
         let equations = 3 * self.holds;
-        if equations < self.arm.parameter_count() + 2 {
+        let parameters = self.arm.parameter_count();
+        if equations < parameters + 2 {
             return None;
         }
         let scale = self.normal.trace() / MAX_PARAMETERS as f64;
@@ -76,11 +78,14 @@ impl ArmPrediction {
         // Σ |F − G θ|² = Σ |F|² − 2 θᵀ Σ Gᵀ F + θᵀ (Σ GᵀG) θ.
         let residual = self.squares - 2.0 * theta.dot(&self.right)
             + (theta.transpose() * self.normal * theta)[0];
-        if residual.max(0.0) / equations as f64 > MAX_RESIDUAL * MAX_RESIDUAL {
+        // Per degree of freedom the fit leaves, so that its first holds, which the parameters
+        // nearly fit whatever they are, do not pass for well explained. (NaN fails too.)
+        let variance = residual.max(0.0) / (equations - parameters) as f64;
+        if variance.is_nan() || variance > MAX_RESIDUAL * MAX_RESIDUAL {
             return None;
         }
         let r = self.arm.force_regressor(x, &self.arm.up(), self.g)?;
-        Some(r * theta)
+        Some(r * theta).filter(|f| f.iter().all(|c| c.is_finite()))
     }
 }
 

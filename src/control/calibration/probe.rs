@@ -592,21 +592,20 @@ impl Stroke {
     /// The set point's offset from −reach toward +reach at time `u` into a pass, and its rate
     /// (speed ramps at both ends, constant speed between).
     fn at(&self, u: f64) -> (f64, f64) {
-        let pass = self.pass;
-        let speed = 2.0 * self.reach / (pass - self.ramp);
+        let speed = 2.0 * self.reach / (self.pass - self.ramp);
         if u < self.ramp {
             let tau = u / self.ramp;
             (
                 -self.reach + speed * self.ramp * ramp_distance(tau),
                 speed * minimum_jerk(tau).0,
             )
-        } else if u < pass - self.ramp {
+        } else if u < self.pass - self.ramp {
             (
                 -self.reach + speed * (0.5 * self.ramp + u - self.ramp),
                 speed,
             )
         } else {
-            let tau = (pass - u) / self.ramp;
+            let tau = (self.pass - u) / self.ramp;
             (
                 self.reach - speed * self.ramp * ramp_distance(tau),
                 speed * minimum_jerk(tau).0,
@@ -654,8 +653,9 @@ enum Leg {
 }
 
 /// The holding force at `centre` from strokes along three directions, or along one that turns
-/// every joint of an arm (module docs). The controller holds the handle on [`Strokes::set_point`] with its PD plus its force estimate, and
-/// reports every tick's commanded force to [`Strokes::observe`]. Along each direction d the set
+/// every joint of an arm (module docs). The controller holds the handle on
+/// [`Strokes::set_point`] with its PD plus its force estimate, and reports every tick's
+/// commanded force to [`Strokes::observe`]. Along each direction d the set
 /// point goes out to −reach, passes to +reach and back at constant speed, and returns; the
 /// commanded force is averaged over the ticks at which the handle itself (not the set point,
 /// which it trails by the friction over the stiffness) is within half a window of the centre, so
@@ -683,8 +683,9 @@ pub(super) struct Strokes {
     through: [[(bool, bool); 2]; 3],
 }
 
-/// What strokes measured at their centre: the holding force, and the sliding friction along
-/// each stroke's direction (half the difference of the passes), N.
+/// What strokes measured at their centre: the holding force, and the sliding friction (half the
+/// difference of the passes), N: along each of three strokes' directions, or, for one stroke,
+/// the whole vector of the difference.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct Stroked {
     pub force: Vector3<f64>,
