@@ -145,7 +145,6 @@ fn duration_for_people(seconds: f64) -> String {
 /// stroke and a move each, 3.15 s.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct TimeLeft {
-    first_vertex: Option<f64>,
     /// How many vertices were done, and the device time, at the end of each of the last
     /// [`RECENT_VERTICES`] vertices (the first vertex's start counting as 0 done), newest last.
     recent: [Option<(usize, f64)>; RECENT_VERTICES],
@@ -158,8 +157,7 @@ impl TimeLeft {
             CalibrationEvent::VertexStarted {
                 vertex: 0, elapsed, ..
             } => {
-                if self.first_vertex.is_none() {
-                    self.first_vertex = Some(elapsed);
+                if self.recent.iter().all(Option::is_none) {
                     self.recent[RECENT_VERTICES - 1] = Some((0, elapsed));
                 }
                 return None;
@@ -178,7 +176,7 @@ impl TimeLeft {
             } => (vertex, of, elapsed),
             _ => return None,
         };
-        self.first_vertex?;
+        // None before the first vertex's start.
         let (done, since) = self.recent.iter().flatten().next().copied()?;
         self.recent.rotate_left(1);
         self.recent[RECENT_VERTICES - 1] = Some((vertex + 1, elapsed));
