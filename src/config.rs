@@ -213,6 +213,9 @@ pub const RANGES: &[(&str, Range)] = &[
     ("validation.settle_timeout_s", Range::new(0.1, 3600.0, "s")),
     ("validation.up_direction", Range::new(-1000.0, 1000.0, "")),
     ("validation.drop_mm", Range::new(0.01, 50.0, "mm")),
+    ("validation.dither_n", Range::new(0.0, 5.0, "N")),
+    ("validation.dither_hz", Range::new(5.0, 200.0, "Hz")),
+    ("validation.dither_s", Range::new(0.02, 10.0, "s")),
 ];
 
 impl Range {
@@ -854,6 +857,15 @@ pub struct ValidationConfig {
     /// How far the surface drops, and rises back, before the reading from below, mm: more than
     /// twice the friction force over the surface stiffness.
     pub drop_mm: f64,
+    /// Amplitude of the vibration that frees the handle from static friction before each
+    /// reading, per direction, N: above the friction at the handle. 0: none (the paper's
+    /// procedure).
+    pub dither_n: f64,
+    /// Its frequency along the surface normal, Hz; the two directions across the surface
+    /// vibrate at 1.23 and 1.51 times this.
+    pub dither_hz: f64,
+    /// How long it lasts, s: at full amplitude for the first half, fading to zero over the second.
+    pub dither_s: f64,
     /// Steady state: samples per window, n_s.
     pub n_s: usize,
     /// Steady state: radius of the window's sphere, eps_s, mm.
@@ -873,6 +885,9 @@ impl Default for ValidationConfig {
             surface_damping_n_s_per_m: 10.0,
             lift_mm: 5.0,
             drop_mm: 1.0,
+            dither_n: 0.3,
+            dither_hz: 50.0,
+            dither_s: 0.6,
             n_s: 50,
             eps_s_mm: 0.05,
             settle_timeout_s: 5.0,
@@ -1309,6 +1324,9 @@ impl Config {
         )?;
         in_range("validation.lift_mm", v.lift_mm)?;
         in_range("validation.drop_mm", v.drop_mm)?;
+        in_range("validation.dither_n", v.dither_n)?;
+        in_range("validation.dither_hz", v.dither_hz)?;
+        in_range("validation.dither_s", v.dither_s)?;
         in_range("validation.n_s", v.n_s as f64)?;
         in_range("validation.eps_s_mm", v.eps_s_mm)?;
         in_range("validation.settle_timeout_s", v.settle_timeout_s)?;

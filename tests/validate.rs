@@ -217,8 +217,7 @@ fn compensation_leaves_only_the_probe_on_the_surface_and_without_it_the_field_sh
 /// The Must show on the linkages, two units each, after a default calibration (their profiles
 /// have arms: the cube's eight corners are held and the arm model is chosen): with it the
 /// probe alone presses on the surface; without compensation the penalty follows the plant's own
-/// gravity force from point to point; friction makes the paper's one-sided reading miss what the
-/// two-sided one finds; and the calibration takes at most 180 s of device time. The sweep over 1000 random points
+/// gravity force from point to point; and the calibration takes at most 180 s of device time. The sweep over 1000 random points
 /// of each arm's whole reachable workspace (the cube covers about 2 % of the PHANToM's): the arm
 /// model holds the plant's force within 5 % at 95 % of them, where no 40 mm lattice holding the
 /// plant's own force at every vertex does better than 14 % (docs/calibration.md §11, §13).
@@ -249,18 +248,16 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         let mode = |mode| report.modes.iter().find(|m| m.mode == mode).unwrap();
 
         let arm = mode(Mode::Arm);
-        // Every point within 10 % (the delta's within 11 %): the experiment reads through the
-        // joints' friction, which on the delta is about half the probe's weight at the handle,
-        // and its worst point moves by ±1.5 % from one noise seed to the next (8.7–10.4 % on
-        // unit 1, docs/validation.md §5).
-        let point = if model == "delta" { 0.11 } else { 0.10 };
-        let worst = assert_ideal(&case, report, arm, Reading::TwoSided, point);
-        // The paper's reading from above stops short by the friction over k, several percent.
-        assert!(
-            arm.above.mean < 0.95 * report.ideal,
-            "{case}: from above {:.4} mm",
-            arm.above.mean * 1e3
-        );
+        // The targets: every point within 5 % of the ideal, the mean within 2 %. Each
+        // reading follows a dither that frees the handle from its joints' friction (on the delta
+        // about half the probe's weight at the handle; docs/validation.md §2): without it the
+        // two rests do not mirror each other and the worst point read 9–10 % on the delta even
+        // with the plant's exact gravity.
+        let worst = assert_ideal(&case, report, arm, Reading::TwoSided, 0.05);
+        let mean = arm.two_sided.mean / report.ideal - 1.0;
+        assert!(mean.abs() < 0.02, "{case}: mean {:+.1} %", mean * 1e2);
+        // With the dither the paper's one-sided reading finds the equilibrium too.
+        assert_ideal(&case, report, arm, Reading::Above, 0.10);
 
         let none = mode(Mode::None);
         assert_uncompensated_follows_the_plant(&case, report, none, model, &config);

@@ -529,6 +529,11 @@ impl Prepared {
             &path,
             &points,
             &normal,
+            (
+                config.validation.dither_n,
+                config.validation.dither_hz,
+                config.validation.dither_s,
+            ),
             &controller.into_rests(),
         );
         let mut outputs = write_outputs(&request.out, &report, started.elapsed().as_secs_f64())?;

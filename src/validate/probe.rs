@@ -4,7 +4,9 @@
 //! reading, from above); then drops the surface by a little and raises it back into place, so the
 //! handle rises to its rest and is read again from below; then lifts it off and lowers it again
 //! (so friction is sampled afresh at every repetition). Friction stops a handle short of its
-//! equilibrium on the side it comes from, so the two readings bracket it.
+//! equilibrium on the side it comes from, so the two readings bracket it; before each reading a
+//! vibration well above the handle's natural frequency, stronger than the friction, lets the
+//! handle's slow motion find the equilibrium as if there were none, then fades out.
 //!
 //! The force it asks for, with n the unit "up" (opposite to gravity, docs/validation.md §2),
 //! N = n nᵀ and T = I − N:
@@ -55,6 +57,12 @@ pub struct ProbeParams {
     pub lift: f64,
     /// How far the surface drops before it rises back into place for the reading from below, m.
     pub drop: f64,
+    /// Dither before each reading: amplitude per direction, N (0: none) ...
+    pub dither: f64,
+    /// ... frequency along the normal, Hz ...
+    pub dither_frequency: f64,
+    /// ... and duration (full amplitude for the first half, fading over the second), s.
+    pub dither_time: f64,
     /// Steady state: samples per window.
     pub steady_samples: usize,
     /// Steady state: sphere radius, m.
@@ -76,6 +84,9 @@ impl ProbeParams {
             hold_stiffness: v.hold_stiffness(),
             lift: v.lift(),
             drop: v.drop(),
+            dither: v.dither_n,
+            dither_frequency: v.dither_hz,
+            dither_time: v.dither_s,
             steady_samples: v.n_s,
             steady_radius: v.eps_s(),
             settle_timeout: v.settle_timeout_s,
@@ -207,6 +218,8 @@ enum Phase {
     Lower,
     /// Fading the vertical hold out.
     Release,
+    /// Shaking the handle free of static friction before a reading.
+    Dither(Reading),
     /// Waiting for the steady state, approached from one side.
     Settle(Reading),
     /// Dropping the surface by [`ProbeParams::drop`].
@@ -251,11 +264,21 @@ pub struct Probe {
     surface_drop: f64,
     /// The paper's steady state, read as for calibration (docs/calibration.md).
     steady: SteadyState,
+    /// The normal and two unit directions across the surface, for the dither.
+    basis: [Vector3<f64>; 3],
 }
 
 impl Probe {
     pub fn new(plan: ContactPlan, params: ProbeParams) -> Self {
         let steady = SteadyState::new(params.steady_samples, params.steady_radius);
+        let normal = plan.normal;
+        let away = if normal.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        let across_1 = normal.cross(&away).normalize();
+        let across_2 = normal.cross(&across_1);
         Self {
             plan,
             params,
@@ -269,6 +292,7 @@ impl Probe {
             reference: Vector3::zeros(),
             surface_drop: 0.0,
             steady,
+            basis: [normal, across_1, across_2],
         }
     }
 
@@ -355,10 +379,20 @@ impl Probe {
             Phase::Release => {
                 let w = 1.0 - (t - self.since) / RELEASE_TIME;
                 if w <= 0.0 {
-                    self.steady.reset();
-                    self.enter(Phase::Settle(Reading::Above), t);
+                    self.settle(Reading::Above, t);
                 }
                 (w.max(0.0), 1.0)
+            }
+            Phase::Dither(reading) => {
+                let u = t - self.since;
+                if u >= self.params.dither_time {
+                    self.steady.reset();
+                    self.enter(Phase::Settle(reading), t);
+                }
+                return ProbeStep {
+                    force: self.force(s, 0.0, 1.0, self.dither(u)),
+                    rest: None,
+                };
             }
             Phase::Drop => {
                 let u = (t - self.since) / DROP_TIME;
@@ -372,8 +406,7 @@ impl Probe {
                 let u = (t - self.since) / DROP_TIME;
                 self.surface_drop = self.params.drop * (1.0 - min_jerk(u));
                 if u >= 1.0 {
-                    self.steady.reset();
-                    self.enter(Phase::Settle(Reading::Below), t);
+                    self.settle(Reading::Below, t);
                 }
                 (0.0, 1.0)
             }
@@ -414,9 +447,32 @@ impl Probe {
             Phase::Finished => (1.0, 0.0),
         };
         ProbeStep {
-            force: self.force(s, w, surface),
+            force: self.force(s, w, surface, Vector3::zeros()),
             rest,
         }
+    }
+
+    /// Wait for the steady state from the side `reading` names, after the dither if any.
+    fn settle(&mut self, reading: Reading, t: f64) {
+        if self.params.dither > 0.0 {
+            self.enter(Phase::Dither(reading), t);
+        } else {
+            self.steady.reset();
+            self.enter(Phase::Settle(reading), t);
+        }
+    }
+
+    /// The dither's force `u` seconds into it: along the normal at its frequency, across the
+    /// surface at 1.23 and 1.51 times that (so the three never lock together), at full amplitude
+    /// for the first half of its time, fading linearly to zero over the second.
+    fn dither(&self, u: f64) -> Vector3<f64> {
+        let p = &self.params;
+        let half = p.dither_time / 2.0;
+        let amplitude = p.dither * (1.0 - (u - half).max(0.0) / half).clamp(0.0, 1.0);
+        let phase = std::f64::consts::TAU * p.dither_frequency * u;
+        let [normal, across_1, across_2] = &self.basis;
+        (normal * phase.sin() + across_1 * (1.23 * phase).sin() + across_2 * (1.51 * phase).sin())
+            * amplitude
     }
 
     /// After a lift: the next repetition, point or run, or the end.
@@ -443,8 +499,9 @@ impl Probe {
         self.transit(t, 1.0);
     }
 
-    /// The force for state `s` with the vertical hold weighed by `w` and the surface by `surface`.
-    fn force(&self, s: &DeviceState, w: f64, surface: f64) -> Vector3<f64> {
+    /// The force for state `s` with the vertical hold weighed by `w`, the surface by `surface`,
+    /// and `dither` added.
+    fn force(&self, s: &DeviceState, w: f64, surface: f64, dither: Vector3<f64>) -> Vector3<f64> {
         let n = self.plan.normal;
         let k_h = self.params.hold_stiffness;
         let c_h = k_h * HOLD_DAMPING_TIME;
@@ -461,7 +518,7 @@ impl Probe {
             }
         }
         let limit = self.params.max_force;
-        f.map(|c| c.clamp(-limit, limit))
+        (f + dither).map(|c| c.clamp(-limit, limit))
     }
 }
 
@@ -549,6 +606,68 @@ mod tests {
             let penalty = (p - r.position).norm();
             assert!(r.settled);
             assert!((penalty / ideal - 1.0).abs() < 0.01, "{r:?}: {penalty}");
+        }
+    }
+
+    /// Where a handle of 100 g (its own weight compensated) carrying the 30 g probe rests on the
+    /// surface under 0.1 N of Coulomb friction, each reading's deviation from the ideal penalty
+    /// m_p g / k. Integrated at 10 kHz; friction holds the handle while the force on it stays
+    /// within 0.1 N and opposes its motion otherwise.
+    fn deviations_under_friction(params: ProbeParams) -> Vec<(Reading, f64)> {
+        let (m, m_p, g, f_c, dt) = (0.1, 0.03, 9.81, 0.1, 1e-4);
+        let plan = ContactPlan::paper(Vector3::zeros(), 0.03, Vector3::z(), 1, 2);
+        let mut probe = Probe::new(plan, params);
+        let (mut x, mut v) = (Vector3::new(0.01, 0.0, 0.0), Vector3::<f64>::zeros());
+        let (mut applied, mut t, mut rests) = (Vector3::zeros(), 0.0, Vec::new());
+        while !probe.finished() {
+            let step = probe.step(&state(t, x, v));
+            for _ in 0..10 {
+                let force = applied - Vector3::z() * (m_p * g);
+                if v == Vector3::zeros() && force.norm() <= f_c {
+                    continue;
+                }
+                let sliding = if v == Vector3::zeros() { force } else { v };
+                let next = v + (force - sliding.normalize() * f_c) * (dt / m);
+                v = if next.dot(&v) < 0.0 {
+                    Vector3::zeros()
+                } else {
+                    next
+                };
+                x += v * dt;
+            }
+            applied = step.force;
+            rests.extend(step.rest);
+            t += 1e-3;
+            assert!(t < 200.0, "the experiment does not end");
+        }
+        let ideal = m_p * g / 1000.0;
+        rests
+            .iter()
+            .map(|r| {
+                assert!(r.settled, "{r:?}");
+                let penalty = (probe.plan().points[r.point] - r.position).norm();
+                (r.reading, penalty / ideal - 1.0)
+            })
+            .collect()
+    }
+
+    /// Friction stops the handle a band's width short of (from above) or beyond (from below) its
+    /// equilibrium, 0.1 N / k = 34 % of the ideal penalty here; the dither lets it reach the
+    /// equilibrium from either side.
+    #[test]
+    fn the_dither_frees_each_reading_from_the_friction_band() {
+        let plain = ProbeParams {
+            dither: 0.0,
+            ..params()
+        };
+        for (reading, deviation) in deviations_under_friction(plain) {
+            match reading {
+                Reading::Above => assert!(deviation < -0.2, "{reading:?}: {deviation}"),
+                _ => assert!(deviation > 0.2, "{reading:?}: {deviation}"),
+            }
+        }
+        for (reading, deviation) in deviations_under_friction(params()) {
+            assert!(deviation.abs() < 0.03, "{reading:?}: {deviation}");
         }
     }
 }

@@ -63,7 +63,7 @@ pub struct ModeReport {
     pub mode: Mode,
     /// hgcd's procedure: the middle of the rests from above and from below.
     pub two_sided: Readings,
-    /// The paper's procedure: the rest sinking into the surface from above.
+    /// The rest sinking into the surface from above (without a dither, the paper's procedure).
     pub above: Readings,
     /// The rest the rising surface pushes the handle up to.
     pub below: Readings,
@@ -97,6 +97,9 @@ pub struct Report {
     pub points: Vec<Vector3<f64>>,
     /// The surface's normal, unit "up".
     pub up: Vector3<f64>,
+    /// The dither before each reading: amplitude per direction, N (0: none), frequency, Hz, and
+    /// duration, s (`validation.dither_*`).
+    pub dither: (f64, f64, f64),
     /// In run order.
     pub modes: Vec<ModeReport>,
     pub samples: Vec<Sample>,
@@ -125,6 +128,7 @@ impl Report {
         grid: &Path,
         points: &[Vector3<f64>],
         normal: &Vector3<f64>,
+        dither: (f64, f64, f64),
         rests: &[Rest],
     ) -> Self {
         let normal = *normal;
@@ -214,6 +218,7 @@ impl Report {
             ideal: request.probe_mass * file.grid.g / request.stiffness,
             points: points.to_vec(),
             up: normal,
+            dither,
             modes,
             samples,
         }
@@ -221,10 +226,20 @@ impl Report {
 
     /// The table `hgcd validate` prints.
     pub fn table(&self) -> String {
+        let (amplitude, frequency, time) = self.dither;
+        let dither = if amplitude > 0.0 {
+            format!(
+                ", each after a dither of {amplitude} N at {frequency} Hz for {time} s (the paper's \
+                 procedure: validation.dither_n = 0)"
+            )
+        } else {
+            String::new()
+        };
         let mut out = format!(
             "penalty ΔX = ‖P_n − X‖ at steady state, mm: mean ± standard deviation over {} \
-             repetitions\nX: the middle of the rests from above and from below (the paper read \
-             from above only)\n(probe {:.0} g, surface {} N/mm; ideal m_p g / k = {:.3} mm)\n",
+             repetitions\nX: the middle of the rests from above and from below{dither} (the \
+             paper read from above only)\n(probe {:.0} g, surface {} N/mm; ideal m_p g / k = \
+             {:.3} mm)\n",
             self.repetitions,
             self.probe_mass * 1e3,
             self.stiffness * 1e-3,
@@ -252,9 +267,15 @@ impl Report {
             }
             out.push('\n');
         }
+        // From above without a dither is the paper's own reading.
+        let above = if amplitude > 0.0 {
+            "mean from above       "
+        } else {
+            "mean from above, paper"
+        };
         for (reading, label) in [
             (Reading::TwoSided, "mean                  "),
-            (Reading::Above, "mean from above, paper"),
+            (Reading::Above, above),
             (Reading::Below, "mean from below       "),
         ] {
             let _ = write!(out, "  {label}");
@@ -359,6 +380,9 @@ impl Report {
             "repetitions": self.repetitions,
             "ideal_mm": mm(self.ideal),
             "up_direction": [self.up.x, self.up.y, self.up.z],
+            "dither_n": self.dither.0,
+            "dither_hz": self.dither.1,
+            "dither_s": self.dither.2,
             "modes": modes,
             "wall_time_s": wall_time,
         });
