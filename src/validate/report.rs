@@ -229,17 +229,17 @@ impl Report {
         let (amplitude, frequency, time) = self.dither;
         let dither = if amplitude > 0.0 {
             format!(
-                ", each after a dither of {amplitude} N at {frequency} Hz for {time} s (the paper's \
-                 procedure: validation.dither_n = 0)"
+                "each rest after a dither of {amplitude} N at {frequency} Hz for {time} s (the \
+                 paper has none: validation.dither_n = 0)\n"
             )
         } else {
             String::new()
         };
         let mut out = format!(
             "penalty ΔX = ‖P_n − X‖ at steady state, mm: mean ± standard deviation over {} \
-             repetitions\nX: the middle of the rests from above and from below{dither} (the \
-             paper read from above only)\n(probe {:.0} g, surface {} N/mm; ideal m_p g / k = \
-             {:.3} mm)\n",
+             repetitions\nX: the middle of the rests from above and from below (the paper read \
+             from above only)\n{dither}(probe {:.0} g, surface {} N/mm; ideal m_p g / k = {:.3} \
+             mm)\n",
             self.repetitions,
             self.probe_mass * 1e3,
             self.stiffness * 1e-3,
