@@ -294,6 +294,12 @@ fn validate_with(model: &str, state: &Path, sim: &str) -> (f64, f64) {
     };
     let mut config = config(model, sim);
     config.servo.lock_memory = false;
+    if model == "woodenhaptics" {
+        // Its encoders' 65 µm steps, as the shipped validation configs set them
+        // (config/validate-woodenhaptics-unit-*.toml, docs/devices.md §5).
+        config.estimate.noise_bound_mm = 0.035;
+        config.validation.eps_s_mm = 0.2;
+    }
     let run = validate::prepare(&config, &request)
         .unwrap()
         .run(Arc::new(AtomicBool::new(false)), &mut |_| {})
