@@ -857,14 +857,15 @@ pub struct ValidationConfig {
     /// How far the surface drops, and rises back, before the reading from below, mm: more than
     /// twice the friction force over the surface stiffness.
     pub drop_mm: f64,
-    /// Amplitude of the vibration that frees the handle from static friction before each
-    /// reading, per direction, N: above the friction at the handle. 0: none (the paper's
-    /// procedure).
+    /// Amplitude of the vibration that frees the handle from static friction for each reading,
+    /// which is then the handle's mean position under it, per direction, N: above the friction
+    /// at the handle. 0: none (the paper's procedure: the steady state's rest).
     pub dither_n: f64,
     /// Its frequency along the surface normal, Hz; the two directions across the surface
     /// vibrate at 1.23 and 1.51 times this.
     pub dither_hz: f64,
-    /// How long it lasts, s: at full amplitude for the first half, fading to zero over the second.
+    /// How long it lasts, s, in three equal parts: the handle finds its equilibrium, its mean
+    /// position is read, the vibration fades out.
     pub dither_s: f64,
     /// Steady state: samples per window, n_s.
     pub n_s: usize,
@@ -887,7 +888,7 @@ impl Default for ValidationConfig {
             drop_mm: 1.0,
             dither_n: 0.3,
             dither_hz: 50.0,
-            dither_s: 0.6,
+            dither_s: 1.2,
             n_s: 50,
             eps_s_mm: 0.05,
             settle_timeout_s: 5.0,
