@@ -551,6 +551,12 @@ fn model_summary(run: &CalibrationRun) -> String {
             arm.rms_residual_mn,
             arm.normalised_residual
         ));
+        if let (Some(before), Some(change)) = (arm.profile_rms_residual_mn, &arm.geometry_change) {
+            out.push_str(&format!(
+                "geometry: the unit's own, within its tolerances of the profile's ({change}); \
+                 the holds' residual with the profile's was {before:.2} mN RMS\n"
+            ));
+        }
     }
     if let Some(warning) = &model.warning {
         out.push_str(&format!("warning: {warning}\n"));

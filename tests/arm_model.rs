@@ -5,7 +5,7 @@
 
 use hgcd::arm::{Arm, ArmGravity, MAX_PARAMETERS};
 use hgcd::config::{CompensationMode, Config};
-use hgcd::fit::{choose, fit_arm, Hold, LatticeHolds};
+use hgcd::fit::{choose, fit_arm, fit_arm_and_geometry, Hold, LatticeHolds};
 use hgcd::profile::Profile;
 use hgcd::sim::delta::Delta;
 use hgcd::sim::phantom::Phantom;
@@ -85,6 +85,80 @@ fn cube_holds(model: &str, config: &Config) -> LatticeHolds {
         up: Vector3::z(),
         g: config.sim.g,
         linear_fill: false,
+    }
+}
+
+/// p95 of |F_true − F| over `truth`, mN.
+fn p95_mn(truth: &[TruePoint], model: impl Fn(&Vector3<f64>) -> Vector3<f64>) -> f64 {
+    let mut r: Vec<f64> = truth
+        .iter()
+        .map(|t| 1e3 * (t.holding_force - model(&t.position)).norm())
+        .collect();
+    r.sort_by(f64::total_cmp);
+    r[(0.95 * r.len() as f64).ceil() as usize - 1]
+}
+
+/// A delta unit's links are up to 0.5 % and its home up to 1 mm off the profile's. From the
+/// plant's holds at the cube's eight corners, each off by up to 0.15 % (about what the strokes
+/// along the arm leave, docs/calibration.md §7.1), the fit estimates the unit's own geometry,
+/// and the arm model then holds the whole workspace within 5 mN at p95 where the profile's
+/// geometry leaves 6–9 mN. On the nominal unit, from its exact holds, the geometry stays the
+/// profile's within a tenth of its tolerances.
+#[test]
+fn the_units_own_geometry_is_estimated_from_its_holds() {
+    use rand::{Rng, SeedableRng};
+    const CORNERS: [usize; 8] = [0, 2, 6, 8, 18, 20, 24, 26];
+    for unit in [1u64, 2, 3] {
+        let mut config = Config::default();
+        config.sim.unit_seed = unit;
+        let arm = profile_arm("delta", &config);
+        let cube = cube_holds("delta", &config);
+        let truth = reachable_truth("delta", &config, 1000, 1).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(unit);
+        let holds: Vec<Hold> = CORNERS
+            .iter()
+            .map(|&n| {
+                let h = cube.holds[n].unwrap();
+                let off = Vector3::from_fn(|_, _| rng.gen_range(-1.0..1.0));
+                Hold::new(h.position, h.force + off * 0.0015 * h.force.norm())
+            })
+            .collect();
+        let g = config.sim.g;
+        let profile = fit_arm(&arm, &holds, g, &[arm.up()]).unwrap();
+        let (fitted, shift) = fit_arm_and_geometry(&arm, &holds, g, &[arm.up()]).unwrap();
+        let shift = shift.expect("the geometry moved");
+        let before = p95_mn(&truth, |x| profile.gravity.force(x));
+        let after = p95_mn(&truth, |x| fitted.gravity.force(x));
+        println!(
+            "delta unit {unit}: p95 {before:.2} → {after:.2} mN; residual {:.2} → {:.2} mN; {}",
+            shift.profile_rms_residual * 1e3,
+            fitted.rms_residual * 1e3,
+            shift.describe()
+        );
+        assert!(
+            before > 5.0,
+            "unit {unit}: the profile's geometry gives {before} mN"
+        );
+        assert!(
+            after < 5.0,
+            "unit {unit}: the unit's geometry gives {after} mN"
+        );
+        assert!(
+            fitted.rms_residual < 0.6 * shift.profile_rms_residual,
+            "unit {unit}"
+        );
+    }
+    let config = Config::default();
+    let arm = profile_arm("delta", &config);
+    let cube = cube_holds("delta", &config);
+    let holds: Vec<Hold> = cube.holds.iter().flatten().copied().collect();
+    let (_, shift) = fit_arm_and_geometry(&arm, &holds, config.sim.g, &[arm.up()]).unwrap();
+    if let Some(shift) = shift {
+        assert!(shift.origin.norm() < 0.1e-3, "{shift:?}");
+        assert!(
+            shift.lengths.iter().all(|(_, l)| l.abs() < 0.5e-3),
+            "{shift:?}"
+        );
     }
 }
 
@@ -266,7 +340,7 @@ fn whole_workspace_after_a_default_calibration_on_every_arm() {
                 let score = chosen.held_out_pct.of(chosen.chosen.parse().unwrap());
                 println!(
                     "| sim:{model} | {unit} | {tilt_deg}° | {:.0} s | {} | {:.2} % | {:.2} % | \
-                     {:.2} % | {:.1} mN | {:.1} % |",
+                     {:.2} % | {:.2} mN | {:.1} % |",
                     result.duration,
                     sweep.model,
                     score.unwrap_or(f64::NAN),
@@ -403,7 +477,7 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
             let truth = reachable_truth(model, &config, 1000, 1).unwrap();
             let n = if model == "delta" { 6 } else { 5 };
             for corners in [true, false] {
-                for error in [0.0, 0.007] {
+                for error in [0.0, 0.0013, 0.007] {
                     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(unit);
                     let holds: Vec<Hold> = (0..27)
                         .filter(|n| !corners || [0, 2, 6, 8, 18, 20, 24, 26].contains(n))

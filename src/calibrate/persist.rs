@@ -168,6 +168,11 @@ fn with_model(
             rms_residual_mn: fit.rms_residual * 1e3,
             normalised_residual: fit.normalised_residual,
             tilt_deg: fit.tilt.to_degrees(),
+            profile_rms_residual_mn: choice
+                .geometry
+                .as_ref()
+                .map(|g| g.profile_rms_residual * 1e3),
+            geometry_change: choice.geometry.as_ref().map(|g| g.describe()),
             ..ArmRecord::new(&profile.name, &fit.gravity)
         }),
         _ => None,

@@ -19,6 +19,7 @@
 //! interpolate), [`arm`] (the arm model's fit) and this file (the held-out choice).
 
 pub mod arm;
+pub mod geometry;
 pub mod lattice;
 
 use nalgebra::Vector3;
@@ -27,6 +28,7 @@ use crate::arm::Arm;
 use crate::config::CompensationMode;
 use crate::grid::{extrapolate_from_neighbours, fill_from_neighbours};
 pub use arm::{fit_arm, ArmFit, ArmFitError};
+pub use geometry::{fit_arm_and_geometry, GeometryShift};
 
 /// A hold's noise: this share of its force, or this floor, whichever is larger (the accuracy
 /// of the friction-robust hold, docs/calibration.md §6), N.
@@ -126,8 +128,11 @@ pub struct Choice {
     pub scores: Scores,
     /// Holds kept out of the fits.
     pub held_out: usize,
-    /// The arm model fitted to every hold (None without an arm).
+    /// The arm model fitted to every hold (None without an arm), its geometry estimated
+    /// within the unit's tolerances of the profile's ([`geometry`]) ...
     pub arm: Option<Result<ArmFit, ArmFitError>>,
+    /// ... and how far that geometry moved.
+    pub geometry: Option<GeometryShift>,
 }
 
 impl Choice {
@@ -232,6 +237,7 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
             scores,
             held_out: held_out.len(),
             arm: None,
+            geometry: None,
         };
     };
     let starts = [arm.up(), lattice.up];
@@ -240,7 +246,7 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
         .filter(|&n| training[n])
         .map(raw)
         .collect();
-    if let Ok(fit) = fit_arm(arm, &train, lattice.g, &starts) {
+    if let Ok((fit, _)) = fit_arm_and_geometry(arm, &train, lattice.g, &starts) {
         let model = |x: &Vector3<f64>| fit.gravity.force(x);
         // Scored where the held-out holds were measured, against what they measured.
         scores.arm = Some(score(
@@ -259,7 +265,10 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
         scores.arm_residual = Some(score_at_vertices(&with_residual));
     }
     let all: Vec<Hold> = measured.iter().map(|&n| raw(n)).collect();
-    let full = fit_arm(arm, &all, lattice.g, &starts);
+    let (full, geometry) = match fit_arm_and_geometry(arm, &all, lattice.g, &starts) {
+        Ok((fit, shift)) => (Ok(fit), shift),
+        Err(e) => (Err(e), None),
+    };
     // Preference when scores are as good: the models that cover the whole workspace first.
     let order = [
         CompensationMode::Arm,
@@ -287,5 +296,6 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
         scores,
         held_out: held_out.len(),
         arm: Some(full),
+        geometry,
     }
 }

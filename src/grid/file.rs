@@ -203,7 +203,14 @@ pub struct ArmRecord {
     pub normalised_residual: f64,
     /// Angle between the fitted v_G and the arm's own up, degrees.
     pub tilt_deg: f64,
-    /// The arm's geometry and frame (`[arm.geometry]`, as in the profile).
+    /// Where the calibration estimated the unit's own geometry (`fit::geometry`): the RMS
+    /// residual the profile's geometry left, mN, and what changed, in words.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profile_rms_residual_mn: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub geometry_change: Option<String>,
+    /// The arm's geometry and frame (`[arm.geometry]`, as in the profile; the unit's own where
+    /// the calibration estimated it).
     pub geometry: ArmTable,
 }
 
@@ -223,6 +230,8 @@ impl ArmRecord {
             rms_residual_mn: 0.0,
             normalised_residual: 0.0,
             tilt_deg: gravity.up.angle(&gravity.arm.up()).to_degrees(),
+            profile_rms_residual_mn: None,
+            geometry_change: None,
             geometry: ArmTable::of(&gravity.arm),
         }
     }
