@@ -229,8 +229,8 @@ impl Report {
         let (amplitude, frequency, time) = self.dither;
         let dither = if amplitude > 0.0 {
             format!(
-                "each rest after a dither of {amplitude} N at {frequency} Hz for {time} s (the \
-                 paper has none: validation.dither_n = 0)\n"
+                "each rest the mean position under a dither of {amplitude} N at {frequency} Hz \
+                 ({time} s; the paper has none: validation.dither_n = 0)\n"
             )
         } else {
             String::new()
