@@ -867,7 +867,8 @@ pub struct ValidationConfig {
     /// How long it lasts, s, in three equal parts: the handle finds its equilibrium, its mean
     /// position is read, the vibration fades out.
     pub dither_s: f64,
-    /// Steady state: samples per window, n_s.
+    /// Steady state: samples per window, n_s (without a dither; with one, `eps_s_mm` alone
+    /// bounds how far its reading window's two halves may disagree).
     pub n_s: usize,
     /// Steady state: radius of the window's sphere, eps_s, mm.
     pub eps_s_mm: f64,
@@ -1328,6 +1329,21 @@ impl Config {
         in_range("validation.dither_n", v.dither_n)?;
         in_range("validation.dither_hz", v.dither_hz)?;
         in_range("validation.dither_s", v.dither_s)?;
+        if v.dither_n > 0.0 {
+            // The reading window (a third) holds enough periods to average the vibration out
+            // (the servo rate is checked where the experiment runs: `validate::prepare`).
+            if v.dither_s / 3.0 * v.dither_hz < 5.0 {
+                return Err(invalid(
+                    "validation.dither_s",
+                    format!(
+                        "{} s leaves its reading window (a third) under five periods at \
+                         validation.dither_hz = {}: the mean would not average the vibration out",
+                        Number(v.dither_s),
+                        Number(v.dither_hz)
+                    ),
+                ));
+            }
+        }
         in_range("validation.n_s", v.n_s as f64)?;
         in_range("validation.eps_s_mm", v.eps_s_mm)?;
         in_range("validation.settle_timeout_s", v.settle_timeout_s)?;
@@ -1927,6 +1943,11 @@ mod tests {
             "[sim]\ngravity_direction = [0.0, 0.0, 0.0]\n",
             "sim.gravity_direction",
             "must not be the zero vector",
+        );
+        refused(
+            "[validation]\ndither_s = 0.1\n",
+            "validation.dither_s",
+            "under five periods",
         );
         // The same rules at a rate where they are met.
         parse(

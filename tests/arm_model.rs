@@ -159,6 +159,7 @@ fn the_units_own_geometry_is_estimated_from_its_holds() {
             shift.lengths.iter().all(|(_, l)| l.abs() < 0.5e-3),
             "{shift:?}"
         );
+        assert!(shift.radius.is_none_or(|r| r.abs() < 0.05e-3), "{shift:?}");
     }
 }
 
@@ -382,8 +383,10 @@ fn a_profile_naming_the_wrong_arm_leaves_the_lattice_with_a_warning() {
 /// Could the fit identify the unit's geometry too (where its frame sits, its link lengths), and
 /// so take the delta's whole-workspace residual under 5 mN? A Levenberg–Marquardt search over
 /// the frame's origin and the lengths around the arm fit, from the plant's exact holds and from
-/// holds off by up to 0.7 % (about what friction leaves, §7.1), free or held to the units' spread
-/// (1 mm, 0.5 %) by a prior. Its table is docs/calibration.md §13.4; rerun with
+/// holds off by 0.13 % (what one stroke along the arm leaves, §7.1) and by up to 0.7 % (what
+/// three strokes left): fitted freely (this test's own search) or as the calibration fits it,
+/// held to the units' tolerances by a prior (`fit::geometry`). Its table is
+/// docs/calibration.md §13.4; rerun with
 /// `cargo test --release --test arm_model -- --ignored --nocapture the_geometry`.
 #[test]
 #[ignore = "about a minute: a question docs/calibration.md §13.4 answers"]
@@ -392,7 +395,6 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
     use nalgebra::{DMatrix, DVector};
     use rand::{Rng, SeedableRng};
     // Frame origin x, y, z (mm), two lengths (‰) and, for the delta, its base radius (mm).
-    const SPREAD: [f64; 6] = [1.0, 1.0, 1.0, 5.0, 5.0, 0.5];
     let placed = |arm: &Arm, p: &[f64]| {
         let mut a = *arm;
         a.frame.origin += Vector3::new(p[0], p[1], p[2]) * 1e-3;
@@ -409,25 +411,22 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
         }
         a
     };
-    // The holds' weighted residuals after the arm fit, and the prior's terms.
-    let residual = |arm: &Arm, p: &[f64], holds: &[Hold], prior: bool| {
+    // The holds' weighted residuals after the arm fit.
+    let residual = |arm: &Arm, p: &[f64], holds: &[Hold]| {
         let arm = placed(arm, p);
         let fit = fit_arm(&arm, holds, 9.81, &[arm.up()]).ok()?;
-        let mut r: Vec<f64> = holds
+        let r: Vec<f64> = holds
             .iter()
             .flat_map(|h| {
                 let r = (h.force - fit.gravity.force(&h.position)) / h.noise;
                 [r.x, r.y, r.z]
             })
             .collect();
-        if prior {
-            r.extend(p.iter().zip(SPREAD).map(|(p, s)| p / s));
-        }
         Some(DVector::from_vec(r))
     };
-    let fitted = |arm: &Arm, n: usize, holds: &[Hold], prior: bool| {
+    let fitted = |arm: &Arm, n: usize, holds: &[Hold]| {
         let mut p = vec![0.0; n];
-        let mut current = residual(arm, &p, holds, prior).unwrap();
+        let mut current = residual(arm, &p, holds).unwrap();
         let mut damping = 1e-2;
         for _ in 0..30 {
             let mut jacobian = DMatrix::zeros(current.len(), n);
@@ -435,10 +434,7 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
                 let (mut plus, mut minus) = (p.clone(), p.clone());
                 plus[k] += 1e-3;
                 minus[k] -= 1e-3;
-                let (a, b) = (
-                    residual(arm, &plus, holds, prior),
-                    residual(arm, &minus, holds, prior),
-                );
+                let (a, b) = (residual(arm, &plus, holds), residual(arm, &minus, holds));
                 jacobian.set_column(k, &((a.unwrap() - b.unwrap()) / 2e-3));
             }
             let jtj = jacobian.transpose() * &jacobian;
@@ -451,7 +447,7 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
                 }
                 let step = lhs.lu().solve(&-&jtr).unwrap();
                 let next: Vec<f64> = p.iter().zip(step.iter()).map(|(a, b)| a + b).collect();
-                match residual(arm, &next, holds, prior) {
+                match residual(arm, &next, holds) {
                     Some(r) if r.norm() < current.norm() => {
                         (p, current, improved) = (next, r, true);
                         damping *= 0.3;
@@ -487,8 +483,7 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
                             Hold::new(h.position, h.force + off * error * h.force.norm())
                         })
                         .collect();
-                    let p95_mn = |arm: &Arm| {
-                        let fit = fit_arm(arm, &holds, 9.81, &[arm.up()]).unwrap();
+                    let p95_mn = |fit: &hgcd::fit::ArmFit| {
                         let mut r: Vec<f64> = truth
                             .iter()
                             .map(|t| {
@@ -499,12 +494,19 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
                         r[949]
                     };
                     println!(
-                        "| sim:{model} | {unit} | {} | {:.1} % | {:.1} mN | {:.1} mN | {:.1} mN |",
+                        "| sim:{model} | {unit} | {} | {:.2} % | {:.1} mN | {:.1} mN | {:.1} mN |",
                         if corners { "8 corners" } else { "27 vertices" },
                         100.0 * error,
-                        p95_mn(&arm),
-                        p95_mn(&fitted(&arm, n, &holds, false)),
-                        p95_mn(&fitted(&arm, n, &holds, true)),
+                        p95_mn(&fit_arm(&arm, &holds, 9.81, &[arm.up()]).unwrap()),
+                        p95_mn(&{
+                            let free = fitted(&arm, n, &holds);
+                            fit_arm(&free, &holds, 9.81, &[free.up()]).unwrap()
+                        }),
+                        p95_mn(
+                            &fit_arm_and_geometry(&arm, &holds, 9.81, &[arm.up()])
+                                .unwrap()
+                                .0
+                        ),
                     );
                 }
             }

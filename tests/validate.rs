@@ -256,7 +256,7 @@ fn on_the_phantom_and_the_delta_compensation_leaves_only_the_probe_on_the_surfac
         let worst = assert_ideal(&case, report, arm, Reading::TwoSided, 0.05);
         let mean = arm.two_sided.mean / report.ideal - 1.0;
         assert!(mean.abs() < 0.02, "{case}: mean {:+.1} %", mean * 1e2);
-        // With the dither the paper's one-sided reading finds the equilibrium too.
+        // Under the dither the reading from above alone finds the equilibrium too.
         assert_ideal(&case, report, arm, Reading::Above, 0.10);
 
         let none = mode(Mode::None);
@@ -425,6 +425,27 @@ fn bad_input_gets_one_clear_line() {
         assert!(!status.success(), "{args:?}");
         one_line(&stderr, says);
     }
+    // A dither the servo rate cannot render.
+    let config = dir.path().join("slow.toml");
+    std::fs::write(&config, "[servo]\nrate_hz = 200.0\n").unwrap();
+    let run = hgcd()
+        .args([
+            "--config",
+            config.to_str().unwrap(),
+            "--log-level",
+            "warn",
+            "validate",
+        ])
+        .args(["--device", "sim:point-mass", "--out", out])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success());
+    one_line(&stderr, "validation.dither_hz = 50 Hz");
+    assert!(
+        stderr.contains("at most 16 Hz at servo.rate_hz = 200"),
+        "{stderr}"
+    );
 }
 
 #[test]

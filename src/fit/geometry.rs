@@ -15,7 +15,7 @@ use nalgebra::{DMatrix, DVector, Vector3};
 
 use super::arm::{fit_arm, ArmFit, ArmFitError};
 use super::Hold;
-use crate::arm::{Arm, ArmGeometry};
+use crate::arm::{Arm, ArmGeometry, ArmTable};
 
 /// How far a unit may sit from its profile: the frame's origin, per axis, m.
 pub const ORIGIN_TOLERANCE: f64 = 1e-3;
@@ -35,6 +35,8 @@ const CONVERGED: f64 = 1e-4;
 /// profile's (or a force it lacks acts on it). The profile's geometry is kept, and the held-out
 /// score judges the arm.
 const MAX_TOLERANCES: f64 = 3.0;
+/// Offsets all below this share of their tolerances are no move at all.
+const MOVED: f64 = 1e-3;
 
 /// The geometry offsets estimated, and what they did to the fit.
 #[derive(Clone, Debug, PartialEq)]
@@ -128,7 +130,10 @@ pub fn fit_arm_and_geometry(
     let up = profile.gravity.up;
     let n = offsets(arm);
     let mut p = vec![0.0; n];
-    let mut current = residual(arm, &p, holds, g, &up).expect("the profile's geometry fits");
+    // The fit from the profile's v_G alone may still fail (conditioning near its bound).
+    let Some(mut current) = residual(arm, &p, holds, g, &up) else {
+        return Ok((profile, None));
+    };
     let mut damping = 1e-2;
     for _ in 0..ITERATIONS {
         let mut jacobian = DMatrix::zeros(current.len(), n);
@@ -174,9 +179,13 @@ pub fn fit_arm_and_geometry(
             break;
         }
     }
+    // Unmoved, beyond a unit's spread, or a geometry the grid file would refuse: the profile's.
+    let moved = p.iter().any(|v| v.abs() > MOVED);
     let beyond = p.iter().any(|v| v.abs() > MAX_TOLERANCES);
-    let fitted = match fit_arm(&placed(arm, &p), holds, g, &[up]) {
-        Ok(fit) if !beyond => fit,
+    let placed = placed(arm, &p);
+    let storable = ArmTable::of(&placed).arm().is_ok();
+    let fitted = match fit_arm(&placed, holds, g, &[up]) {
+        Ok(fit) if moved && !beyond && storable => fit,
         _ => return Ok((profile, None)),
     };
     let shift = shift_of(arm, &p, &profile);

@@ -246,14 +246,28 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
         .filter(|&n| training[n])
         .map(raw)
         .collect();
-    if let Ok((fit, _)) = fit_arm_and_geometry(arm, &train, lattice.g, &starts) {
+    let held_out_score = |fit: &ArmFit| {
+        score(held_out.iter().map(|&n| {
+            let hold = raw(n);
+            (hold.force, fit.gravity.force(&hold.position))
+        }))
+    };
+    // The profile's geometry and the unit's own (geometry.rs), each fitted to the training holds
+    // and scored where the held-out ones were measured: the unit's is kept only where it scores
+    // no worse.
+    let profile_fit = fit_arm(arm, &train, lattice.g, &starts).ok();
+    let unit_fit = fit_arm_and_geometry(arm, &train, lattice.g, &starts)
+        .ok()
+        .and_then(|(fit, shift)| shift.map(|_| fit));
+    let unit_geometry = match (&profile_fit, &unit_fit) {
+        (Some(profile), Some(unit)) => held_out_score(unit) <= held_out_score(profile),
+        (None, Some(_)) => true,
+        _ => false,
+    };
+    let trained = if unit_geometry { unit_fit } else { profile_fit };
+    if let Some(fit) = trained {
+        scores.arm = Some(held_out_score(&fit));
         let model = |x: &Vector3<f64>| fit.gravity.force(x);
-        // Scored where the held-out holds were measured, against what they measured.
-        scores.arm = Some(score(
-            held_out
-                .iter()
-                .map(|&n| (raw(n).force, model(&raw(n).position))),
-        ));
         let at_vertices: Vec<Vector3<f64>> = lattice.positions.iter().map(model).collect();
         let residual: Vec<Vector3<f64>> = (0..forces.len())
             .map(|n| forces[n] - at_vertices[n])
@@ -265,9 +279,13 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
         scores.arm_residual = Some(score_at_vertices(&with_residual));
     }
     let all: Vec<Hold> = measured.iter().map(|&n| raw(n)).collect();
-    let (full, geometry) = match fit_arm_and_geometry(arm, &all, lattice.g, &starts) {
-        Ok((fit, shift)) => (Ok(fit), shift),
-        Err(e) => (Err(e), None),
+    let (full, geometry) = if unit_geometry {
+        match fit_arm_and_geometry(arm, &all, lattice.g, &starts) {
+            Ok((fit, shift)) => (Ok(fit), shift),
+            Err(e) => (Err(e), None),
+        }
+    } else {
+        (fit_arm(arm, &all, lattice.g, &starts), None)
     };
     // Preference when scores are as good: the models that cover the whole workspace first.
     let order = [

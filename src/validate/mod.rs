@@ -41,7 +41,7 @@ use crate::servo::{self, ExitReason, Fault, ServoError, ServoOptions, TimingStat
 use crate::sim::SimDevice;
 use crate::transport::{self, Pacing, Transport, TransportError};
 use controller::ExperimentController;
-use probe::{ContactPlan, Probe, ProbeParams, Rest};
+use probe::{ContactPlan, Probe, ProbeParams, Rest, DITHER_ACROSS};
 
 /// Compensation during one run of the experiment.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -147,6 +147,13 @@ pub enum ValidateError {
     Stiffness(f64),
     #[error("--repetitions {0} is out of range (1 to 1000)")]
     Repetitions(usize),
+    #[error(
+        "validation.dither_hz = {hz} Hz (and 1.51 times that across the surface) needs at least \
+         eight reports a period: at most {:.0} Hz at servo.rate_hz = {rate}, or \
+         validation.dither_n = 0",
+        (rate / 8.0 / DITHER_ACROSS).floor()
+    )]
+    DitherTooFast { hz: f64, rate: f64 },
     #[error(
         "--modes names no mode, or one twice; give some of none, scalar, vector, arm once each"
     )]
@@ -255,6 +262,13 @@ pub struct Validation {
 pub fn prepare(config: &Config, request: &ValidateRequest) -> Result<Prepared, ValidateError> {
     config.validate()?;
     check_request(request)?;
+    let (v, rate) = (&config.validation, config.servo.rate_hz);
+    if v.dither_n > 0.0 && DITHER_ACROSS * v.dither_hz > rate / 8.0 {
+        return Err(ValidateError::DitherTooFast {
+            hz: v.dither_hz,
+            rate,
+        });
+    }
     crate::figure::check_out_dir(&request.out, "validate")?;
     let mut request = request.clone();
     if request.modes.is_empty() {

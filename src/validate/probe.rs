@@ -28,6 +28,10 @@ use crate::config::Config;
 use crate::control::calibration::steady::SteadyState;
 use crate::control::DeviceState;
 
+/// The dither's frequencies across the surface, relative to the one along its normal: the
+/// highest is [`DITHER_ACROSS`].
+const DITHER_ACROSS_1: f64 = 1.23;
+pub const DITHER_ACROSS: f64 = 1.51;
 /// Damping of the hold per unit of its stiffness, s (c_h = k_h · this).
 const HOLD_DAMPING_TIME: f64 = 0.01;
 /// Fading the vertical hold out before a steady state (load onto the surface), s.
@@ -58,11 +62,12 @@ pub struct ProbeParams {
     pub lift: f64,
     /// How far the surface drops before it rises back into place for the reading from below, m.
     pub drop: f64,
-    /// Dither before each reading: amplitude per direction, N (0: none) ...
+    /// The dither each reading is taken under: amplitude per direction, N (0: none, the paper's
+    /// steady state) ...
     pub dither: f64,
     /// ... frequency along the normal, Hz ...
     pub dither_frequency: f64,
-    /// ... and duration (full amplitude for the first half, fading over the second), s.
+    /// ... and duration (three windows: equilibrium, reading, fade), s.
     pub dither_time: f64,
     /// Steady state: samples per window.
     pub steady_samples: usize,
@@ -192,10 +197,11 @@ pub struct Rest {
     pub repetition: usize,
     /// [`Reading::Above`] or [`Reading::Below`].
     pub reading: Reading,
-    /// Mean position over the steady window, m.
+    /// Mean position over the steady window, or under the dither over its reading window, m.
     pub position: Vector3<f64>,
     /// False when no steady state came within the timeout (`position` is then the newest
-    /// window's mean, or the last sample).
+    /// window's mean, or the last sample), or under the dither when the reading window's two
+    /// halves disagree by more than the steady-state radius.
     pub settled: bool,
     /// Time from the end of the release (from above) or of the surface's rise (from below) to
     /// the steady state, or with a dither to the end of its reading window, s.
@@ -219,11 +225,9 @@ enum Phase {
     Lower,
     /// Fading the vertical hold out.
     Release,
-    /// Shaking the handle free of static friction, and reading its rest as the mean position
-    /// over the vibration (see [`Dithered`]).
+    /// Shaking the handle free of static friction, reading its rest as the mean position under
+    /// the vibration (see [`Dithered`]), and fading the vibration out.
     Dither(Reading, Dithered),
-    /// Fading the dither out after its reading.
-    Fade(Reading),
     /// Waiting for the steady state, approached from one side.
     Settle(Reading),
     /// Dropping the surface by [`ProbeParams::drop`].
@@ -244,16 +248,19 @@ enum Phase {
 /// the window's two halves agree within the steady-state radius (a handle still sliding does
 /// not).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Dithered {
+pub struct Dithered {
     /// The position summed over each half of the reading window, m, and their samples.
     sum: [Vector3<f64>; 2],
     samples: [usize; 2],
+    /// The reading has been taken.
+    read: bool,
 }
 
 impl Dithered {
     const START: Self = Self {
         sum: [Vector3::new(0.0, 0.0, 0.0); 2],
         samples: [0; 2],
+        read: false,
     };
 }
 
@@ -411,41 +418,41 @@ impl Probe {
             Phase::Dither(reading, mut dithered) => {
                 let u = t - self.since;
                 let window = self.window();
-                // The first third lets the handle find its equilibrium; the second is read, in
-                // two halves; the last fades the vibration out.
-                if u >= window {
+                // The first window lets the handle find its equilibrium; the second is read, in
+                // two halves; over the third the vibration fades out.
+                if (window..2.0 * window).contains(&u) {
                     let half = usize::from(u >= 1.5 * window);
                     dithered.sum[half] += s.position;
                     dithered.samples[half] += 1;
-                }
-                if u >= 2.0 * window {
-                    let [a, b] =
-                        [0, 1].map(|h| dithered.sum[h] / dithered.samples[h].max(1) as f64);
-                    // Converged: the two halves agree within the steady-state radius.
-                    let settled = (a - b).norm() <= self.params.steady_radius;
-                    let position = (dithered.sum[0] + dithered.sum[1])
-                        / (dithered.samples[0] + dithered.samples[1]).max(1) as f64;
+                } else if u >= 2.0 * window && !dithered.read {
+                    let [a, b] = [0, 1].map(|h| dithered.sum[h] / dithered.samples[h] as f64);
+                    // Converged: both halves sampled, their means within the steady-state
+                    // radius of each other (a handle still sliding is not).
+                    let settled = dithered.samples.iter().all(|&n| n > 0)
+                        && (a - b).norm() <= self.params.steady_radius;
+                    let samples = dithered.samples[0] + dithered.samples[1];
+                    let position = if samples > 0 {
+                        (dithered.sum[0] + dithered.sum[1]) / samples as f64
+                    } else {
+                        s.position
+                    };
                     rest = Some(self.rest(reading, position, settled, u));
-                    self.enter(Phase::Fade(reading), t);
+                    dithered.read = true;
+                }
+                if u >= 3.0 * window {
+                    self.after(reading, t);
                 } else {
                     self.phase = Phase::Dither(reading, dithered);
                 }
-                let amplitude = self.params.dither;
+                // Faded in over a quarter of the first window (no kick at the handle's own
+                // frequency), out over the third.
+                let envelope = (u / (0.25 * window))
+                    .min(1.0)
+                    .min((3.0 * window - u) / window)
+                    .clamp(0.0, 1.0);
                 return ProbeStep {
-                    force: self.force(s, 0.0, 1.0, self.dither(u, amplitude)),
+                    force: self.force(s, 0.0, 1.0, self.dither(u, self.params.dither * envelope)),
                     rest,
-                };
-            }
-            Phase::Fade(reading) => {
-                let u = t - self.since;
-                let fade = self.window();
-                if u >= fade {
-                    self.after(reading, t);
-                }
-                let amplitude = self.params.dither * (1.0 - u / fade).max(0.0);
-                return ProbeStep {
-                    force: self.force(s, 0.0, 1.0, self.dither(u, amplitude)),
-                    rest: None,
                 };
             }
             Phase::Drop => {
@@ -494,7 +501,8 @@ impl Probe {
         }
     }
 
-    /// Wait for the steady state from the side `reading` names, after the dither if any.
+    /// Read the rest from the side `reading` names: under the dither, or without one at the
+    /// steady state.
     fn settle(&mut self, reading: Reading, t: f64) {
         if self.params.dither > 0.0 {
             self.enter(Phase::Dither(reading, Dithered::START), t);
@@ -533,13 +541,15 @@ impl Probe {
     }
 
     /// The dither's force `u` seconds into it at `amplitude`, N: along the normal at its
-    /// frequency, across the surface at 1.23 and 1.51 times that (so the three never lock
-    /// together).
+    /// frequency, across the surface at 1.23 and 1.51 times that (the three come back into
+    /// step only after 100 periods, longer than a reading window).
     fn dither(&self, u: f64, amplitude: f64) -> Vector3<f64> {
         let p = &self.params;
         let phase = std::f64::consts::TAU * p.dither_frequency * u;
         let [normal, across_1, across_2] = &self.basis;
-        (normal * phase.sin() + across_1 * (1.23 * phase).sin() + across_2 * (1.51 * phase).sin())
+        (normal * phase.sin()
+            + across_1 * (DITHER_ACROSS_1 * phase).sin()
+            + across_2 * (DITHER_ACROSS * phase).sin())
             * amplitude
     }
 

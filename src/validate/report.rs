@@ -51,7 +51,8 @@ pub struct Readings {
     pub mean: f64,
     /// Standard deviation over all of them, m.
     pub std: f64,
-    /// Repetitions that found no steady state (left out of the statistics).
+    /// Repetitions that found no steady state, or under the dither whose reading window's
+    /// halves disagreed (left out of the statistics).
     pub unsettled: usize,
     /// Per contact point, in point order.
     pub points: Vec<PointStats>,
@@ -97,8 +98,8 @@ pub struct Report {
     pub points: Vec<Vector3<f64>>,
     /// The surface's normal, unit "up".
     pub up: Vector3<f64>,
-    /// The dither before each reading: amplitude per direction, N (0: none), frequency, Hz, and
-    /// duration, s (`validation.dither_*`).
+    /// The dither each reading is taken under: amplitude per direction, N (0: none), frequency,
+    /// Hz, and duration, s (`validation.dither_*`).
     pub dither: (f64, f64, f64),
     /// In run order.
     pub modes: Vec<ModeReport>,
@@ -236,7 +237,7 @@ impl Report {
             String::new()
         };
         let mut out = format!(
-            "penalty ΔX = ‖P_n − X‖ at steady state, mm: mean ± standard deviation over {} \
+            "penalty ΔX = ‖P_n − X‖ at rest, mm: mean ± standard deviation over {} \
              repetitions\nX: the middle of the rests from above and from below (the paper read \
              from above only)\n{dither}(probe {:.0} g, surface {} N/mm; ideal m_p g / k = {:.3} \
              mm)\n",
@@ -293,8 +294,9 @@ impl Report {
                 if unsettled > 0 {
                     let _ = writeln!(
                         out,
-                        "  {}: {unsettled} reading(s) from {} found no steady state; their \
-                         repetitions are left out (see the CSV)",
+                        "  {}: {unsettled} reading(s) from {} found no steady state (under the \
+                         dither: its reading window's halves disagreed); their repetitions are \
+                         left out (see the CSV)",
                         m.mode.name(),
                         reading.name()
                     );
