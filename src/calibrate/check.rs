@@ -378,13 +378,8 @@ fn effect(p: &Vector3<f64>, across: &[Vector3<f64>; 2], up: &Vector3<f64>, g: f6
 /// payload and tilt that explain the difference. Device time and grid are left for the caller.
 pub fn compare(model: &GravityModel, g: f64, holds: &[Measured]) -> Check {
     let up = model.up;
-    let first = if up.x.abs() < 0.9 {
-        Vector3::x()
-    } else {
-        Vector3::y()
-    };
-    let a = up.cross(&first).normalize();
-    let across = [a, up.cross(&a)];
+    let (a, b) = crate::fit::across(&up);
+    let across = [a, b];
     let predicted = |p: &Vector3<f64>| -> Vec<Vector3<f64>> {
         let turned = model
             .clone()

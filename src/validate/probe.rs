@@ -304,13 +304,7 @@ impl Probe {
     pub fn new(plan: ContactPlan, params: ProbeParams) -> Self {
         let steady = SteadyState::new(params.steady_samples, params.steady_radius);
         let normal = plan.normal;
-        let away = if normal.x.abs() < 0.9 {
-            Vector3::x()
-        } else {
-            Vector3::y()
-        };
-        let across_1 = normal.cross(&away).normalize();
-        let across_2 = normal.cross(&across_1);
+        let (across_1, across_2) = crate::fit::across(&normal);
         Self {
             plan,
             params,
