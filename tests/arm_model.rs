@@ -206,6 +206,61 @@ fn fitted_to_the_cubes_exact_holds_it_holds_the_whole_workspace_level_or_tilted(
     }
 }
 
+/// A serial arm's base moments act only through a tilt of its base. On a base a hundredth of a
+/// degree off level, from corner holds off by up to 0.15 %, they would fit the holds' noise
+/// (kilogram-millimetres, which a later 5° tilt turns into millinewtons at the handle): they
+/// are left out and reported unidentified. Where a 10° tilt shows them, they are fitted.
+#[test]
+fn a_serial_arms_base_moments_are_fitted_only_where_a_tilt_shows_them() {
+    use rand::{Rng, SeedableRng};
+    const CORNERS: [usize; 8] = [0, 2, 6, 8, 18, 20, 24, 26];
+    let base = ["base, radial", "base, lateral"];
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    let mut noisy = |holds: Vec<Hold>| -> Vec<Hold> {
+        holds
+            .into_iter()
+            .map(|h| {
+                let off = Vector3::from_fn(|_, _| rng.gen_range(-1.0..1.0));
+                Hold::new(h.position, h.force + off * 0.0015 * h.force.norm())
+            })
+            .collect()
+    };
+    // The plant (its base moments are nil), 0.02° off level.
+    let mut config = Config::default();
+    let (s, c) = 0.02f64.to_radians().sin_cos();
+    config.sim.gravity_direction = [s * 0.6, s * 0.8, c];
+    let arm = profile_arm("phantom", &config);
+    let cube = cube_holds("phantom", &config);
+    let level = noisy(CORNERS.iter().map(|&n| cube.holds[n].unwrap()).collect());
+    let fit = fit_arm(&arm, &level, config.sim.g, &[arm.up()]).unwrap();
+    assert_eq!(fit.gravity.parameters[4..6], [0.0, 0.0], "{fit:?}");
+    assert!(base.iter().all(|b| fit.unidentified.contains(b)), "{fit:?}");
+    // Base moments of 0.002 and −0.001 kg m under a base tilted 10°.
+    let (s, c) = 10f64.to_radians().sin_cos();
+    let truth = ArmGravity {
+        arm,
+        parameters: [-0.0017, 0.0, -0.0075, 0.0, 0.002, -0.001, 0.0],
+        up: Vector3::new(s * 0.6, s * 0.8, c),
+        g: config.sim.g,
+    };
+    let tilted = noisy(
+        CORNERS
+            .iter()
+            .map(|&n| cube.positions[n])
+            .map(|x| Hold::new(x, truth.force(&x)))
+            .collect(),
+    );
+    let fit = fit_arm(&arm, &tilted, config.sim.g, &[arm.up()]).unwrap();
+    for k in 4..6 {
+        let (got, want) = (fit.gravity.parameters[k], truth.parameters[k]);
+        assert!(
+            (got - want).abs() < 0.1 * want.abs(),
+            "{k}: {got} kg m, {want} kg m"
+        );
+    }
+    assert!(fit.unidentified.is_empty(), "{fit:?}");
+}
+
 #[test]
 fn the_wrong_arm_is_caught_by_its_held_out_score() {
     let config = Config::default();
@@ -308,7 +363,8 @@ fn holds_against_the_plant() {
 /// tilted 10°, a default calibration (the cube's corners held, the model chosen by held-out
 /// score) against the plant's own force at 1000 random points of the whole reachable workspace.
 /// Its table is docs/calibration.md §13.3; rerun with
-/// `cargo test --release --test arm_model -- --ignored --nocapture whole_workspace`.
+/// `cargo test --release --test arm_model -- --ignored --nocapture whole_workspace`
+/// (`WHOLE_WORKSPACE_HOLDS=all`: every vertex of the cube held, §13.2's comparison).
 #[test]
 #[ignore = "about two minutes: the table of docs/calibration.md §13.3"]
 fn whole_workspace_after_a_default_calibration_on_every_arm() {
@@ -328,6 +384,9 @@ fn whole_workspace_after_a_default_calibration_on_every_arm() {
                 }
                 config.sim.unit_seed = unit;
                 config.sim.coulomb_friction_n = 0.04;
+                if std::env::var("WHOLE_WORKSPACE_HOLDS").is_ok_and(|h| h == "all") {
+                    config.calibration.holds = hgcd::config::HoldPlan::All;
+                }
                 let (s, c) = tilt_deg.to_radians().sin_cos();
                 config.sim.gravity_direction = [s * 0.6, s * 0.8, c];
                 let result = calibrated(model, &config);

@@ -85,19 +85,25 @@ impl Check {
 }
 
 /// A serial arm's base moments act only under a tilted base, so a calibration on a level one
-/// measures them poorly. Where the change tilts the arm's base further than it was when they
-/// were measured, the applied model may miss by a few millinewtons at the calibrated cube's
-/// corners and by a few percent beyond it (docs/calibration.md §2.2): say so.
+/// cannot measure them: it leaves them out (docs/calibration.md §13.2), and one under a slight
+/// tilt measures them poorly. Where the change tilts the arm's base further than it was when
+/// they were fitted, the applied model misses whatever base moments the arm has, most beyond the
+/// calibrated cube (docs/calibration.md §2.2): say so.
 fn base_moments_warning(before: &GridFile, after: &GridFile) -> Option<String> {
     let (was, now) = (before.arm.as_ref()?, after.arm.as_ref()?);
     let names = now.gravity().ok()?.arm.parameter_names();
     let base = names.iter().any(|n| n.starts_with("base"));
+    let left_out = was.unidentified.iter().any(|n| n.starts_with("base"));
     (base && now.tilt_deg >= 1.0 && now.tilt_deg > was.tilt_deg).then(|| {
+        let measured = if left_out {
+            "could not be measured then and are taken as nil"
+        } else {
+            "were measured under less tilt"
+        };
         format!(
             "the arm's base now leans {:.1}° (it leaned {:.1}° at its calibration): its base \
-             moments, which act only when it leans, were measured under less tilt, so the applied \
-             model may be a few percent off, most beyond the calibrated cube; hgcd calibrate \
-             measures them",
+             moments, which act only when it leans, {measured}, so if the arm has any the applied \
+             model misses them, most beyond the calibrated cube; hgcd calibrate measures them",
             now.tilt_deg, was.tilt_deg
         )
     })

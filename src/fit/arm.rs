@@ -26,6 +26,11 @@ const UNIDENTIFIED: f64 = 1e-6;
 /// `hgcd check --apply` then left the whole workspace 2.9–14 % off at p95 (1.7 % with it
 /// dropped; docs/calibration.md §2.2).
 const PLAUSIBLE_MOMENT: f64 = 0.1;
+/// Parameters that act only through a tilt are fitted only where they take more than this from
+/// the holds' weighted residual sum of squares, per parameter: about the 1 % point of χ² with 2
+/// degrees of freedom, halved (the holds' noise, 0.5 % or 1 mN, is a bound: the simulated
+/// linkages' holds are 0.1–0.3 of it, so noise alone takes far less).
+const SIGNIFICANT: f64 = 4.6;
 /// The fit is refused when the directions it keeps are conditioned worse than this: its
 /// parameters would carry the holds' noise, amplified, everywhere the arm goes.
 pub const MAX_CONDITION: f64 = 1e4;
@@ -116,17 +121,38 @@ pub fn fit_arm(
             position: h.position,
         });
     }
-    let mut best: Option<(Vector3<f64>, Linear)> = None;
-    for start in starts {
-        let (up, linear) = fit_tilt(arm, holds, g, &start.normalize());
-        if best
-            .as_ref()
-            .is_none_or(|(_, b)| linear.residual.norm() < b.residual.norm())
-        {
-            best = Some((up, linear));
+    let best_of = |left_out: &[usize]| {
+        let mut best: Option<(Vector3<f64>, Linear)> = None;
+        for start in starts {
+            let (up, linear) = fit_tilt(arm, holds, g, &start.normalize(), left_out);
+            if best
+                .as_ref()
+                .is_none_or(|(_, b)| linear.residual.norm() < b.residual.norm())
+            {
+                best = Some((up, linear));
+            }
+        }
+        best.expect("at least one start")
+    };
+    let (mut up, mut linear) = best_of(&[]);
+    // Parameters that act only through a tilt (a serial arm's base moments: nothing under the
+    // arm's own up) are kept only where they explain the holds beyond what noise would: from a
+    // base a hundredth of a degree off level they fit the holds' noise.
+    let tilt_only: Vec<usize> = (0..parameters)
+        .filter(|&c| {
+            holds.iter().all(|h| {
+                let r = arm.force_regressor(&h.position, &arm.up(), g);
+                r.is_some_and(|r| r.column(c).norm() == 0.0)
+            })
+        })
+        .collect();
+    if !tilt_only.is_empty() {
+        let (level_up, level) = best_of(&tilt_only);
+        let explained = level.residual.norm_squared() - linear.residual.norm_squared();
+        if explained < SIGNIFICANT * tilt_only.len() as f64 {
+            (up, linear) = (level_up, level);
         }
     }
-    let (up, linear) = best.expect("at least one start");
     if linear.condition > MAX_CONDITION {
         return Err(ArmFitError::IllConditioned {
             condition: linear.condition,
@@ -162,11 +188,17 @@ pub fn fit_arm(
 }
 
 /// v_G near `start` that leaves the least weighted residual, and the linear solve there.
-fn fit_tilt(arm: &Arm, holds: &[Hold], g: f64, start: &Vector3<f64>) -> (Vector3<f64>, Linear) {
+fn fit_tilt(
+    arm: &Arm,
+    holds: &[Hold],
+    g: f64,
+    start: &Vector3<f64>,
+    left_out: &[usize],
+) -> (Vector3<f64>, Linear) {
     let (e1, e2) = across(start);
     let up_at = |t: &Vector2<f64>| (start + e1 * t.x + e2 * t.y).normalize();
     let mut t = Vector2::zeros();
-    let mut current = solve(arm, holds, g, &up_at(&t));
+    let mut current = solve(arm, holds, g, &up_at(&t), left_out);
     let mut damping = 1e-3;
     for _ in 0..TILT_ITERATIONS {
         // The residual's Jacobian in the two angles, by central differences.
@@ -174,8 +206,8 @@ fn fit_tilt(arm: &Arm, holds: &[Hold], g: f64, start: &Vector3<f64>) -> (Vector3
         let mut jacobian = DMatrix::zeros(n, 2);
         for a in 0..2 {
             let step = Vector2::ith(a, TILT_STEP);
-            let plus = solve(arm, holds, g, &up_at(&(t + step))).residual;
-            let minus = solve(arm, holds, g, &up_at(&(t - step))).residual;
+            let plus = solve(arm, holds, g, &up_at(&(t + step)), left_out).residual;
+            let minus = solve(arm, holds, g, &up_at(&(t - step)), left_out).residual;
             jacobian.set_column(a, &((plus - minus) / (2.0 * TILT_STEP)));
         }
         let jtj = jacobian.transpose() * &jacobian;
@@ -195,7 +227,7 @@ fn fit_tilt(arm: &Arm, holds: &[Hold], g: f64, start: &Vector3<f64>) -> (Vector3
                 damping *= 10.0;
                 continue;
             }
-            let next = solve(arm, holds, g, &up_at(&next_t));
+            let next = solve(arm, holds, g, &up_at(&next_t), left_out);
             if next.residual.norm() < current.residual.norm() {
                 let converged = step.norm() < 1e-9;
                 t = next_t;
@@ -213,8 +245,9 @@ fn fit_tilt(arm: &Arm, holds: &[Hold], g: f64, start: &Vector3<f64>) -> (Vector3
     (up_at(&t), current)
 }
 
-/// The weighted linear least-squares θ for a fixed `up`.
-fn solve(arm: &Arm, holds: &[Hold], g: f64, up: &Vector3<f64>) -> Linear {
+/// The weighted linear least-squares θ for a fixed `up`, the parameters `left_out` held at zero
+/// (and reported unidentified).
+fn solve(arm: &Arm, holds: &[Hold], g: f64, up: &Vector3<f64>, left_out: &[usize]) -> Linear {
     let p = arm.parameter_count();
     let rows = 3 * holds.len();
     let mut a = DMatrix::zeros(rows, p);
@@ -236,7 +269,11 @@ fn solve(arm: &Arm, holds: &[Hold], g: f64, up: &Vector3<f64>) -> Linear {
     let scale: Vec<f64> = (0..p).map(|c| a.column(c).norm()).collect();
     let largest_column = scale.iter().copied().fold(0.0, f64::max);
     let kept: Vec<usize> = (0..p)
-        .filter(|&c| scale[c] > UNIDENTIFIED * largest_column && scale[c] * PLAUSIBLE_MOMENT >= 1.0)
+        .filter(|&c| {
+            scale[c] > UNIDENTIFIED * largest_column
+                && scale[c] * PLAUSIBLE_MOMENT >= 1.0
+                && !left_out.contains(&c)
+        })
         .collect();
     let mut unidentified: Vec<&'static str> = (0..p)
         .filter(|c| !kept.contains(c))
