@@ -24,8 +24,9 @@
 //!
 //! The parts: `plan.rs` (which vertices, in which order), `steady.rs` (when the handle is at
 //! rest), `probe.rs` (the stick band, the moving mass and the strokes), `predict.rs` (the next
-//! vertex's force from the arm's gravity fitted so far), `machine.rs` (the controller, one
-//! method per phase) and `outcome.rs` (result or failure). The PD law is
+//! vertex's force from the arm's gravity fitted so far), `machine/` (the controller, one
+//! method per phase: its state and dispatch in `mod.rs`, the phases in `initialise.rs`,
+//! `visit.rs` and `hold.rs`) and `outcome.rs` (result or failure). The PD law is
 //! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force).
 //! docs/calibration.md describes the method for users, beside the paper's.
 
@@ -116,11 +117,11 @@ pub struct CalibrationParams {
     /// fitted to the vertices measured so far, predicts the next.
     pub arm: Option<Arm>,
     /// Strokes that moved F̂ by more than 30 mN and this share of the force they found are
-    /// measured once more (not a config key: 0.1, see `machine.rs`).
+    /// measured once more (not a config key: 0.1, see `machine/mod.rs`).
     pub strokes_again_share: f64,
     /// Whether a vertex's force is predicted from the vertices measured before it, and then
     /// measured by strokes alone, where friction dominates (not a config key: true, see
-    /// `machine.rs`; false runs the paper's Eq. 12 and the bands at every vertex).
+    /// `machine/`; false runs the paper's Eq. 12 and the bands at every vertex).
     pub predict_vertices: bool,
     /// What an earlier calibration of this device measured at X_C (`hgcd check`): with it, the
     /// initialisation ends once the handle is caught.

@@ -28,7 +28,7 @@ const RIDGE_NOISE: f64 = 1e-4;
 const RIDGE_SCALE: f64 = 0.1;
 /// A fit whose holds' residual per degree of freedom it leaves exceeds this (RMS) predicts
 /// nothing, N: its arm is not this device's, and the neighbours predict as well. The strokes
-/// tolerate a feedforward 30 mN off (`STROKE_REPEAT` in `machine.rs`); the simulated linkages'
+/// tolerate a feedforward 30 mN off (`STROKE_REPEAT` in `machine/mod.rs`); the simulated linkages'
 /// holds leave 0.2–2.5 mN.
 const MAX_RESIDUAL: f64 = 0.01;
 /// Newton steps over the tilt at most, the step (rad) below which they stop, the angle of the

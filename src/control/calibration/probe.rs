@@ -574,7 +574,7 @@ impl Stroke {
         ..Self::MEASURE
     };
     /// Strokes that only tell sliding friction from none, slowly enough that viscous damping
-    /// up to 1 N·s/m stays under `STROKE_FRICTION` (`machine.rs`): a frictionless handle's passes
+    /// up to 1 N·s/m stays under `STROKE_FRICTION` (`machine/mod.rs`): a frictionless handle's passes
     /// differ by under 0.3 mN, a frictional one's by twice its friction. 0.5 mm of window at
     /// 4 mm/s, entered 1.55 mm into the constant speed. ±2 mm of reach, so that a hold whose
     /// load estimate is off still carries the handle through the window: on the simulated
