@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Result};
 
-use hgcd::calibrate::check::Check;
+use hgcd::calibrate::check::{Check, Reverted};
 use hgcd::client::{CalibrationStage, Client, Reply, Role};
 
 use crate::{err, out};
@@ -94,6 +94,20 @@ pub fn check_via_daemon(socket: &Path, apply: bool) -> Result<Check> {
     match follow(&mut client, "check", "hold")? {
         Reply::Checked(found) => Ok(*found),
         other => bail!("the daemon answered a check with {other:?}"),
+    }
+}
+
+/// `hgcd check --revert --via-daemon`: the daemon puts back the model kept beside its grid and
+/// compensates with it; what it put back.
+pub fn revert_via_daemon(socket: &Path) -> Result<Reverted> {
+    let mut client = Client::connect(socket, Role::Observe, "hgcd check --revert")?;
+    client.request_revert()?;
+    loop {
+        match client.next_reply()? {
+            Reply::Reverted(reverted) => return Ok(*reverted),
+            Reply::Error { message, .. } => bail!("the daemon refused: {message}"),
+            _ => continue,
+        }
     }
 }
 

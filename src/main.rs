@@ -168,8 +168,9 @@ struct CheckArgs {
     #[arg(long)]
     revert: bool,
     /// Ask the running daemon to check its device against its grid (with --apply it takes the
-    /// change in and compensates it at once); --device then names the daemon.
-    #[arg(long, conflicts_with_all = ["revert", "grid", "real_time"])]
+    /// change in and compensates it at once; with --revert it puts the kept model back and
+    /// compensates with it); --device then names the daemon.
+    #[arg(long, conflicts_with_all = ["grid", "real_time"])]
     via_daemon: bool,
 }
 
@@ -666,6 +667,14 @@ struct CheckVerdict(u8);
 /// `hgcd check`: the two holds, the verdict, and the exit status that says it.
 fn check_command(config: &Config, args: &CheckArgs) -> Result<()> {
     if args.revert {
+        if args.via_daemon {
+            let socket = daemon_socket(config, args.device.as_deref())?;
+            let reverted = ctl::revert_via_daemon(&socket)?;
+            return out(&format!(
+                "{}the daemon compensates with it now\n",
+                progress::revert_summary(&reverted)
+            ));
+        }
         let reverted = check::revert(config, &check_request(config, args)?)?;
         return out(&progress::revert_summary(&reverted));
     }

@@ -161,6 +161,7 @@ fn masked(line: &str, reply: &Reply) -> String {
         Reply::Calibration { .. } => mask(line, |k| k != "mass_kg"),
         // Measured forces and times: only its shape is the transcript's.
         Reply::Checked(_) => mask(line, |k| k == "type" || k == "verdict"),
+        Reply::Reverted(_) => mask(line, |k| k == "type"),
         Reply::Welcome { .. } | Reply::Error { .. } => line.to_string(),
     }
 }

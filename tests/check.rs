@@ -564,7 +564,36 @@ fn a_running_daemon_checks_its_device_and_applies_what_it_finds() {
     drop(observer);
     let (code, again) = check(&[]);
     assert_eq!(code, Some(0), "{again}");
-    // Another client owning the force keeps a check from moving the handle.
+    // `--revert --via-daemon` puts the calibration's model back, and the daemon compensates with
+    // it at once: the force it renders is the stale model's again, and a check finds the 30 g.
+    let out = with_daemon("warn", &["check", "--revert", "--via-daemon"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.contains("put back the model kept beside"), "{said}");
+    assert!(
+        said.contains("the daemon compensates with it now"),
+        "{said}"
+    );
+    assert_eq!(std::fs::read_to_string(&grid).unwrap(), before);
+    let mut observer =
+        hgcd::client::Client::connect(&socket, hgcd::client::Role::Observe, "observer").unwrap();
+    observer.set_read_timeout(Some(common::WAIT)).unwrap();
+    observer.subscribe(1000.0).unwrap();
+    let rendered_stale = (0..10_000)
+        .map(|_| observer.next_state().unwrap())
+        .any(|s| {
+            let x = nalgebra::Vector3::from(s.position);
+            s.gravity
+                .is_some_and(|g| (nalgebra::Vector3::from(g) - stale.force(&x)).norm() < 1e-9)
+        });
+    assert!(rendered_stale, "the daemon renders the model put back");
+    drop(observer);
+    let (code, stale_again) = check(&[]);
+    assert_eq!(code, Some(4), "{stale_again}");
+    // Another client owning the force keeps a check from moving the handle, and a revert from
+    // changing its force.
     let mut owner =
         hgcd::client::Client::connect(&socket, hgcd::client::Role::Control, "owner").unwrap();
     owner.set_read_timeout(Some(common::WAIT)).unwrap();
@@ -574,6 +603,14 @@ fn a_running_daemon_checks_its_device_and_applies_what_it_finds() {
     assert_eq!(out.status.code(), Some(1), "{out:?}");
     assert!(
         String::from_utf8_lossy(&out.stderr).contains("only it may start a check"),
+        "{out:?}"
+    );
+    let out = with_daemon("warn", &["check", "--revert", "--via-daemon"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("only it may put back a model"),
         "{out:?}"
     );
     drop(owner);

@@ -271,6 +271,14 @@ impl Client {
         self.send(&Request::Check { apply })
     }
 
+    /// Ask the daemon to put back the model kept beside its grid, without waiting: a
+    /// `Reply::Reverted` follows, or a `Reply::Error`.
+    ///
+    /// Errors: [`ClientError::Io`] when the daemon is gone.
+    pub fn request_revert(&mut self) -> Result<(), ClientError> {
+        self.send(&Request::Revert {})
+    }
+
     /// Ask for the daemon's status without waiting for it: it arrives as a `Reply::Status`.
     ///
     /// Errors: [`ClientError::Io`] when the daemon is gone.
@@ -309,17 +317,28 @@ impl Client {
                 .chain(s.grid.as_mut())
                 .chain(s.owner.as_mut())
                 .collect(),
+            Reply::Reverted(r) => r
+                .applied_now
+                .iter_mut()
+                .chain(r.applied_before.iter_mut())
+                .filter_map(|a| a.hgcd_version.as_mut())
+                .collect(),
             Reply::Welcome { .. } | Reply::State(_) | Reply::Checked(_) => Vec::new(),
         };
         for text in texts {
             text.retain(|c| !c.is_control());
         }
-        if let Reply::Checked(found) = &mut reply {
-            for path in std::iter::once(&mut found.grid).chain(found.applied.as_mut()) {
-                let mut text = path.to_string_lossy().into_owned();
-                text.retain(|c| !c.is_control());
-                *path = text.into();
-            }
+        let paths: Vec<&mut std::path::PathBuf> = match &mut reply {
+            Reply::Checked(found) => std::iter::once(&mut found.grid)
+                .chain(found.applied.as_mut())
+                .collect(),
+            Reply::Reverted(r) => vec![&mut r.grid],
+            _ => Vec::new(),
+        };
+        for path in paths {
+            let mut text = path.to_string_lossy().into_owned();
+            text.retain(|c| !c.is_control());
+            *path = text.into();
         }
         match reply {
             Reply::Error {

@@ -8,6 +8,7 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::config::CompensationMode;
+use crate::grid::AppliedRecord;
 use crate::mailbox::PublishedState;
 use crate::servo::StatsSnapshot;
 
@@ -64,6 +65,10 @@ pub enum Request {
         #[serde(default)]
         apply: bool,
     },
+    /// `hgcd check --revert` on the daemon's device: put back the model kept beside its grid
+    /// (before the last `check --apply` or calibration) and compensate with it at once; a
+    /// `reverted` reply. Nothing moves the handle.
+    Revert {},
     /// One status reply.
     Status {},
 }
@@ -89,6 +94,8 @@ pub enum Reply {
     Status(Box<Status>),
     /// The answer of a `check`, after its progress as `calibration` events.
     Checked(Box<Check>),
+    /// The answer of a `revert`: the model put back, now compensated.
+    Reverted(Box<Reverted>),
     /// Calibration progress.
     Calibration {
         event: CalibrationStage,
@@ -326,6 +333,15 @@ pub struct Check {
     pub warning: Option<String>,
 }
 
+/// What `hgcd check --revert` put back (the `reverted` reply, or printed).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Reverted {
+    pub grid: PathBuf,
+    /// The changes taken into the model put back, and into the one it replaced.
+    pub applied_now: Vec<AppliedRecord>,
+    pub applied_before: Vec<AppliedRecord>,
+}
+
 /// Why a request line was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RequestError {
@@ -501,6 +517,7 @@ mod tests {
                 Request::Hello { .. }
                 | Request::Calibrate {}
                 | Request::Check { .. }
+                | Request::Revert {}
                 | Request::Status {} => {}
             }
         }
@@ -530,6 +547,7 @@ mod tests {
                 .prop_map(|rate_hz| Request::Subscribe { rate_hz }),
             Just(Request::Calibrate {}),
             any::<bool>().prop_map(|apply| Request::Check { apply }),
+            Just(Request::Revert {}),
             Just(Request::Status {}),
         ]
     }

@@ -87,6 +87,10 @@ pub enum HubRequest {
         client: u64,
         apply: bool,
     },
+    /// `hgcd check --revert --via-daemon`: the model kept beside the grid put back.
+    Revert {
+        client: u64,
+    },
     Status {
         client: u64,
     },
@@ -457,6 +461,10 @@ fn serve_client(
                 session.calibrate(HubRequest::Check { client: id, apply });
                 Ok(())
             }
+            Request::Revert {} => {
+                session.calibrate(HubRequest::Revert { client: id });
+                Ok(())
+            }
         };
         if let Err(reason) = handled {
             return fatal(ctx, id, reason);
@@ -569,14 +577,17 @@ impl Session<'_> {
         }
     }
 
-    /// `calibrate` and `check` (both move the handle): refused while another client owns the
-    /// force; otherwise the hub decides.
+    /// `calibrate`, `check` (both move the handle) and `revert` (changes the force the handle
+    /// gets): refused while another client owns the force; otherwise the hub decides.
     fn calibrate(&self, request: HubRequest) {
         let owner = lock(&self.ctx.registry).owner;
         if owner.is_some_and(|o| o != self.id) {
             self.refuse(match request {
                 HubRequest::Check { .. } => {
                     "another client owns the force: only it may start a check"
+                }
+                HubRequest::Revert { .. } => {
+                    "another client owns the force: only it may put back a model"
                 }
                 _ => "another client owns the force: only it may start a calibration",
             });

@@ -29,7 +29,7 @@ use crate::grid::{
 };
 use crate::transport::{self, Pacing};
 
-pub use crate::app::protocol::{Check, Hold, Verdict};
+pub use crate::app::protocol::{Check, Hold, Reverted, Verdict};
 
 /// A hold agrees with the model when they differ by at most this share of the model's force
 /// there, or [`TOLERANCE_MIN`], whichever is larger: twice the calibration's own accuracy
@@ -302,15 +302,6 @@ fn backup_of(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
-/// What `hgcd check --revert` put back.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Reverted {
-    pub grid: PathBuf,
-    /// The changes taken into the model put back, and into the one it replaced.
-    pub applied_now: Vec<AppliedRecord>,
-    pub applied_before: Vec<AppliedRecord>,
-}
-
 /// `hgcd check --revert`: put back the model kept beside the device's grid (or `request.grid`),
 /// the one the last `--apply` or calibration replaced; the replaced one is kept in its turn, so
 /// a second revert undoes the first. The device is opened to tell which grid is its own;
@@ -334,6 +325,24 @@ fn revert_grid(
     device: &DeviceIdentity,
 ) -> Result<Reverted, CheckError> {
     let (current, path) = device_grid(grid, state_dir, device)?;
+    revert_file(current, path, device)
+}
+
+/// `hgcd check --revert --via-daemon`: the daemon puts back the model kept beside its grid
+/// `path`, of its `device`, before it compensates with it.
+///
+/// # Errors
+/// As [`revert`], but for opening the device (the daemon has it open).
+pub fn revert_at(path: &Path, device: &DeviceIdentity) -> Result<Reverted, CheckError> {
+    let current = GridFile::load_for(path, device).map_err(GridModelError::Grid)?;
+    revert_file(current, path.to_path_buf(), device)
+}
+
+fn revert_file(
+    current: GridFile,
+    path: PathBuf,
+    device: &DeviceIdentity,
+) -> Result<Reverted, CheckError> {
     let kept = backup_of(&path);
     let previous = match GridFile::load_for(&kept, device) {
         Err(GridError::Missing { .. }) => return Err(CheckError::NothingKept { path }),

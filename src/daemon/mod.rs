@@ -530,7 +530,37 @@ impl Hub {
                     ),
                 }
             }
+            HubRequest::Revert { client } => {
+                let reply = match self.revert() {
+                    Ok(reverted) => Reply::Reverted(Box::new(reverted)),
+                    Err(message) => Reply::Error {
+                        message,
+                        fatal: false,
+                    },
+                };
+                self.reply(client, reply);
+            }
         }
+    }
+
+    /// `hgcd check --revert --via-daemon`: the model kept beside the grid put back and
+    /// compensated at once. Refused while a calibration or check runs (it would replace the
+    /// grid under it); a grid put back that will not load leaves the model in use, and says so.
+    fn revert(&mut self) -> Result<check::Reverted, String> {
+        if self.calibration.is_some() {
+            return Err("a calibration or a check is running: put the model back after it".into());
+        }
+        let reverted = check::revert_at(&self.grid_path, &self.device).map_err(|e| chain(&e))?;
+        let model = load_model(&self.config, &self.device, &self.grid_path).map_err(|e| {
+            error!("the model put back cannot be loaded; the model in use stays: {e:#}");
+            format!("the model put back cannot be loaded ({e:#}); the model in use stays")
+        })?;
+        info!(
+            "put back the model kept as {}.bak; compensating with it",
+            self.grid_path.display()
+        );
+        self.swap_model(model);
+        Ok(reverted)
     }
 
     /// Start a calibration on the servo thread for `client`: the daemon's own, or a check's

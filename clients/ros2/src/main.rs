@@ -749,7 +749,10 @@ fn daemon_loop(
                         warn!("the daemon says: {message}{}", more(n));
                     }
                 }
-                Reply::Welcome { .. } | Reply::State(_) | Reply::Checked(_) => {}
+                Reply::Welcome { .. }
+                | Reply::State(_)
+                | Reply::Checked(_)
+                | Reply::Reverted(_) => {}
             }
         }
         thread::sleep(Duration::from_millis(5));

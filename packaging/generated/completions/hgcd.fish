@@ -111,7 +111,7 @@ complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l yes -d 'Do not ask f
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l json -d 'Print one JSON object (verdict, payload_g, tilt_deg, tilt_axis, device_time_s, holds)'
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l apply -d 'Take a payload and tilt found into the grid, keeping the model before as GRID.bak'
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l revert -d 'Put back the model kept as GRID.bak (before the last --apply or calibration); nothing is measured'
-complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l via-daemon -d 'Ask the running daemon to check its device against its grid (with --apply it takes the change in and compensates it at once); --device then names the daemon'
+complete -c hgcd -n "__fish_hgcd_using_subcommand check" -l via-daemon -d 'Ask the running daemon to check its device against its grid (with --apply it takes the change in and compensates it at once; with --revert it puts the kept model back and compensates with it); --device then names the daemon'
 complete -c hgcd -n "__fish_hgcd_using_subcommand check" -s h -l help -d 'Print help'
 complete -c hgcd -n "__fish_hgcd_using_subcommand status" -l device -d 'Only the daemon of this device (a device id or spec; default: every daemon running)' -r
 complete -c hgcd -n "__fish_hgcd_using_subcommand status" -l state-dir -d 'Directory of calibration grids (default: config `paths.state_dir`, $STATE_DIRECTORY, /var/lib/hgcd if this user may write there, else ~/.local/state/hgcd)' -r -F
