@@ -314,6 +314,7 @@ fn assert_sweep_shows_the_arm_holds_the_workspace(case: &str, run: &Validation) 
     let everywhere = number(&cube["residual_pct"]["p95"]);
     let newtons = number(&cube["residual_mn"]["p95"]);
     assert!(everywhere <= 5.0, "{case}: p95 {everywhere} %");
+    assert!(newtons <= 5.0, "{case}: p95 {newtons} mN");
     let lattice = &json["exact_lattice"];
     assert_eq!(number(&lattice["spacing_mm"]), 40.0, "{case}");
     let bound = number(&lattice["residual_pct"]["p95"]);
