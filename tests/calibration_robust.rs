@@ -666,6 +666,38 @@ fn phantom_and_woodenhaptics_calibrate_within_2_percent_with_handle_side_frictio
     }
 }
 
+/// A handle whose friction follows the push (the point mass's ball of Coulomb friction) is read
+/// by one stroke along (1, 1, 1) a vertex, where three along the diagonals took three times as
+/// long: the 27-vertex cube at 0.04 N and 0.08 N in under 120 s of device time (284 s with
+/// three strokes), every vertex within 0.05 % of the plant's force: 2.75 s of strokes a vertex.
+/// A linkage without an arm profile shows joint friction at its first bands and keeps the
+/// three (9 s a vertex): `sim:phantom` as a Cartesian device.
+#[test]
+fn a_handle_whose_friction_follows_the_push_is_read_by_one_stroke_a_vertex() {
+    for friction in [0.04, 0.08] {
+        let device = Device::point_mass(0.12, friction, 0.0, 1);
+        let (result, _) = device.calibrate();
+        assert!(result.unreachable.is_empty());
+        assert_every_vertex_within(&device, &result, 0.0005);
+        assert!(
+            result.duration < 120.0,
+            "{friction} N: {} s",
+            result.duration
+        );
+        let per_vertex = result.time_spent.strokes / 27.0;
+        assert!(
+            per_vertex < 3.0,
+            "{friction} N: {per_vertex} s of strokes a vertex"
+        );
+    }
+    let mut cartesian = Device::linkage("phantom", 1);
+    cartesian.config.device.profile = "cartesian-v1".into();
+    cartesian.config.sim.coulomb_friction_n = 0.04;
+    let (result, _) = cartesian.calibrate();
+    let per_vertex = result.time_spent.strokes / 27.0;
+    assert!(per_vertex > 8.0, "{per_vertex} s of strokes a vertex");
+}
+
 /// PHANToM unit 2, noise seed 2, 0.04 N at the handle: the handle rests on one encoder
 /// reading without flicker while it is caught, so no step shows and the slip threshold assumed
 /// a fine encoder. A reading flipping by one step then passed for a slip: the bands read 6 mN

@@ -732,6 +732,13 @@ impl Strokes {
         Self::new(stroke, centre, DIAGONALS.map(|d| d.normalize()), now)
     }
 
+    /// One stroke at `centre` along the diagonal (1, 1, 1): every axis slides on both passes, so
+    /// where friction follows the push (a ball of friction, or one per axis) its friction flips
+    /// and the one stroke measures all three components of the holding force.
+    pub fn along_a_diagonal(stroke: Stroke, centre: Vector3<f64>, now: f64) -> Self {
+        Self::along(stroke, centre, DIAGONALS[0].normalize(), now)
+    }
+
     /// One stroke at `centre` along `direction` (a unit vector): the mean commanded force over
     /// its two windows is the whole holding force, where every joint of a linkage slides on
     /// both passes and so flips its friction (see [`Strokes::along_the_arm`]).

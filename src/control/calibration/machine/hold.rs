@@ -292,7 +292,15 @@ impl Calibration {
                 Strokes::along_the_arm(Stroke::MEASURE_ALONG_THE_ARM, &arm, vertex.position, s.time)
             })
             .unwrap_or_else(|| {
-                Strokes::through_every_joint(Stroke::MEASURE, vertex.position, s.time)
+                if self.joint_friction {
+                    Strokes::through_every_joint(Stroke::MEASURE, vertex.position, s.time)
+                } else {
+                    Strokes::along_a_diagonal(
+                        Stroke::MEASURE_ALONG_THE_ARM,
+                        vertex.position,
+                        s.time,
+                    )
+                }
             });
         self.phase = Phase::Strokes { strokes, run };
         ControlOutput::force(self.hold_force(&vertex.position, s, &self.estimate))
