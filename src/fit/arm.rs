@@ -138,12 +138,15 @@ pub fn fit_arm(
     // Parameters that act only through a tilt (a serial arm's base moments: nothing under the
     // arm's own up) are kept only where they explain the holds beyond what noise would: from a
     // base a hundredth of a degree off level they fit the holds' noise.
+    let level: Vec<_> = holds
+        .iter()
+        .map(|h| arm.force_regressor(&h.position, &arm.up(), g))
+        .collect();
     let tilt_only: Vec<usize> = (0..parameters)
         .filter(|&c| {
-            holds.iter().all(|h| {
-                let r = arm.force_regressor(&h.position, &arm.up(), g);
-                r.is_some_and(|r| r.column(c).norm() == 0.0)
-            })
+            level
+                .iter()
+                .all(|r| r.is_some_and(|r| r.column(c).norm() == 0.0))
         })
         .collect();
     if !tilt_only.is_empty() {

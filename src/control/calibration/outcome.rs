@@ -40,6 +40,27 @@ pub struct VertexResult {
     pub failure: Option<CalibrationFailure>,
 }
 
+impl VertexResult {
+    /// A vertex not reached (nothing measured there yet): its values to be filled from its
+    /// neighbours.
+    pub fn not_reached(vertex: Vertex) -> Self {
+        Self {
+            vertex,
+            mass: 0.0,
+            force: Vector3::zeros(),
+            held_force: Vector3::zeros(),
+            one_sided_force: Vector3::zeros(),
+            friction: Vector3::zeros(),
+            iterations: 0,
+            final_error: 0.0,
+            measured_at: vertex.position,
+            duration: 0.0,
+            reached: false,
+            failure: None,
+        }
+    }
+}
+
 /// What the initialisation measured at the rest point X_C.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InitialMeasurement {

@@ -684,20 +684,7 @@ impl Calibration {
             ordered[self.plan.grid_index[k]] = *r;
         }
         for &(vertex, flat) in &self.plan.extrapolated {
-            ordered[flat] = Some(VertexResult {
-                vertex,
-                mass: 0.0,
-                force: Vector3::zeros(),
-                held_force: Vector3::zeros(),
-                one_sided_force: Vector3::zeros(),
-                friction: Vector3::zeros(),
-                iterations: 0,
-                final_error: 0.0,
-                measured_at: vertex.position,
-                duration: 0.0,
-                reached: false,
-                failure: None,
-            });
+            ordered[flat] = Some(VertexResult::not_reached(vertex));
         }
         let mut vertices = ordered.into_iter().collect::<Option<Vec<VertexResult>>>()?;
         let load = self.initial.load;

@@ -548,18 +548,11 @@ impl Calibration {
     ) -> ControlOutput {
         let vertex = self.plan.path[self.vertex];
         self.results[self.vertex] = Some(VertexResult {
-            vertex,
-            mass: 0.0,
-            force: Vector3::zeros(),
-            held_force: Vector3::zeros(),
-            one_sided_force: Vector3::zeros(),
-            friction: Vector3::zeros(),
             iterations: self.iteration,
             final_error: distance,
-            measured_at: vertex.position,
             duration: s.time - self.vertex_began,
-            reached: false,
             failure,
+            ..VertexResult::not_reached(vertex)
         });
         self.emit(CalibrationEvent::VertexUnreachable {
             vertex: self.vertex,
