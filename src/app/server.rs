@@ -40,6 +40,8 @@ pub struct ClientEntry {
     /// Send every n-th servo state; 0: not subscribed.
     pub state_divider: u64,
     pub outbound: Sender<Reply>,
+    /// Its welcome is queued: events for every client may follow it (never precede it).
+    welcomed: bool,
     /// Admitted beyond `max_clients`: may only ask for status, closed at its hello deadline.
     status_only: bool,
     stream: UnixStream,
@@ -59,6 +61,16 @@ impl Registry {
         self.owner
             .and_then(|id| self.clients.get(&id))
             .map(|c| c.name.clone())
+    }
+
+    /// The queues of every welcomed client, for an event all of them get. A client still
+    /// saying hello gets it only after its welcome, or not at all.
+    pub fn welcomed_outbound(&self) -> Vec<Sender<Reply>> {
+        self.clients
+            .values()
+            .filter(|c| c.welcomed)
+            .map(|c| c.outbound.clone())
+            .collect()
     }
 
     /// Close every connection (daemon shutdown).
@@ -218,6 +230,7 @@ fn accept(stream: UnixStream, ctx: &Arc<ServerContext>) {
                 role: Role::Observe,
                 state_divider: 0,
                 outbound: tx,
+                welcomed: false,
                 status_only: full,
                 stream: clone,
             },
@@ -507,10 +520,24 @@ impl Session<'_> {
         }
         self.greeted = true;
         let ctx = self.ctx;
+        let welcome = |granted| Reply::Welcome {
+            version: APP_PROTOCOL_VERSION,
+            role: granted,
+            client_id: self.id,
+            device: ctx.device.clone(),
+            device_id: ctx.device_id.clone(),
+            rate_hz: ctx.rate_hz,
+            max_force_n: ctx.max_force,
+        };
+        // The welcome is queued under the registry's lock, with the client marked welcomed, so
+        // that no event sent to every client can reach it first (its queue is empty: nothing
+        // but a hello is answered before the welcome), and after the servo thread was told who
+        // owns the force, so that the owner's first force cannot reach it first.
         let granted = {
             let mut reg = lock(&ctx.registry);
             let granted = if role == Role::Control && reg.owner.is_none() && !self.status_only {
                 reg.owner = Some(self.id);
+                send_command(ctx, ServoCommand::SetOwner(Some(self.id)));
                 Role::Control
             } else {
                 Role::Observe
@@ -520,25 +547,10 @@ impl Session<'_> {
                     c.name = name.chars().take(64).collect();
                 }
                 c.role = granted;
+                c.welcomed = c.outbound.try_send(welcome(granted)).is_ok();
             }
             granted
         };
-        if granted == Role::Control {
-            send_command(ctx, ServoCommand::SetOwner(Some(self.id)));
-        }
-        reply(
-            ctx,
-            self.id,
-            Reply::Welcome {
-                version: APP_PROTOCOL_VERSION,
-                role: granted,
-                client_id: self.id,
-                device: ctx.device.clone(),
-                device_id: ctx.device_id.clone(),
-                rate_hz: ctx.rate_hz,
-                max_force_n: ctx.max_force,
-            },
-        );
         if self.status_only {
             self.refuse(STATUS_ONLY);
         } else if role == Role::Control && granted != Role::Control {
@@ -653,6 +665,54 @@ mod tests {
         assert!(took >= Duration::from_millis(100), "{took:?}");
         // Generous: a loaded machine may wake late, but not by seconds.
         assert!(took < Duration::from_secs(5), "{took:?}");
+    }
+
+    /// An event sent to every client (the daemon's "the model no longer fits") reaches a client
+    /// that is still saying hello only after its welcome: its hello would otherwise be answered
+    /// by the event, and it would take the daemon for a stranger.
+    #[test]
+    fn an_event_for_every_client_never_precedes_a_welcome() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("hgcd.sock");
+        let (commands, offsets, _servo, _hub_mailbox) = crate::mailbox::mailbox();
+        let (hub, _hub_requests) = crossbeam_channel::unbounded();
+        let registry = SharedRegistry::default();
+        let ctx = Arc::new(ServerContext {
+            registry: registry.clone(),
+            commands,
+            offsets,
+            hub,
+            device: "sim:point-mass".into(),
+            device_id: "sim-point-mass".into(),
+            rate_hz: 1000.0,
+            max_force: 8.0,
+            max_clients: 4,
+            hello_timeout: Duration::from_secs(60),
+        });
+        let stop = Arc::new(AtomicBool::new(false));
+        let listener =
+            spawn_listener(bind(&path, 0o600).unwrap(), path.clone(), ctx, stop.clone()).unwrap();
+        let mut client = crate::client::Client::open(&path).unwrap();
+        while lock(&registry).clients.is_empty() {
+            thread::sleep(Duration::from_millis(1));
+        }
+        let event = Reply::Error {
+            message: "for everyone".into(),
+            fatal: false,
+        };
+        let everyone = lock(&registry).welcomed_outbound();
+        assert!(everyone.is_empty(), "a client not yet welcomed");
+        client.hello(Role::Observe, "late").unwrap();
+        for tx in lock(&registry).welcomed_outbound() {
+            tx.send(event.clone()).unwrap();
+        }
+        client
+            .set_read_timeout(Some(Duration::from_secs(60)))
+            .unwrap();
+        assert_eq!(client.next_reply().unwrap(), event);
+        stop.store(true, Ordering::Relaxed);
+        drop(client);
+        listener.join().unwrap();
     }
 
     /// What `read_line` must make of `bytes`, written out on its own: the lines, then how the

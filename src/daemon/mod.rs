@@ -394,11 +394,7 @@ impl Hub {
                 }
             ),
         };
-        let outbound: Vec<_> = lock(&self.registry)
-            .clients
-            .values()
-            .map(|c| c.outbound.clone())
-            .collect();
+        let outbound = lock(&self.registry).welcomed_outbound();
         for tx in outbound {
             let _ = tx.send_timeout(event.clone(), server::REPLY_WAIT);
         }
