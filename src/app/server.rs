@@ -692,7 +692,7 @@ mod tests {
         let stop = Arc::new(AtomicBool::new(false));
         let listener =
             spawn_listener(bind(&path, 0o600).unwrap(), path.clone(), ctx, stop.clone()).unwrap();
-        let mut client = crate::client::Client::open(&path).unwrap();
+        let mut client = crate::app::client::Client::open(&path).unwrap();
         while lock(&registry).clients.is_empty() {
             thread::sleep(Duration::from_millis(1));
         }

@@ -1,7 +1,8 @@
 //! Gravity models fitted from holds, and the held-out score that chooses among them.
 //!
 //! Calibration measures *holds*: where the handle was held and the force that held it there.
-//! This module turns them into the parameters of a model, off the servo thread:
+//! This module turns them into the parameters of a model, off the servo thread (all but
+//! [`predict`], which the calibration runs on it as holds come in):
 //! - the paper's scalar lattice (M(X) g v_G) and the vector lattice (the holding forces
 //!   themselves), interpolated trilinearly: they need no knowledge of the device, and hold
 //!   nothing beyond the calibrated cube;
@@ -16,11 +17,14 @@
 //! chosen.
 //!
 //! The parts: [`lattice`] (the holds at a grid's vertices completed into the grid both lattices
-//! interpolate), [`arm`] (the arm model's fit) and this file (the held-out choice).
+//! interpolate), [`arm`] (the arm model's fit), [`geometry`] (the unit's own geometry),
+//! [`predict`] (the arm's gravity fitted as a calibration's holds come in, to predict the next
+//! one) and this file (the held-out choice).
 
 pub mod arm;
 pub mod geometry;
 pub mod lattice;
+pub mod predict;
 
 use nalgebra::Vector3;
 

@@ -23,8 +23,7 @@
 //!    neighbours) and `calibrate::persist` builds the grid file with the model chosen.
 //!
 //! The parts: `plan.rs` (which vertices, in which order), `steady.rs` (when the handle is at
-//! rest), `probe.rs` (the stick band, the moving mass and the strokes), `predict.rs` (the next
-//! vertex's force from the arm's gravity fitted so far), `machine/` (the controller, one
+//! rest), `probe.rs` (the stick band, the moving mass and the strokes), `machine/` (the controller, one
 //! method per phase: its state and dispatch in `mod.rs`, the phases in `initialise.rs`,
 //! `visit.rs` and `hold.rs`) and `outcome.rs` (result or failure). The PD law is
 //! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force).
@@ -34,7 +33,6 @@ pub mod explore;
 mod machine;
 mod outcome;
 mod plan;
-mod predict;
 mod probe;
 pub(crate) mod steady;
 

@@ -25,7 +25,6 @@ use super::outcome::{
     CalibrationFailure, CalibrationResult, InitialMeasurement, TimeSpent, VertexResult,
 };
 use super::plan::{GridPlan, PlanError, Vertex};
-use super::predict::ArmPrediction;
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Stroked, Strokes};
 use super::steady::{NoiseMeter, SteadyState};
 use super::CalibrationParams;
@@ -34,6 +33,7 @@ use crate::control::pd::{AxisGains, PointHold};
 use crate::control::{ControlOutput, Controller, DeviceState};
 use crate::estimate::Foaw;
 use crate::fit::lattice;
+use crate::fit::predict::ArmPrediction;
 
 /// Progress, sent with `try_send` from the servo thread.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -28,7 +28,7 @@ const RIDGE_NOISE: f64 = 1e-4;
 const RIDGE_SCALE: f64 = 0.1;
 /// A fit whose holds' residual per degree of freedom it leaves exceeds this (RMS) predicts
 /// nothing, N: its arm is not this device's, and the neighbours predict as well. The strokes
-/// tolerate a feedforward 30 mN off (`STROKE_REPEAT` in `machine/mod.rs`); the simulated linkages'
+/// tolerate a feedforward 30 mN off (`STROKE_REPEAT` in `control/calibration/machine/mod.rs`); the simulated linkages'
 /// holds leave 0.2–2.5 mN.
 const MAX_RESIDUAL: f64 = 0.01;
 /// Newton steps over the tilt at most, the step (rad) below which they stop, the angle of the
@@ -48,7 +48,7 @@ const MAX_TILT_COS: f64 = 0.829;
 
 /// The sums of the arm's regressors over the vertices measured so far, and the fit they give.
 #[derive(Clone, Copy, Debug)]
-pub(super) struct ArmPrediction {
+pub struct ArmPrediction {
     arm: Arm,
     /// m/s².
     g: f64,
