@@ -770,8 +770,9 @@ pub struct CompensationConfig {
     /// An `hgcd-model/1` file (`hgcd analyze`'s model.toml): its effect is added to the grid's
     /// compensation when it is a force of the position alone (payload, gravity tilt, spring).
     pub effect_file: Option<PathBuf>,
-    /// A payload the daemon notices in use (a released handle that keeps sinking or rising,
-    /// docs/calibration.md §2.3) is taken into the compensation it runs, not only reported.
+    /// A payload the daemon notices in use on a released handle (one that keeps sinking or
+    /// rising, docs/calibration.md §2.3) is taken into the compensation it runs, not only
+    /// reported. One shown by an application's offsets is only reported.
     pub auto_update: bool,
     /// The largest payload `auto_update` takes in, g (either sign); one beyond is only reported.
     pub auto_update_max_g: f64,

@@ -278,3 +278,59 @@ fn sighup_gives_the_simulated_device_the_payload_of_its_edited_config() {
     let (_, stale, event) = noticed(&rig, &mut client);
     assert_estimate(&stale, event);
 }
+
+/// An application's spring holds the handle still at three places in turn while the payload has
+/// grown by 30 g: the offsets that hold it are the same wherever it rests, and read as the
+/// payload, reported with its estimate; with `auto_update` on it is not taken in (only what a
+/// released handle shows is). The application's force reaches the servo before the next ticks
+/// run: each `set_force` is followed by a status round trip on the same connection.
+#[test]
+fn an_application_holding_the_heavier_handle_still_shows_the_payload() {
+    let rig = start(true);
+    let mut observer = rig.client();
+    let mut app = Client::connect(&rig.daemon.socket, Role::Control, "spring").unwrap();
+    app.set_read_timeout(Some(WAIT)).unwrap();
+    let mut s = rig.run(&mut observer, 100);
+    let start = Vector3::from(s.position);
+    let (stiffness, damping) = (200.0, 4.0);
+    let mut spring = |s: &StateSample, anchor: Vector3<f64>| {
+        let x = Vector3::from(s.position);
+        let v = Vector3::from(s.velocity);
+        app.set_force(stiffness * (anchor - x) - damping * v)
+            .unwrap();
+        app.status().unwrap();
+    };
+    spring(&s, start);
+    rig.world.set(PAYLOAD, tilted_v_g());
+    let mut found = None;
+    'places: for dx in [0.0, 0.02, 0.04] {
+        let anchor = start + Vector3::x() * dx;
+        // Two seconds at each place: the spring settles the handle in about one, and a rest
+        // takes 0.2 s.
+        for _ in 0..200 {
+            s = rig.run(&mut observer, 10);
+            spring(&s, anchor);
+            let status = observer.status().unwrap();
+            if let Some(stale) = status.model_stale {
+                found = Some(stale);
+                break 'places;
+            }
+        }
+    }
+    let stale = found.expect("the payload is noticed at the third place");
+    println!(
+        "noticed: {:+.2} g, {:.2} mN sideways, at {:.2} s",
+        stale.payload_g,
+        stale.sideways_n * 1e3,
+        stale.device_time_s
+    );
+    assert!(
+        (stale.payload_g - 30.0).abs() <= 0.2 * 30.0,
+        "{} g",
+        stale.payload_g
+    );
+    assert!(
+        !stale.auto_updated,
+        "a held handle's evidence is not taken in"
+    );
+}

@@ -46,7 +46,7 @@ use crate::servo::{self, ServoError, ServoEvent, ServoOptions, ServoReport};
 use crate::sim::LiveWorld;
 use crate::transport::{self, Pacing, Transport, TransportError};
 use controller::DaemonController;
-use watch::{ModelWatch, Noticed};
+use watch::{Evidence, ModelWatch, Noticed, HELD_RESTS};
 
 /// What `hgcd run` was asked to do.
 #[derive(Clone, Debug)]
@@ -354,19 +354,40 @@ impl Hub {
 
     /// The model in use no longer fits the device: say so once (journal, status, a
     /// `calibration` event `stale` to every client), and with `compensation.auto_update` take a
-    /// payload within its bound into the compensation.
+    /// payload within its bound, shown by a released handle, into the compensation.
     fn noticed(&mut self, noticed: Noticed) {
         let grams = noticed.payload_kg * 1e3;
         let c = &self.config.compensation;
-        let take = c.auto_update && grams.abs() <= c.auto_update_max_g;
+        let released = noticed.evidence == Evidence::Released;
+        let take = c.auto_update && released && grams.abs() <= c.auto_update_max_g;
+        let (shown, by) = if released {
+            (
+                format!(
+                    "a released handle kept {} at {:.1} s",
+                    if grams >= 0.0 { "sinking" } else { "rising" },
+                    noticed.time
+                ),
+                "what a released handle did",
+            )
+        } else {
+            (
+                format!(
+                    "an application's force held the handle still at {HELD_RESTS} places with \
+                     the same offset, the last at {:.1} s",
+                    noticed.time
+                ),
+                "what an application held the handle with",
+            )
+        };
         warn!(
-            "the gravity model no longer fits: a released handle kept {} at {:.1} s; a payload \
-             of {grams:+.1} g explains it ({:.1} mN across gravity left){}",
-            if grams >= 0.0 { "sinking" } else { "rising" },
-            noticed.time,
+            "the gravity model no longer fits: {shown}; a payload of {grams:+.1} g explains it \
+             ({:.1} mN across gravity left){}",
             noticed.sideways_n * 1e3,
             if take {
                 "; taking it in (compensation.auto_update; SIGHUP goes back to the grid)"
+            } else if c.auto_update && !released {
+                "; not taken in (compensation.auto_update takes what a released handle shows): \
+                 run hgcd check or calibrate"
             } else if c.auto_update {
                 "; over compensation.auto_update_max_g, not taken in: run hgcd check or calibrate"
             } else {
@@ -385,8 +406,7 @@ impl Hub {
             of: None,
             mass_kg: Some(noticed.payload_kg),
             message: format!(
-                "the gravity model no longer fits: a payload of {grams:+.1} g explains what a \
-                 released handle did{}",
+                "the gravity model no longer fits: a payload of {grams:+.1} g explains {by}{}",
                 if take {
                     "; taken into the compensation"
                 } else {

@@ -9,6 +9,14 @@
 //! gives a; [`WINDOWS`] windows in a row that one missed force and one damping explain within
 //! [`AGREEMENT`] give the force the model misses: the payload's weight along v_G, something
 //! else across it. A hand on the handle, a stop, a bump do not move it that way for long.
+//!
+//! While an application renders a force (its own spring, say) and the handle rests, the
+//! application's offset holds what the model misses, give or take the friction: at rest
+//! F_missed = offset + f_s with |f_s| ≤ f along each axis. A hand on the handle holds it still
+//! too, but a hand does not push with the same force wherever the handle is: only
+//! [`HELD_RESTS`] rests at places [`HELD_APART`] apart whose offsets agree within the friction
+//! (and [`AGREEMENT`] of the offset) read as a missed force, and only one beyond what friction
+//! could hold.
 
 use nalgebra::Vector3;
 
@@ -30,6 +38,13 @@ pub const MIN_FORCE: f64 = 0.005;
 pub const MIN_SHARE: f64 = 0.05;
 /// A velocity component below this is not moving against friction, m/s.
 const MOVING: f64 = 0.001;
+/// A rest under an application's force: the handle slower than [`MOVING`] for this long, s,
+/// the offset steady within the friction (or [`MIN_FORCE`]) all along.
+pub const HELD_TIME: f64 = 0.2;
+/// Rests whose offsets must agree, at places at least this far apart, m (not one stop pushed
+/// against again and again).
+pub const HELD_RESTS: usize = 3;
+pub const HELD_APART: f64 = 0.005;
 /// States further apart than this many of the shortest step seen break a window (dropped
 /// samples, a pause).
 const GAP_STEPS: f64 = 3.0;
@@ -43,6 +58,39 @@ pub struct Noticed {
     pub sideways_n: f64,
     /// Device time of the last state read, s.
     pub time: f64,
+    /// What showed it.
+    pub evidence: Evidence,
+}
+
+/// How a missed force showed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Evidence {
+    /// The released handle kept accelerating (sinking, for a payload added).
+    Released,
+    /// An application's force held the handle still at [`HELD_RESTS`] places with the same
+    /// offset.
+    HeldStill,
+}
+
+/// One stretch of rest under an application's offset: sums of the offset and the position,
+/// the offset's extremes.
+#[derive(Clone, Copy, Debug)]
+struct Held {
+    start: f64,
+    last: f64,
+    n: f64,
+    offset: Vector3<f64>,
+    position: Vector3<f64>,
+    low: Vector3<f64>,
+    high: Vector3<f64>,
+    force: f64,
+}
+
+/// A rest read: where, and the application's mean offset there, N.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Rest {
+    position: Vector3<f64>,
+    offset: Vector3<f64>,
 }
 
 /// The running fit of one window: sums of t, t², v and t v (t from the window's start).
@@ -76,6 +124,10 @@ pub struct ModelWatch {
     moving: usize,
     step: f64,
     noticed: bool,
+    /// The rest under an application's offset being read, and the last rests read, at places
+    /// [`HELD_APART`] apart (a rest near one kept replaces it).
+    held: Option<Held>,
+    rests: Vec<Rest>,
 }
 
 impl ModelWatch {
@@ -101,6 +153,8 @@ impl ModelWatch {
             model_force: 0.0,
             step: f64::INFINITY,
             noticed: false,
+            held: None,
+            rests: Vec::with_capacity(HELD_RESTS),
         }
     }
 
@@ -110,7 +164,19 @@ impl ModelWatch {
         let disturbed = s.status.bits()
             & (Status::FAULT | Status::FORCE_SATURATED | Status::DEVICE_WATCHDOG)
             != 0;
-        let finite = s.time.is_finite() && s.velocity.iter().all(|v| v.is_finite());
+        let finite = s.time.is_finite()
+            && s.velocity.iter().all(|v| v.is_finite())
+            && p.force.iter().all(|f| f.is_finite());
+        // Under an application's force (the model compensating beside it), rests are read;
+        // anything else (a calibration, a hold, no model) breaks a rest.
+        let offset = p.force - p.gravity;
+        let applied =
+            !p.gravity_only && p.gravity != Vector3::zeros() && offset != Vector3::zeros();
+        if self.noticed || !applied || disturbed || !finite {
+            self.held = None;
+        } else if let Some(noticed) = self.held_still(p, offset) {
+            return Some(noticed);
+        }
         if self.noticed || !p.gravity_only || disturbed || !finite {
             self.window = None;
             self.recent.clear();
@@ -163,6 +229,95 @@ impl ModelWatch {
         self.judge(s.time)
     }
 
+    /// A state under an application's `offset`: a rest of [`HELD_TIME`] ends, is kept, and
+    /// with [`HELD_RESTS`] kept is judged.
+    fn held_still(&mut self, p: &PublishedState, offset: Vector3<f64>) -> Option<Noticed> {
+        let s = &p.state;
+        let still = s.velocity.iter().all(|v| v.abs() <= MOVING);
+        let broken = self
+            .held
+            .is_some_and(|h| s.time <= h.last || s.time - h.last > GAP_STEPS * self.step);
+        if !still || broken {
+            self.held = None;
+            return None;
+        }
+        let h = self.held.get_or_insert(Held {
+            start: s.time,
+            last: s.time,
+            n: 0.0,
+            offset: Vector3::zeros(),
+            position: Vector3::zeros(),
+            low: offset,
+            high: offset,
+            force: 0.0,
+        });
+        if h.n > 0.0 {
+            self.step = self.step.min(s.time - h.last);
+        }
+        h.last = s.time;
+        h.n += 1.0;
+        h.offset += offset;
+        h.position += s.position;
+        h.low = h.low.inf(&offset);
+        h.high = h.high.sup(&offset);
+        h.force += p.gravity.norm();
+        let steady = (h.high - h.low)
+            .iter()
+            .zip(self.friction.iter())
+            .all(|(spread, f)| *spread <= f.max(MIN_FORCE));
+        if !steady {
+            // The application's force is changing: a new rest starts here.
+            self.held = None;
+            return None;
+        }
+        if s.time - h.start < HELD_TIME {
+            return None;
+        }
+        let h = self.held.take().expect("a rest");
+        self.model_force = h.force / h.n;
+        let rest = Rest {
+            position: h.position / h.n,
+            offset: h.offset / h.n,
+        };
+        self.rests
+            .retain(|r| (r.position - rest.position).norm() >= HELD_APART);
+        if self.rests.len() == HELD_RESTS {
+            self.rests.remove(0);
+        }
+        self.rests.push(rest);
+        self.judge_rests(s.time)
+    }
+
+    /// [`HELD_RESTS`] rests whose offsets agree within the friction and [`AGREEMENT`] of their
+    /// mean, the mean beyond what friction could hold by [`MIN_FORCE`] (and [`MIN_SHARE`] of
+    /// the model's force): the application holds a force the model misses, the same wherever
+    /// the handle rests.
+    fn judge_rests(&mut self, time: f64) -> Option<Noticed> {
+        if self.rests.len() < HELD_RESTS {
+            return None;
+        }
+        let missed = self.rests.iter().map(|r| r.offset).sum::<Vector3<f64>>() / HELD_RESTS as f64;
+        let agree = self.rests.iter().all(|r| {
+            (r.offset - missed)
+                .iter()
+                .zip(self.friction.iter())
+                .all(|(d, f)| d.abs() <= f + AGREEMENT * missed.norm())
+        });
+        let beyond_friction = missed.norm() - self.friction.norm();
+        if !agree || beyond_friction < MIN_FORCE.max(MIN_SHARE * self.model_force) {
+            return None;
+        }
+        // At rest the payload's weight is all of it: nothing accelerates.
+        let along = missed.dot(&self.up);
+        self.noticed = true;
+        Some(Noticed {
+            payload_kg: along / self.g,
+            sideways_n: (missed - self.up * along).norm(),
+            time,
+            evidence: Evidence::HeldStill,
+        })
+    }
+
     /// The last [`WINDOWS`] windows, all moving and not the first of their motion: a missed
     /// force that a steady model explains. Per window,
     /// M a + f sgn(v) = −F − c v with F the force missed and c a viscous damping, both
@@ -212,6 +367,7 @@ impl ModelWatch {
             payload_kg,
             sideways_n: (missed - self.up * along).norm(),
             time,
+            evidence: Evidence::Released,
         })
     }
 }
@@ -317,7 +473,7 @@ mod tests {
     }
 
     #[test]
-    fn a_handle_at_rest_or_held_by_an_application_says_nothing() {
+    fn a_handle_at_rest_or_moved_by_an_application_says_nothing() {
         let mut w = watch();
         assert!(falling(Vector3::zeros(), 0.12, 1000)
             .iter()
@@ -331,5 +487,84 @@ mod tests {
                 ..*p
             })
             .all(|p| w.observe(&p).is_none()));
+    }
+
+    /// The handle at rest at each of `places` in turn, held there by an application's offset
+    /// (the matching one of `offsets`) for half a second, moving at 10 mm/s for 20 ms between:
+    /// the states a watch reads, 1 kHz.
+    fn held_at(places: &[Vector3<f64>], offsets: &[Vector3<f64>]) -> Vec<PublishedState> {
+        let gravity = Vector3::z() * (0.12 * 9.81);
+        let mut states = Vec::new();
+        for (place, offset) in places.iter().zip(offsets) {
+            for k in 0..520u64 {
+                let n = states.len() as u64;
+                let time = n as f64 * 1e-3;
+                let moving = k < 20;
+                states.push(PublishedState {
+                    state: DeviceState {
+                        tick: n,
+                        time,
+                        host_time: time,
+                        position: *place,
+                        velocity: if moving {
+                            Vector3::x() * 0.01
+                        } else {
+                            Vector3::zeros()
+                        },
+                        status: Status::default().with(Status::MOTORS_ENABLED, true),
+                    },
+                    force: gravity + offset,
+                    gravity,
+                    offset_seq: 1,
+                    gravity_only: false,
+                });
+            }
+        }
+        states
+    }
+
+    fn places() -> [Vector3<f64>; 3] {
+        [0.0, 0.01, 0.02].map(|x| Vector3::new(x, 0.0, 0.0))
+    }
+
+    /// 30 g more than the model holds, held still by an application at three places: the
+    /// offsets hold its weight, give or take the friction (20 mN here), and read as the payload.
+    #[test]
+    fn an_application_holding_a_heavier_handle_still_at_three_places_shows_the_payload() {
+        let mut w = watch();
+        w.friction = Vector3::repeat(0.02);
+        let weight = Vector3::z() * (0.03 * 9.81);
+        let offsets = [0.015, -0.01, 0.0].map(|f| weight + Vector3::new(0.0, 0.0, f));
+        let found: Vec<Noticed> = held_at(&places(), &offsets)
+            .iter()
+            .filter_map(|p| w.observe(p))
+            .collect();
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert_eq!(found[0].evidence, Evidence::HeldStill);
+        assert!(
+            (found[0].payload_kg - 0.03).abs() < 0.02 / 9.81,
+            "{found:?}"
+        );
+        assert!(found[0].sideways_n < 1e-9, "{found:?}");
+    }
+
+    /// A hand holds the handle with a different force at each place; a stop holds it at one
+    /// place; friction alone holds an offset within it: none of these is a missed force.
+    #[test]
+    fn a_hand_a_stop_or_friction_holding_the_handle_says_nothing() {
+        let silent = |places: &[Vector3<f64>], offsets: &[Vector3<f64>]| {
+            let mut w = watch();
+            w.friction = Vector3::repeat(0.02);
+            held_at(places, offsets)
+                .iter()
+                .all(|p| w.observe(p).is_none())
+        };
+        let up = |f: f64| Vector3::z() * f;
+        assert!(silent(&places(), &[up(0.1), up(0.3), up(0.5)]));
+        assert!(silent(&[Vector3::zeros(); 3], &[up(0.3); 3]));
+        assert!(silent(&places(), &[up(0.015), up(-0.015), up(0.01)]));
+        // The same three rests beside a payload's weight are read (the cases above are not
+        // silent for want of rests).
+        assert!(!silent(&places(), &[up(0.3); 3]));
     }
 }
