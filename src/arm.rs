@@ -111,6 +111,39 @@ pub struct Arm {
     pub frame: ArmFrame,
 }
 
+/// How far a unit may sit from its profile (a profile's `[geometry_tolerances]`,
+/// docs/devices.md). A tolerance of 0 keeps that part of the profile's geometry as it is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GeometryTolerances {
+    /// The frame's origin, per axis, m.
+    pub origin: f64,
+    /// Each link's length, relative.
+    pub length: f64,
+    /// The delta's pivots' radius about its axis (the base less the platform radius), m.
+    pub radius: f64,
+}
+
+impl GeometryTolerances {
+    /// Where a profile says nothing: a unit made to the published drawings by ordinary
+    /// machining and assembly (the simulated units' spread: 1 mm, 0.5 %, 0.5 mm).
+    pub const DEFAULT: Self = Self {
+        origin: 1e-3,
+        length: 5e-3,
+        radius: 0.5e-3,
+    };
+
+    /// Whether nothing may move: the profile's geometry is the unit's.
+    pub fn exact(&self) -> bool {
+        self.origin == 0.0 && self.length == 0.0 && self.radius == 0.0
+    }
+}
+
+impl Default for GeometryTolerances {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
+}
+
 /// Names of the serial arm's base parameters, in order.
 const SERIAL_PARAMETERS: [&str; 6] = [
     "upper arm, along",

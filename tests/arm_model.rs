@@ -3,9 +3,9 @@
 //! plant's exact holds at the paper's cube it extrapolates to the whole workspace; a tilted base
 //! is found; the wrong arm is caught.
 
-use hgcd::arm::{Arm, ArmGravity, MAX_PARAMETERS};
+use hgcd::arm::{Arm, ArmGravity, ArmTable, MAX_PARAMETERS};
 use hgcd::config::{CompensationMode, Config};
-use hgcd::fit::{choose, fit_arm, fit_arm_and_geometry, Hold, LatticeHolds};
+use hgcd::fit::{choose, fit_arm, fit_arm_and_geometry, GeometryTolerances, Hold, LatticeHolds};
 use hgcd::profile::Profile;
 use hgcd::sim::delta::Delta;
 use hgcd::sim::phantom::Phantom;
@@ -125,7 +125,9 @@ fn the_units_own_geometry_is_estimated_from_its_holds() {
             .collect();
         let g = config.sim.g;
         let profile = fit_arm(&arm, &holds, g, &[arm.up()]).unwrap();
-        let (fitted, shift) = fit_arm_and_geometry(&arm, &holds, g, &[arm.up()]).unwrap();
+        let (fitted, shift) =
+            fit_arm_and_geometry(&arm, &holds, g, &[arm.up()], &GeometryTolerances::DEFAULT)
+                .unwrap();
         let shift = shift.expect("the geometry moved");
         let before = p95_mn(&truth, |x| profile.gravity.force(x));
         let after = p95_mn(&truth, |x| fitted.gravity.force(x));
@@ -152,7 +154,14 @@ fn the_units_own_geometry_is_estimated_from_its_holds() {
     let arm = profile_arm("delta", &config);
     let cube = cube_holds("delta", &config);
     let holds: Vec<Hold> = cube.holds.iter().flatten().copied().collect();
-    let (_, shift) = fit_arm_and_geometry(&arm, &holds, config.sim.g, &[arm.up()]).unwrap();
+    let (_, shift) = fit_arm_and_geometry(
+        &arm,
+        &holds,
+        config.sim.g,
+        &[arm.up()],
+        &GeometryTolerances::DEFAULT,
+    )
+    .unwrap();
     if let Some(shift) = shift {
         assert!(shift.origin.norm() < 0.1e-3, "{shift:?}");
         assert!(
@@ -161,6 +170,42 @@ fn the_units_own_geometry_is_estimated_from_its_holds() {
         );
         assert!(shift.radius.is_none_or(|r| r.abs() < 0.05e-3), "{shift:?}");
     }
+}
+
+/// A profile's `[geometry_tolerances]` bound what the fit may move: all 0 keeps the profile's
+/// geometry (the fit is the profile's own), a tolerance of 0 keeps that part, and the rest still
+/// moves. Delta unit 1, from the plant's exact holds at the cube's 27 vertices.
+#[test]
+fn geometry_tolerances_of_zero_keep_the_profiles_geometry() {
+    let mut config = Config::default();
+    config.sim.unit_seed = 1;
+    let arm = profile_arm("delta", &config);
+    let cube = cube_holds("delta", &config);
+    let holds: Vec<Hold> = cube.holds.iter().flatten().copied().collect();
+    let g = config.sim.g;
+    let profile = fit_arm(&arm, &holds, g, &[arm.up()]).unwrap();
+    let exact = GeometryTolerances {
+        origin: 0.0,
+        length: 0.0,
+        radius: 0.0,
+    };
+    let (fit, shift) = fit_arm_and_geometry(&arm, &holds, g, &[arm.up()], &exact).unwrap();
+    assert!(shift.is_none());
+    assert_eq!(fit.gravity, profile.gravity);
+    let lengths_only = GeometryTolerances {
+        origin: 0.0,
+        radius: 0.0,
+        ..GeometryTolerances::DEFAULT
+    };
+    let (fit, shift) = fit_arm_and_geometry(&arm, &holds, g, &[arm.up()], &lengths_only).unwrap();
+    let shift = shift.expect("the lengths move");
+    assert_eq!(shift.origin, Vector3::zeros());
+    assert_eq!(shift.radius, Some(0.0));
+    assert!(
+        shift.lengths.iter().any(|(_, l)| l.abs() > 1e-4),
+        "{shift:?}"
+    );
+    assert!(fit.rms_residual < profile.rms_residual, "{shift:?}");
 }
 
 /// Fitted to the plant's exact holds at the cube's 27 vertices, the arm model holds the whole
@@ -193,7 +238,7 @@ fn fitted_to_the_cubes_exact_holds_it_holds_the_whole_workspace_level_or_tilted(
                 );
                 assert!(whole < within_pct, "{case}: p95 {whole} %");
                 assert!(off < within_deg, "{case}: v_G off by {off}°");
-                let choice = choose(&lattice, Some(&arm));
+                let choice = choose(&lattice, Some(&arm), &GeometryTolerances::DEFAULT);
                 assert!(
                     matches!(
                         choice.mode,
@@ -266,7 +311,7 @@ fn the_wrong_arm_is_caught_by_its_held_out_score() {
     let config = Config::default();
     let lattice = cube_holds("phantom", &config);
     let wrong = profile_arm("delta", &config);
-    let choice = choose(&lattice, Some(&wrong));
+    let choice = choose(&lattice, Some(&wrong), &GeometryTolerances::DEFAULT);
     println!("{:?}", choice.scores);
     assert!(
         matches!(
@@ -439,6 +484,46 @@ fn a_profile_naming_the_wrong_arm_leaves_the_lattice_with_a_warning() {
     println!("{warning}");
 }
 
+/// `device.profile` naming a profile file whose `[geometry_tolerances]` are all 0: the saved
+/// arm keeps the profile's geometry, where the built-in profile's tolerances let the same
+/// calibration (delta unit 1) estimate the unit's own.
+#[test]
+fn a_profile_with_exact_geometry_keeps_it_through_calibration() {
+    use hgcd::calibrate::persist::grid_file;
+    let dir = tempfile::tempdir().unwrap();
+    let exact = dir.path().join("falcon_exact.toml");
+    let shipped = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/profiles/falcon_delta.toml"),
+    )
+    .unwrap();
+    std::fs::write(
+        &exact,
+        format!(
+            "{shipped}\n[geometry_tolerances]\norigin_m = 0.0\nlength_share = 0.0\n\
+             pivot_radius_m = 0.0\n"
+        ),
+    )
+    .unwrap();
+    let spec = "sim:delta".parse().unwrap();
+    let mut config = Config::default();
+    config.sim.unit_seed = 1;
+    let arm_of = |config: &Config| {
+        let file = grid_file(&calibrated("delta", config), config, &spec);
+        let model = file.model.expect("a model record");
+        assert_eq!(model.chosen, "arm", "{model:?}");
+        file.arm.expect("an arm record")
+    };
+    let estimated = arm_of(&config);
+    assert!(estimated.geometry_change.is_some(), "{estimated:?}");
+    config.device.profile = exact.display().to_string();
+    let kept = arm_of(&config);
+    assert_eq!(kept.geometry_change, None);
+    assert_eq!(
+        kept.geometry,
+        ArmTable::of(&profile_arm("delta", &Config::default()))
+    );
+}
+
 /// Could the fit identify the unit's geometry too (where its frame sits, its link lengths), and
 /// so take the delta's whole-workspace residual under 5 mN? A Levenberg–Marquardt search over
 /// the frame's origin and the lengths around the arm fit, from the plant's exact holds and from
@@ -562,9 +647,15 @@ fn the_geometry_from_the_holds_only_with_holds_far_better_than_frictions() {
                             fit_arm(&free, &holds, 9.81, &[free.up()]).unwrap()
                         }),
                         p95_mn(
-                            &fit_arm_and_geometry(&arm, &holds, 9.81, &[arm.up()])
-                                .unwrap()
-                                .0
+                            &fit_arm_and_geometry(
+                                &arm,
+                                &holds,
+                                9.81,
+                                &[arm.up()],
+                                &GeometryTolerances::DEFAULT
+                            )
+                            .unwrap()
+                            .0
                         ),
                     );
                 }

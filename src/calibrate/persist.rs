@@ -159,7 +159,7 @@ fn with_model(
         g: grid.g,
         linear_fill: file.explored(),
     };
-    let choice = fit::choose(&lattice, Some(&arm));
+    let choice = fit::choose(&lattice, Some(&arm), &profile.geometry_tolerances);
     let record = match &choice.arm {
         Some(Ok(fit)) => Some(ArmRecord {
             rank: fit.rank,

@@ -15,14 +15,8 @@ use nalgebra::{DMatrix, DVector, Vector3};
 
 use super::arm::{fit_arm, ArmFit, ArmFitError};
 use super::Hold;
+pub use crate::arm::GeometryTolerances;
 use crate::arm::{Arm, ArmGeometry, ArmTable};
-
-/// How far a unit may sit from its profile: the frame's origin, per axis, m.
-pub const ORIGIN_TOLERANCE: f64 = 1e-3;
-/// Each link's length, relative.
-pub const LENGTH_TOLERANCE: f64 = 5e-3;
-/// The delta's pivots' radius about its axis (the base less the platform radius), m.
-pub const RADIUS_TOLERANCE: f64 = 0.5e-3;
 
 /// Levenberg–Marquardt iterations, the trials of damping each may take, and the step of the
 /// finite differences (in tolerances).
@@ -74,19 +68,19 @@ fn offsets(arm: &Arm) -> usize {
     }
 }
 
-/// `arm` with the offsets `p` (each in its tolerance) applied.
-fn placed(arm: &Arm, p: &[f64]) -> Arm {
+/// `arm` with the offsets `p` (each in its tolerance `t`) applied.
+fn placed(arm: &Arm, p: &[f64], t: &GeometryTolerances) -> Arm {
     let mut a = *arm;
-    a.frame.origin += Vector3::new(p[0], p[1], p[2]) * ORIGIN_TOLERANCE;
+    a.frame.origin += Vector3::new(p[0], p[1], p[2]) * t.origin;
     match &mut a.geometry {
         ArmGeometry::Serial(s) => {
-            s.upper *= 1.0 + p[3] * LENGTH_TOLERANCE;
-            s.fore *= 1.0 + p[4] * LENGTH_TOLERANCE;
+            s.upper *= 1.0 + p[3] * t.length;
+            s.fore *= 1.0 + p[4] * t.length;
         }
         ArmGeometry::Delta(d) => {
-            d.arm *= 1.0 + p[3] * LENGTH_TOLERANCE;
-            d.rod *= 1.0 + p[4] * LENGTH_TOLERANCE;
-            d.base_radius += p[5] * RADIUS_TOLERANCE;
+            d.arm *= 1.0 + p[3] * t.length;
+            d.rod *= 1.0 + p[4] * t.length;
+            d.base_radius += p[5] * t.radius;
         }
     }
     a
@@ -97,11 +91,12 @@ fn placed(arm: &Arm, p: &[f64]) -> Arm {
 fn residual(
     arm: &Arm,
     p: &[f64],
+    t: &GeometryTolerances,
     holds: &[Hold],
     g: f64,
     up: &Vector3<f64>,
 ) -> Option<DVector<f64>> {
-    let fit = fit_arm(&placed(arm, p), holds, g, &[*up]).ok()?;
+    let fit = fit_arm(&placed(arm, p, t), holds, g, &[*up]).ok()?;
     let mut r: Vec<f64> = holds
         .iter()
         .flat_map(|h| {
@@ -114,9 +109,10 @@ fn residual(
 }
 
 /// Fit `arm`'s base parameters, v_G and geometry to `holds` (tilt searched from each of
-/// `starts`, as [`fit_arm`]): the geometry within its tolerances of the profile's, the fit with
-/// it, and how far it moved; or, where no geometry within [`MAX_TOLERANCES`] of the profile's
-/// explains the holds better, [`fit_arm`]'s fit with the profile's geometry and None.
+/// `starts`, as [`fit_arm`]): the geometry within its `tolerances` of the profile's, the fit
+/// with it, and how far it moved; or, where no geometry within [`MAX_TOLERANCES`] of the
+/// profile's explains the holds better (or the tolerances are all 0), [`fit_arm`]'s fit with
+/// the profile's geometry and None.
 ///
 /// # Errors
 /// [`fit_arm`]'s, with the profile's geometry.
@@ -125,13 +121,18 @@ pub fn fit_arm_and_geometry(
     holds: &[Hold],
     g: f64,
     starts: &[Vector3<f64>],
+    tolerances: &GeometryTolerances,
 ) -> Result<(ArmFit, Option<GeometryShift>), ArmFitError> {
+    let t = tolerances;
     let profile = fit_arm(arm, holds, g, starts)?;
+    if t.exact() {
+        return Ok((profile, None));
+    }
     let up = profile.gravity.up;
     let n = offsets(arm);
     let mut p = vec![0.0; n];
     // The fit from the profile's v_G alone may still fail (conditioning near its bound).
-    let Some(mut current) = residual(arm, &p, holds, g, &up) else {
+    let Some(mut current) = residual(arm, &p, t, holds, g, &up) else {
         return Ok((profile, None));
     };
     let mut damping = 1e-2;
@@ -142,8 +143,8 @@ pub fn fit_arm_and_geometry(
             plus[k] += STEP;
             minus[k] -= STEP;
             let (Some(a), Some(b)) = (
-                residual(arm, &plus, holds, g, &up),
-                residual(arm, &minus, holds, g, &up),
+                residual(arm, &plus, t, holds, g, &up),
+                residual(arm, &minus, t, holds, g, &up),
             ) else {
                 return Ok((profile, None));
             };
@@ -163,7 +164,7 @@ pub fn fit_arm_and_geometry(
                 continue;
             };
             let next: Vec<f64> = p.iter().zip(step.iter()).map(|(a, b)| a + b).collect();
-            match residual(arm, &next, holds, g, &up) {
+            match residual(arm, &next, t, holds, g, &up) {
                 Some(r) if r.norm_squared() < cost => {
                     improved = Some((next, r));
                     damping *= 0.3;
@@ -182,32 +183,28 @@ pub fn fit_arm_and_geometry(
     // Unmoved, beyond a unit's spread, or a geometry the grid file would refuse: the profile's.
     let moved = p.iter().any(|v| v.abs() > MOVED);
     let beyond = p.iter().any(|v| v.abs() > MAX_TOLERANCES);
-    let placed = placed(arm, &p);
+    let placed = placed(arm, &p, t);
     let storable = ArmTable::of(&placed).arm().is_ok();
     let fitted = match fit_arm(&placed, holds, g, &[up]) {
         Ok(fit) if moved && !beyond && storable => fit,
         _ => return Ok((profile, None)),
     };
-    let shift = shift_of(arm, &p, &profile);
+    let shift = shift_of(arm, &p, t, &profile);
     Ok((fitted, Some(shift)))
 }
 
 /// The shift the offsets `p` describe, with the profile's fit's residual.
-fn shift_of(arm: &Arm, p: &[f64], profile: &ArmFit) -> GeometryShift {
+fn shift_of(arm: &Arm, p: &[f64], t: &GeometryTolerances, profile: &ArmFit) -> GeometryShift {
     let lengths = match arm.geometry {
-        ArmGeometry::Serial(_) => vec![
-            ("upper arm", p[3] * LENGTH_TOLERANCE),
-            ("forearm", p[4] * LENGTH_TOLERANCE),
-        ],
-        ArmGeometry::Delta(_) => vec![
-            ("arms", p[3] * LENGTH_TOLERANCE),
-            ("rods", p[4] * LENGTH_TOLERANCE),
-        ],
+        ArmGeometry::Serial(_) => {
+            vec![("upper arm", p[3] * t.length), ("forearm", p[4] * t.length)]
+        }
+        ArmGeometry::Delta(_) => vec![("arms", p[3] * t.length), ("rods", p[4] * t.length)],
     };
     GeometryShift {
-        origin: Vector3::new(p[0], p[1], p[2]) * ORIGIN_TOLERANCE,
+        origin: Vector3::new(p[0], p[1], p[2]) * t.origin,
         lengths,
-        radius: matches!(arm.geometry, ArmGeometry::Delta(_)).then(|| p[5] * RADIUS_TOLERANCE),
+        radius: matches!(arm.geometry, ArmGeometry::Delta(_)).then(|| p[5] * t.radius),
         profile_rms_residual: profile.rms_residual,
     }
 }

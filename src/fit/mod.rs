@@ -32,7 +32,7 @@ use crate::arm::Arm;
 use crate::config::CompensationMode;
 use crate::grid::{extrapolate_from_neighbours, fill_from_neighbours};
 pub use arm::{fit_arm, ArmFit, ArmFitError};
-pub use geometry::{fit_arm_and_geometry, GeometryShift};
+pub use geometry::{fit_arm_and_geometry, GeometryShift, GeometryTolerances};
 
 /// A hold's noise: this share of its force, or this floor, whichever is larger (the accuracy
 /// of the friction-robust hold, docs/calibration.md §6), N.
@@ -185,8 +185,13 @@ fn score(pairs: impl Iterator<Item = (Vector3<f64>, Vector3<f64>)>) -> f64 {
 /// they fill a vertex not held, [`LatticeHolds::linear_fill`]), the arm
 /// model from its fit to the others. Without `arm` the vector lattice is chosen (the scalar one
 /// without holds to score), as before arm models existed. The arm model returned is fitted to
-/// every hold.
-pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
+/// every hold, with the unit's own geometry within `tolerances` of the profile's where that
+/// scores no worse.
+pub fn choose(
+    lattice: &LatticeHolds,
+    arm: Option<&Arm>,
+    tolerances: &GeometryTolerances,
+) -> Choice {
     let measured: Vec<usize> = (0..lattice.holds.len())
         .filter(|&n| lattice.holds[n].is_some())
         .collect();
@@ -260,7 +265,7 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
     // and scored where the held-out ones were measured: the unit's is kept only where it scores
     // no worse.
     let profile_fit = fit_arm(arm, &train, lattice.g, &starts).ok();
-    let unit_fit = fit_arm_and_geometry(arm, &train, lattice.g, &starts)
+    let unit_fit = fit_arm_and_geometry(arm, &train, lattice.g, &starts, tolerances)
         .ok()
         .and_then(|(fit, shift)| shift.map(|_| fit));
     let unit_geometry = match (&profile_fit, &unit_fit) {
@@ -284,7 +289,7 @@ pub fn choose(lattice: &LatticeHolds, arm: Option<&Arm>) -> Choice {
     }
     let all: Vec<Hold> = measured.iter().map(|&n| raw(n)).collect();
     let (full, geometry) = if unit_geometry {
-        match fit_arm_and_geometry(arm, &all, lattice.g, &starts) {
+        match fit_arm_and_geometry(arm, &all, lattice.g, &starts, tolerances) {
             Ok((fit, shift)) => (Ok(fit), shift),
             Err(e) => (Err(e), None),
         }

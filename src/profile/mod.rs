@@ -20,7 +20,7 @@ use nalgebra::Vector3;
 use serde::Deserialize;
 use thiserror::Error;
 
-use crate::arm::{Arm, ArmTable};
+use crate::arm::{Arm, ArmTable, GeometryTolerances};
 use crate::config::{Config, DeviceSpec};
 use crate::protocol::{
     DeviceInfo, InputReport, OutputReport, ProtocolError, Status, OUTPUT_REPORT_LEN,
@@ -142,6 +142,9 @@ pub const RANGES: &[(&str, f64, f64, &str)] = &[
     ("kinematics.workspace_radius_m", 0.005, 0.5, "m"),
     ("bodies.masses_kg", 0.0, 10.0, "kg"),
     ("bodies.centres_of_mass_m", -1.0, 1.0, "m"),
+    ("geometry_tolerances.origin_m", 0.0, 0.01, "m"),
+    ("geometry_tolerances.length_share", 0.0, 0.05, ""),
+    ("geometry_tolerances.pivot_radius_m", 0.0, 0.005, "m"),
 ];
 
 #[derive(Debug, Deserialize)]
@@ -156,6 +159,17 @@ struct ProfileFile {
     kinematics: Option<KinematicsFile>,
     bodies: Option<BodiesFile>,
     arm: Option<ArmTable>,
+    geometry_tolerances: Option<TolerancesFile>,
+}
+
+/// `[geometry_tolerances]`: how far a unit may sit from the profile's geometry; a key left out
+/// keeps [`GeometryTolerances::DEFAULT`]'s.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TolerancesFile {
+    origin_m: Option<f64>,
+    length_share: Option<f64>,
+    pivot_radius_m: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -207,6 +221,8 @@ pub struct Profile {
     pub bodies: Option<BodiesFile>,
     /// The arm the gravity model knows: the `[arm]` table, or a joint-space arm's kinematics.
     gravity_arm: Option<Arm>,
+    /// How far a unit may sit from the arm's geometry (`[geometry_tolerances]`).
+    pub geometry_tolerances: GeometryTolerances,
 }
 
 impl Profile {
@@ -327,6 +343,24 @@ impl Profile {
             (None, Some(joint_space)) => Some(joint_space.gravity_arm()),
             (None, None) => None,
         };
+        let mut geometry_tolerances = GeometryTolerances::DEFAULT;
+        if let Some(t) = &file.geometry_tolerances {
+            if gravity_arm.is_none() {
+                return Err(invalid(
+                    "[geometry_tolerances] without an arm: only an arm's geometry has them".into(),
+                ));
+            }
+            let d = GeometryTolerances::DEFAULT;
+            geometry_tolerances = GeometryTolerances {
+                origin: t.origin_m.unwrap_or(d.origin),
+                length: t.length_share.unwrap_or(d.length),
+                radius: t.pivot_radius_m.unwrap_or(d.radius),
+            };
+            let g = &geometry_tolerances;
+            check("geometry_tolerances.origin_m", &[g.origin])?;
+            check("geometry_tolerances.length_share", &[g.length])?;
+            check("geometry_tolerances.pivot_radius_m", &[g.radius])?;
+        }
         let name_ok = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_';
         if !(1..=NAME_LEN).contains(&file.name.len()) || !file.name.chars().all(name_ok) {
             return Err(invalid(format!(
@@ -343,6 +377,7 @@ impl Profile {
             arm,
             bodies: file.bodies,
             gravity_arm,
+            geometry_tolerances,
         })
     }
 
@@ -725,6 +760,47 @@ mod tests {
         let bad = text.replace("[\"1234:0006\"]", "[\"12340006\"]");
         let err = Profile::parse(&bad, "x.toml").unwrap_err().to_string();
         assert!(err.contains("usb_ids"), "{err}");
+    }
+
+    /// `[geometry_tolerances]`: read in SI, a key left out keeping the default, checked against
+    /// its range, refused without an arm.
+    #[test]
+    fn geometry_tolerances_are_read_checked_and_need_an_arm() {
+        let delta = include_str!("../../config/profiles/falcon_delta.toml");
+        let shipped = Profile::parse(delta, "x.toml").unwrap();
+        assert_eq!(shipped.geometry_tolerances, GeometryTolerances::DEFAULT);
+        let with = |table: &str| format!("{delta}\n[geometry_tolerances]\n{table}");
+        let p = Profile::parse(&with("origin_m = 0.0\nlength_share = 0.002\n"), "x.toml").unwrap();
+        assert_eq!(
+            p.geometry_tolerances,
+            GeometryTolerances {
+                origin: 0.0,
+                length: 0.002,
+                radius: GeometryTolerances::DEFAULT.radius
+            }
+        );
+        for (table, key) in [
+            ("origin_m = 0.5\n", "geometry_tolerances.origin_m"),
+            ("length_share = -0.01\n", "geometry_tolerances.length_share"),
+            (
+                "pivot_radius_m = nan\n",
+                "geometry_tolerances.pivot_radius_m",
+            ),
+            ("radius_m = 0.001\n", "radius_m"),
+        ] {
+            let err = Profile::parse(&with(table), "x.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key), "{table}: {err}");
+        }
+        let cartesian = include_str!("../../config/profiles/cartesian-v1.toml");
+        let err = Profile::parse(
+            &format!("{cartesian}\n[geometry_tolerances]\norigin_m = 0.001\n"),
+            "x.toml",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("without an arm"), "{err}");
     }
 
     #[test]
