@@ -194,6 +194,10 @@ pub const RANGES: &[(&str, Range)] = &[
         "compensation.auto_update_max_g",
         Range::new(0.0, 1000.0, "g"),
     ),
+    (
+        "compensation.auto_update_max_deg",
+        Range::new(0.0, 30.0, "°"),
+    ),
     ("app.stale_offset_ms", Range::new(1.0, 1000.0, "ms")),
     ("app.stale_ramp_ms", Range::new(1.0, 1000.0, "ms")),
     ("app.max_clients", Range::new(1.0, 1024.0, "")),
@@ -776,6 +780,9 @@ pub struct CompensationConfig {
     pub auto_update: bool,
     /// The largest payload `auto_update` takes in, g (either sign); one beyond is only reported.
     pub auto_update_max_g: f64,
+    /// The largest tilt `auto_update` takes in, degrees; one beyond is only reported (and with
+    /// it the payload).
+    pub auto_update_max_deg: f64,
 }
 
 impl Default for CompensationConfig {
@@ -787,6 +794,7 @@ impl Default for CompensationConfig {
             effect_file: None,
             auto_update: false,
             auto_update_max_g: 50.0,
+            auto_update_max_deg: 5.0,
         }
     }
 }
@@ -1305,6 +1313,10 @@ impl Config {
         in_range(
             "compensation.auto_update_max_g",
             self.compensation.auto_update_max_g,
+        )?;
+        in_range(
+            "compensation.auto_update_max_deg",
+            self.compensation.auto_update_max_deg,
         )?;
 
         let a = &self.app;

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Result};
 
 use hgcd::calibrate::check::{Check, Reverted};
-use hgcd::client::{CalibrationStage, Client, Reply, Role};
+use hgcd::client::{CalibrationStage, Client, ModelStale, Reply, Role, StaleEvidence};
 
 use crate::{err, out};
 
@@ -59,19 +59,33 @@ fn one_status(socket: &Path) -> Result<()> {
         s.servo.worst_period_us,
         s.servo.worst_lateness_us,
         s.servo.late_wakeups,
-        s.model_stale.map_or(String::new(), |m| format!(
-            "model         STALE: a released handle drifted at {:.1} s; a payload of {:+.1} g \
-             explains it ({:.1} mN across gravity left){}\n",
-            m.device_time_s,
-            m.payload_g,
-            m.sideways_n * 1e3,
-            if m.auto_updated {
-                "; taken into the compensation (compensation.auto_update)"
-            } else {
-                "; run hgcd check, or calibrate"
-            }
-        ))
+        s.model_stale.as_ref().map_or(String::new(), stale_line)
     ))
+}
+
+/// `hgcd status`'s line for a model the daemon found stale in use.
+fn stale_line(m: &ModelStale) -> String {
+    format!(
+        "model         STALE: {} at {:.1} s; a payload of {:+.1} g{} it ({:.1} mN \
+             across gravity){}\n",
+        match m.evidence {
+            StaleEvidence::Released => "a released handle drifted",
+            StaleEvidence::HeldStill => "an application held the handle with the same force",
+        },
+        m.device_time_s,
+        m.payload_g,
+        if m.tilt_deg >= 0.05 {
+            format!(" and a tilt of {:.2}° explain", m.tilt_deg)
+        } else {
+            " explains".into()
+        },
+        m.sideways_n * 1e3,
+        if m.auto_updated {
+            "; taken into the compensation (compensation.auto_update)"
+        } else {
+            "; run hgcd check, or calibrate"
+        }
+    )
 }
 
 /// `hgcd calibrate --via-daemon`: the daemon calibrates its device; progress on stderr.
@@ -148,5 +162,45 @@ fn follow(client: &mut Client, what: &str, unit: &str) -> Result<Reply> {
             CalibrationStage::Finished => return Ok(reply),
             CalibrationStage::Failed => bail!("{what} failed: {message}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The status line names what showed the stale model, the payload, and a tilt where there
+    /// is one, in a sentence that agrees with itself.
+    #[test]
+    fn a_stale_model_is_one_line_naming_its_evidence_payload_and_tilt() {
+        let stale = ModelStale {
+            payload_g: 30.2,
+            sideways_n: 0.0005,
+            tilt_deg: 0.0,
+            tilt_axis: [0.0; 3],
+            device_time_s: 1.2,
+            evidence: StaleEvidence::HeldStill,
+            auto_updated: false,
+        };
+        assert_eq!(
+            stale_line(&stale),
+            "model         STALE: an application held the handle with the same force at 1.2 s; \
+             a payload of +30.2 g explains it (0.5 mN across gravity); run hgcd check, or \
+             calibrate\n"
+        );
+        let tilted = ModelStale {
+            payload_g: -0.03,
+            sideways_n: 0.0616,
+            tilt_deg: 3.05,
+            tilt_axis: [1.0, 0.0, 0.0],
+            evidence: StaleEvidence::Released,
+            auto_updated: true,
+            ..stale
+        };
+        assert_eq!(
+            stale_line(&tilted),
+            "model         STALE: a released handle drifted at 1.2 s; a payload of -0.0 g and a tilt of 3.05° explain it (61.6 mN across gravity); taken \
+             into the compensation (compensation.auto_update)\n"
+        );
     }
 }

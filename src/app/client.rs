@@ -12,7 +12,7 @@ use nalgebra::Vector3;
 
 use super::endpoint::{self, FindError};
 pub use super::protocol::{
-    CalibrationStage, Compensating, ModelStale, Reply, Role, StateSample, Status,
+    CalibrationStage, Compensating, ModelStale, Reply, Role, StaleEvidence, StateSample, Status,
 };
 use super::protocol::{
     Request, APP_PROTOCOL_VERSION, MAX_DEVICE_ID_LEN, MAX_DEVICE_LEN, MAX_FORCE_N, MAX_RATE_HZ,

@@ -271,8 +271,7 @@ pub struct Status {
     pub servo: StatsSnapshot,
 }
 
-/// A released handle that kept sinking or rising under compensation alone, as the daemon read
-/// it (docs/calibration.md §2.3).
+/// A force the gravity model misses, as the daemon read it in use (docs/calibration.md §2.3).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelStale {
     /// The payload that explains the force along gravity the model misses, g (negative: the
@@ -280,10 +279,30 @@ pub struct ModelStale {
     pub payload_g: f64,
     /// What the model misses across gravity, N (a tilt, a spring, a cable).
     pub sideways_n: f64,
+    /// That force read as gravity turned: by this angle, degrees, about `tilt_axis` (a unit
+    /// vector in the device's frame; zero with no tilt).
+    #[serde(default)]
+    pub tilt_deg: f64,
+    #[serde(default)]
+    pub tilt_axis: [f64; 3],
     /// Device time when it was noticed, s.
     pub device_time_s: f64,
-    /// The payload was taken into the compensation (`compensation.auto_update`).
+    /// What showed it.
+    #[serde(default)]
+    pub evidence: StaleEvidence,
+    /// The payload and tilt were taken into the compensation (`compensation.auto_update`).
     pub auto_updated: bool,
+}
+
+/// How a force the model misses showed in use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StaleEvidence {
+    /// The released handle kept accelerating (sinking, for a payload added).
+    #[default]
+    Released,
+    /// An application's force held the handle still at three places with the same offset.
+    HeldStill,
 }
 
 // `hgcd check`'s answer, as `--json` prints it and the daemon replies it (`Reply::Checked`).

@@ -16,13 +16,13 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender};
-use nalgebra::Vector3;
+use nalgebra::{Rotation3, Vector3};
 use thiserror::Error;
 use tracing::{error, info, warn};
 
 use crate::app::endpoint;
 use crate::app::protocol::{
-    CalibrationStage, Compensating, ModelStale, Reply, StateSample, Status,
+    CalibrationStage, Compensating, ModelStale, Reply, StaleEvidence, StateSample, Status,
 };
 use crate::app::server::{self, lock, HubRequest, ServerContext, SharedRegistry};
 use crate::calibrate::check::{self, Verdict};
@@ -46,7 +46,7 @@ use crate::servo::{self, ServoError, ServoEvent, ServoOptions, ServoReport};
 use crate::sim::LiveWorld;
 use crate::transport::{self, Pacing, Transport, TransportError};
 use controller::DaemonController;
-use watch::{Evidence, ModelWatch, Noticed, HELD_RESTS};
+use watch::{ModelWatch, Noticed, HELD_RESTS};
 
 /// What `hgcd run` was asked to do.
 #[derive(Clone, Debug)]
@@ -156,16 +156,26 @@ pub fn load_model(
     device: &DeviceIdentity,
     path: &Path,
 ) -> Result<Option<Box<GravityModel>>, RunError> {
-    load_model_with(config, device, path, 0.0)
+    load_model_with(config, device, path, &TakenIn::default())
 }
 
-/// [`load_model`] with a payload of `payload_kg` taken in as well (what
-/// `compensation.auto_update` noticed in use).
+/// A tilt smaller than this is not named in what the daemon says it noticed, degrees.
+const MIN_TILT_DEG: f64 = 0.05;
+
+/// What `compensation.auto_update` took into the compensation since the grid was loaded.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct TakenIn {
+    payload_kg: f64,
+    /// Gravity turned by (the grid's force, with the payload's weight, turned by it).
+    tilt: Rotation3<f64>,
+}
+
+/// [`load_model`] with what `compensation.auto_update` noticed in use taken in as well.
 fn load_model_with(
     config: &Config,
     device: &DeviceIdentity,
     path: &Path,
-    payload_kg: f64,
+    taken: &TakenIn,
 ) -> Result<Option<Box<GravityModel>>, RunError> {
     let built: Result<GravityModel, UnusableGrid> = match GridFile::load_for(path, device) {
         Err(GridError::Missing { .. }) => {
@@ -191,7 +201,7 @@ fn load_model_with(
     };
     match built {
         Ok(model) => {
-            let model = with_effect(model, config, payload_kg)?;
+            let model = with_effect(model, config, taken)?;
             info!(
                 "gravity compensation from {} ({:?} mode)",
                 path.display(),
@@ -223,11 +233,11 @@ fn result_of(calibration: &Calibration, what: &str) -> Result<CalibrationResult,
 }
 
 /// `model` with the effects of `compensation.effect_file` added, those that are forces of the
-/// position alone (a warning says why another is left out), and a payload of `payload_kg`.
+/// position alone (a warning says why another is left out), and what `auto_update` took in.
 fn with_effect(
     model: GravityModel,
     config: &Config,
-    payload_kg: f64,
+    taken: &TakenIn,
 ) -> Result<GravityModel, RunError> {
     let mut records = Vec::new();
     if let Some(path) = &config.compensation.effect_file {
@@ -239,9 +249,15 @@ fn with_effect(
             path.display()
         );
     }
-    if payload_kg != 0.0 {
+    if taken.payload_kg != 0.0 {
         records.push(EffectRecord::Payload {
-            mass_kg: payload_kg,
+            mass_kg: taken.payload_kg,
+        });
+    }
+    if let Some((axis, angle)) = taken.tilt.axis_angle() {
+        records.push(EffectRecord::GravityTilt {
+            angle_rad: angle,
+            rotation_axis: axis.into_inner().into(),
         });
     }
     if records.is_empty() {
@@ -299,8 +315,8 @@ struct Hub {
     /// Whether the gravity model in use still fits, read from the published states (None
     /// without a model).
     watch: Option<ModelWatch>,
-    /// The payload `compensation.auto_update` took in since the grid was loaded, kg.
-    auto_payload: f64,
+    /// What `compensation.auto_update` took in since the grid was loaded.
+    taken_in: TakenIn,
     /// A simulated device's world, and the config file SIGHUP reads it from again.
     world: Option<(Arc<LiveWorld>, PathBuf)>,
 }
@@ -335,7 +351,7 @@ impl Hub {
             log: EventLog::new(),
             last_housekeeping: Instant::now(),
             watch: None,
-            auto_payload: 0.0,
+            taken_in: TakenIn::default(),
             world: None,
         }
     }
@@ -354,12 +370,24 @@ impl Hub {
 
     /// The model in use no longer fits the device: say so once (journal, status, a
     /// `calibration` event `stale` to every client), and with `compensation.auto_update` take a
-    /// payload within its bound, shown by a released handle, into the compensation.
+    /// payload and a tilt within their bounds, shown by a released handle, into the
+    /// compensation.
     fn noticed(&mut self, noticed: Noticed) {
         let grams = noticed.payload_kg * 1e3;
+        let degrees = noticed.tilt.norm().to_degrees();
         let c = &self.config.compensation;
-        let released = noticed.evidence == Evidence::Released;
-        let take = c.auto_update && released && grams.abs() <= c.auto_update_max_g;
+        let released = noticed.evidence == StaleEvidence::Released;
+        let within = grams.abs() <= c.auto_update_max_g && degrees <= c.auto_update_max_deg;
+        let take = c.auto_update && released && within;
+        let tilt_axis = noticed.tilt.try_normalize(0.0).unwrap_or_default();
+        let tilted = if degrees >= MIN_TILT_DEG {
+            format!(
+                " and a tilt of {degrees:.2}° about ({:.3}, {:.3}, {:.3}) explain",
+                tilt_axis.x, tilt_axis.y, tilt_axis.z
+            )
+        } else {
+            " explains".into()
+        };
         let (shown, by) = if released {
             (
                 format!(
@@ -380,8 +408,8 @@ impl Hub {
             )
         };
         warn!(
-            "the gravity model no longer fits: {shown}; a payload of {grams:+.1} g explains it \
-             ({:.1} mN across gravity left){}",
+            "the gravity model no longer fits: {shown}; a payload of {grams:+.1} g{tilted} \
+             it ({:.1} mN across gravity){}",
             noticed.sideways_n * 1e3,
             if take {
                 "; taking it in (compensation.auto_update; SIGHUP goes back to the grid)"
@@ -389,7 +417,8 @@ impl Hub {
                 "; not taken in (compensation.auto_update takes what a released handle shows): \
                  run hgcd check or calibrate"
             } else if c.auto_update {
-                "; over compensation.auto_update_max_g, not taken in: run hgcd check or calibrate"
+                "; over compensation.auto_update_max_g or auto_update_max_deg, not taken in: run \
+                 hgcd check or calibrate"
             } else {
                 "; run hgcd check, or calibrate"
             }
@@ -397,7 +426,10 @@ impl Hub {
         let stale = ModelStale {
             payload_g: grams,
             sideways_n: noticed.sideways_n,
+            tilt_deg: degrees,
+            tilt_axis: tilt_axis.into(),
             device_time_s: noticed.time,
+            evidence: noticed.evidence,
             auto_updated: false,
         };
         let event = Reply::Calibration {
@@ -406,7 +438,7 @@ impl Hub {
             of: None,
             mass_kg: Some(noticed.payload_kg),
             message: format!(
-                "the gravity model no longer fits: a payload of {grams:+.1} g explains {by}{}",
+                "the gravity model no longer fits: a payload of {grams:+.1} g{tilted} {by}{}",
                 if take {
                     "; taken into the compensation"
                 } else {
@@ -419,11 +451,14 @@ impl Hub {
             let _ = tx.send_timeout(event.clone(), server::REPLY_WAIT);
         }
         if take {
-            let payload = self.auto_payload + noticed.payload_kg;
-            match load_model_with(&self.config, &self.device, &self.grid_path, payload) {
+            let taken = TakenIn {
+                payload_kg: self.taken_in.payload_kg + noticed.payload_kg,
+                tilt: Rotation3::new(noticed.tilt) * self.taken_in.tilt,
+            };
+            match load_model_with(&self.config, &self.device, &self.grid_path, &taken) {
                 Ok(model) => {
                     self.swap_model(model);
-                    self.auto_payload = payload;
+                    self.taken_in = taken;
                 }
                 Err(e) => error!("auto_update: cannot rebuild the model: {}", chain(&e)),
             }
@@ -503,7 +538,7 @@ impl Hub {
     }
 
     fn swap_model(&mut self, model: Option<Box<GravityModel>>) {
-        self.auto_payload = 0.0;
+        self.taken_in = TakenIn::default();
         self.watch = Self::watch_of(&self.grid_path, model.as_deref());
         self.status.model_stale = None;
         self.status.mode = mode_name(&model);

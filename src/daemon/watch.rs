@@ -20,6 +20,7 @@
 
 use nalgebra::Vector3;
 
+use crate::app::protocol::StaleEvidence;
 use crate::grid::GridFile;
 use crate::mailbox::PublishedState;
 use crate::protocol::Status;
@@ -56,20 +57,48 @@ pub struct Noticed {
     pub payload_kg: f64,
     /// The missed force across v_G, N.
     pub sideways_n: f64,
+    /// The missed force across v_G read as gravity turned: the rotation (axis times angle, rad)
+    /// that turns the model's force there, with the payload's weight, onto the force needed.
+    pub tilt: Vector3<f64>,
     /// Device time of the last state read, s.
     pub time: f64,
     /// What showed it.
-    pub evidence: Evidence,
+    pub evidence: StaleEvidence,
 }
 
-/// How a missed force showed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Evidence {
-    /// The released handle kept accelerating (sinking, for a payload added).
-    Released,
-    /// An application's force held the handle still at [`HELD_RESTS`] places with the same
-    /// offset.
-    HeldStill,
+impl Noticed {
+    /// What `missed` (N) at a place where the model's force is `model` (N) says: the force
+    /// needed there, `model + missed`, is the model's grown by a payload's weight (its length)
+    /// and turned by a tilt (its direction). `moving_mass` (kg, along `up`): a released handle's,
+    /// which its payload rides along with (the missed force read from its acceleration is the
+    /// payload's weight times M / (M + m_p)); None at rest.
+    fn of(
+        missed: Vector3<f64>,
+        model: Vector3<f64>,
+        (up, g): (Vector3<f64>, f64),
+        moving_mass: Option<f64>,
+        time: f64,
+        evidence: StaleEvidence,
+    ) -> Self {
+        let needed = model + missed;
+        let read = (needed.norm() - model.norm()) / g;
+        let payload_kg = match moving_mass {
+            Some(m) => read * m / (m - read),
+            None => read,
+        };
+        let turn = model.cross(&needed);
+        let tilt = match turn.try_normalize(f64::MIN_POSITIVE) {
+            Some(axis) => axis * turn.norm().atan2(model.dot(&needed)),
+            None => Vector3::zeros(),
+        };
+        Self {
+            payload_kg,
+            sideways_n: (missed - up * missed.dot(&up)).norm(),
+            tilt,
+            time,
+            evidence,
+        }
+    }
 }
 
 /// One stretch of rest under an application's offset: sums of the offset and the position,
@@ -83,7 +112,8 @@ struct Held {
     position: Vector3<f64>,
     low: Vector3<f64>,
     high: Vector3<f64>,
-    force: f64,
+    /// Σ of the model's force, N.
+    force: Vector3<f64>,
 }
 
 /// A rest read: where, and the application's mean offset there, N.
@@ -103,8 +133,8 @@ struct Window {
     tt: f64,
     v: Vector3<f64>,
     tv: Vector3<f64>,
-    /// Σ |F| of the forces sent (the model's), N.
-    force: f64,
+    /// Σ F of the forces sent (the model's), N.
+    force: Vector3<f64>,
 }
 
 /// The watch over one gravity model.
@@ -118,8 +148,8 @@ pub struct ModelWatch {
     window: Option<Window>,
     /// Accelerations and mean velocities of the last windows in a row, oldest first.
     recent: Vec<(Vector3<f64>, Vector3<f64>)>,
-    /// The mean force the model gave in the last window, N.
-    model_force: f64,
+    /// The mean force the model gave in the last window (or rest), N.
+    model_force: Vector3<f64>,
     /// Windows in a row whose acceleration alone shows a force of [`MIN_FORCE`].
     moving: usize,
     step: f64,
@@ -150,7 +180,7 @@ impl ModelWatch {
             window: None,
             recent: Vec::with_capacity(WINDOWS + 1),
             moving: 0,
-            model_force: 0.0,
+            model_force: Vector3::zeros(),
             step: f64::INFINITY,
             noticed: false,
             held: None,
@@ -205,7 +235,7 @@ impl ModelWatch {
         w.tt += t * t;
         w.v += s.velocity;
         w.tv += s.velocity * t;
-        w.force += p.force.norm();
+        w.force += p.force;
         if t < WINDOW {
             return None;
         }
@@ -249,7 +279,7 @@ impl ModelWatch {
             position: Vector3::zeros(),
             low: offset,
             high: offset,
-            force: 0.0,
+            force: Vector3::zeros(),
         });
         if h.n > 0.0 {
             self.step = self.step.min(s.time - h.last);
@@ -260,7 +290,7 @@ impl ModelWatch {
         h.position += s.position;
         h.low = h.low.inf(&offset);
         h.high = h.high.sup(&offset);
-        h.force += p.gravity.norm();
+        h.force += p.gravity;
         let steady = (h.high - h.low)
             .iter()
             .zip(self.friction.iter())
@@ -304,18 +334,19 @@ impl ModelWatch {
                 .all(|(d, f)| d.abs() <= f + AGREEMENT * missed.norm())
         });
         let beyond_friction = missed.norm() - self.friction.norm();
-        if !agree || beyond_friction < MIN_FORCE.max(MIN_SHARE * self.model_force) {
+        if !agree || beyond_friction < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
             return None;
         }
         // At rest the payload's weight is all of it: nothing accelerates.
-        let along = missed.dot(&self.up);
         self.noticed = true;
-        Some(Noticed {
-            payload_kg: along / self.g,
-            sideways_n: (missed - self.up * along).norm(),
+        Some(Noticed::of(
+            missed,
+            self.model_force,
+            (self.up, self.g),
+            None,
             time,
-            evidence: Evidence::HeldStill,
-        })
+            StaleEvidence::HeldStill,
+        ))
     }
 
     /// The last [`WINDOWS`] windows, all moving and not the first of their motion: a missed
@@ -355,20 +386,20 @@ impl ModelWatch {
             .iter()
             .zip(&self.recent)
             .all(|(l, (_, v))| (l - missed - v * damping).norm() <= AGREEMENT * missed.norm());
-        if !steady || missed.norm() < MIN_FORCE.max(MIN_SHARE * self.model_force) {
+        if !steady || missed.norm() < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
             return None;
         }
         // A payload m_p also rides along: l = (m_p g v_G + c v) M / (M + m_p) along v_G.
-        let along = missed.dot(&self.up);
         let mass = self.up.dot(&self.moving_mass.component_mul(&self.up));
-        let payload_kg = along * mass / (self.g * mass - along);
         self.noticed = true;
-        Some(Noticed {
-            payload_kg,
-            sideways_n: (missed - self.up * along).norm(),
+        Some(Noticed::of(
+            missed,
+            self.model_force,
+            (self.up, self.g),
+            Some(mass),
             time,
-            evidence: Evidence::Released,
-        })
+            StaleEvidence::Released,
+        ))
     }
 }
 
@@ -428,6 +459,25 @@ mod tests {
         // The watch knows the moving mass without the payload (0.12 kg) and takes it in.
         assert!((found[0].payload_kg - 0.03).abs() < 1e-3, "{found:?}");
         assert!(found[0].sideways_n < 1e-9, "{found:?}");
+    }
+
+    /// Gravity turned 3° about x: what the model misses is the 120 g handle's weight turned, and
+    /// the watch reads it back as that tilt (and no payload).
+    #[test]
+    fn a_released_handle_sliding_sideways_is_read_as_a_tilt() {
+        let mut w = watch();
+        let weight = Vector3::z() * (0.12 * 9.81);
+        let turned = nalgebra::Rotation3::new(Vector3::x() * 3f64.to_radians());
+        let missed = turned * weight - weight;
+        let found: Vec<Noticed> = falling(missed, 0.12, 400)
+            .iter()
+            .filter_map(|p| w.observe(p))
+            .collect();
+        assert_eq!(found.len(), 1, "{found:?}");
+        let tilt = found[0].tilt;
+        assert!((tilt.norm().to_degrees() - 3.0).abs() < 0.01, "{found:?}");
+        assert!((tilt.normalize() - Vector3::x()).norm() < 1e-3, "{found:?}");
+        assert!(found[0].payload_kg.abs() < 1e-9, "{found:?}");
     }
 
     /// With viscous damping c the handle approaches its sinking speed: v = −(F / c)(1 − e^{−t/τ}),
@@ -540,7 +590,7 @@ mod tests {
             .filter_map(|p| w.observe(p))
             .collect();
         assert_eq!(found.len(), 1, "{found:?}");
-        assert_eq!(found[0].evidence, Evidence::HeldStill);
+        assert_eq!(found[0].evidence, StaleEvidence::HeldStill);
         assert!(
             (found[0].payload_kg - 0.03).abs() < 0.02 / 9.81,
             "{found:?}"
