@@ -2,7 +2,7 @@
 //! device, units 1–3, Coulomb friction 0.02, 0.04 and 0.08 N at the handle, 20 noise seeds each.
 //! Every run must calibrate at the first try with every vertex within 0.5 % of the plant's own
 //! holding force (|F − F_plant| / |F_plant|, the whole vector). Judged against the plant, in
-//! virtual time. About 30 minutes on two cores; docs/calibration.md §7.1 has its summary. Run with
+//! virtual time. About 10 minutes on two cores; docs/calibration.md §7.1 has its summary. Run with
 //!
 //! ```text
 //! cargo test --release --test calibration_sweep -- --ignored --nocapture
