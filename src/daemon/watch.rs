@@ -39,9 +39,13 @@ pub const MIN_FORCE: f64 = 0.005;
 pub const MIN_SHARE: f64 = 0.05;
 /// A velocity component below this is not moving against friction, m/s.
 const MOVING: f64 = 0.001;
-/// A rest under an application's force: the handle slower than [`MOVING`] for this long, s,
-/// the offset steady within the friction (or [`MIN_FORCE`]) all along.
+/// A rest under an application's force: the handle within [`HELD_RADIUS`] of where the rest
+/// began for this long, s, the offset steady within the friction (or [`MIN_FORCE`]) all along.
 pub const HELD_TIME: f64 = 0.2;
+/// How far a handle at rest may wander, m: slower than [`MOVING`] over [`HELD_TIME`], and a few
+/// encoder counts of the coarsest simulated device (65 µm), whose readings flicker at rest
+/// (its velocity estimate does not always stay under [`MOVING`]).
+pub const HELD_RADIUS: f64 = 0.2e-3;
 /// Rests whose offsets must agree, at places at least this far apart, m (not one stop pushed
 /// against again and again).
 pub const HELD_RESTS: usize = 3;
@@ -106,6 +110,8 @@ impl Noticed {
 #[derive(Clone, Copy, Debug)]
 struct Held {
     start: f64,
+    /// Where the rest began, m.
+    at: Vector3<f64>,
     last: f64,
     n: f64,
     offset: Vector3<f64>,
@@ -263,16 +269,18 @@ impl ModelWatch {
     /// with [`HELD_RESTS`] kept is judged.
     fn held_still(&mut self, p: &PublishedState, offset: Vector3<f64>) -> Option<Noticed> {
         let s = &p.state;
-        let still = s.velocity.iter().all(|v| v.abs() <= MOVING);
-        let broken = self
-            .held
-            .is_some_and(|h| s.time <= h.last || s.time - h.last > GAP_STEPS * self.step);
-        if !still || broken {
+        let broken = self.held.is_some_and(|h| {
+            s.time <= h.last
+                || s.time - h.last > GAP_STEPS * self.step
+                || (s.position - h.at).norm() > HELD_RADIUS
+        });
+        if broken {
+            // The handle moved (or states were lost): a new rest may start here.
             self.held = None;
-            return None;
         }
         let h = self.held.get_or_insert(Held {
             start: s.time,
+            at: s.position,
             last: s.time,
             n: 0.0,
             offset: Vector3::zeros(),
