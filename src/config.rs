@@ -196,7 +196,7 @@ pub const RANGES: &[(&str, Range)] = &[
     ),
     (
         "compensation.auto_update_max_deg",
-        Range::new(0.0, 30.0, "°"),
+        Range::new(0.0, 30.0, "degrees"),
     ),
     ("app.stale_offset_ms", Range::new(1.0, 1000.0, "ms")),
     ("app.stale_ramp_ms", Range::new(1.0, 1000.0, "ms")),
