@@ -74,7 +74,7 @@ fn stale_line(m: &ModelStale) -> String {
         },
         m.device_time_s,
         m.payload_g,
-        if m.tilt_deg >= 0.05 {
+        if m.tilt_deg >= ModelStale::NAMED_TILT_DEG {
             format!(" and a tilt of {:.2}° explain", m.tilt_deg)
         } else {
             " explains".into()
@@ -199,8 +199,9 @@ mod tests {
         };
         assert_eq!(
             stale_line(&tilted),
-            "model         STALE: a released handle drifted at 1.2 s; a payload of -0.0 g and a tilt of 3.05° explain it (61.6 mN across gravity); taken \
-             into the compensation (compensation.auto_update)\n"
+            "model         STALE: a released handle drifted at 1.2 s; a payload of -0.0 g and a \
+             tilt of 3.05° explain it (61.6 mN across gravity); taken into the compensation \
+             (compensation.auto_update)\n"
         );
     }
 }

@@ -294,6 +294,11 @@ pub struct ModelStale {
     pub auto_updated: bool,
 }
 
+impl ModelStale {
+    /// A tilt smaller than this is not named where the model is said to be stale, degrees.
+    pub const NAMED_TILT_DEG: f64 = 0.05;
+}
+
 /// How a force the model misses showed in use.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

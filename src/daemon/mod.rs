@@ -159,9 +159,6 @@ pub fn load_model(
     load_model_with(config, device, path, &TakenIn::default())
 }
 
-/// A tilt smaller than this is not named in what the daemon says it noticed, degrees.
-const MIN_TILT_DEG: f64 = 0.05;
-
 /// What `compensation.auto_update` took into the compensation since the grid was loaded.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 struct TakenIn {
@@ -380,7 +377,7 @@ impl Hub {
         let within = grams.abs() <= c.auto_update_max_g && degrees <= c.auto_update_max_deg;
         let take = c.auto_update && released && within;
         let tilt_axis = noticed.tilt.try_normalize(0.0).unwrap_or_default();
-        let tilted = if degrees >= MIN_TILT_DEG {
+        let tilted = if degrees >= ModelStale::NAMED_TILT_DEG {
             format!(
                 " and a tilt of {degrees:.2}° about ({:.3}, {:.3}, {:.3}) explain",
                 tilt_axis.x, tilt_axis.y, tilt_axis.z

@@ -203,17 +203,18 @@ impl ModelWatch {
         let finite = s.time.is_finite()
             && s.velocity.iter().all(|v| v.is_finite())
             && p.force.iter().all(|f| f.is_finite());
+        let readable = !self.noticed && !disturbed && finite;
         // Under an application's force (the model compensating beside it), rests are read;
         // anything else (a calibration, a hold, no model) breaks a rest.
         let offset = p.force - p.gravity;
         let applied =
             !p.gravity_only && p.gravity != Vector3::zeros() && offset != Vector3::zeros();
-        if self.noticed || !applied || disturbed || !finite {
+        if !(readable && applied) {
             self.held = None;
         } else if let Some(noticed) = self.held_still(p, offset) {
             return Some(noticed);
         }
-        if self.noticed || !p.gravity_only || disturbed || !finite {
+        if !(readable && p.gravity_only) {
             self.window = None;
             self.recent.clear();
             self.moving = 0;
@@ -345,7 +346,7 @@ impl ModelWatch {
         if !agree || beyond_friction < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
             return None;
         }
-        // At rest the payload's weight is all of it: nothing accelerates.
+        // At rest nothing accelerates: no moving mass shares the payload's weight.
         self.noticed = true;
         Some(Noticed::of(
             missed,
