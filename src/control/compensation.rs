@@ -245,6 +245,42 @@ impl GravityModel {
         self
     }
 
+    /// This model with gravity turned further by `tilt` and `payload_kg` more on the handle,
+    /// composed with the effects it has as `compensation.auto_update` composes them, and
+    /// unbounded: what such a change would make its force, for reading one from forces
+    /// measured.
+    pub fn changed(&self, tilt: &Rotation3<f64>, payload_kg: f64) -> Self {
+        let mut model = self.clone();
+        let GravityModel {
+            grid,
+            arm,
+            effect,
+            up,
+            ..
+        } = &mut model;
+        let effect = effect.get_or_insert(StaticEffect {
+            tilt: Rotation3::identity(),
+            weight: Vector3::zeros(),
+            spring: None,
+            bound: f64::INFINITY,
+        });
+        effect.bound = f64::INFINITY;
+        let weight = *up * (payload_kg * grid.g);
+        match arm {
+            // Its tilts are folded into the arm's v_G, the weights turned with them.
+            Some(arm) => {
+                effect.weight = tilt * (effect.weight + weight);
+                arm.up = tilt * arm.up;
+                *up = arm.up;
+            }
+            None => {
+                effect.weight += weight;
+                effect.tilt = tilt * effect.tilt;
+            }
+        }
+        model
+    }
+
     /// The arm model (arm modes).
     pub fn arm(&self) -> Option<&ArmGravity> {
         self.arm.as_ref()
@@ -658,6 +694,42 @@ mod tests {
                     let (a, b) = (folded.force(&x), effect.force(&x));
                     assert!(
                         (a - b).norm() < 1e-6,
+                        "{mode:?} at {x:?}: {a:?} against {b:?}"
+                    );
+                }
+            }
+        }
+
+        /// A change read on top of one taken in (what the in-use watch reads after
+        /// `auto_update`) compensates as both taken in at once: tilts composed, payloads added.
+        #[test]
+        fn a_change_on_top_of_a_change_is_both_at_once() {
+            let second = Change {
+                payload_kg: -0.012,
+                tilt: Vector3::new(-0.05, 0.01, 0.03),
+            };
+            let both = Change {
+                payload_kg: CHANGE.payload_kg + second.payload_kg,
+                tilt: (Rotation3::new(second.tilt) * Rotation3::new(CHANGE.tilt)).scaled_axis(),
+            };
+            let mut arm = calibrated();
+            arm.arm = Some(ArmRecord::new(
+                "test",
+                &crate::arm::tests::phantom_gravity(),
+            ));
+            for (file, mode) in [
+                (calibrated(), CompensationMode::Scalar),
+                (calibrated(), CompensationMode::Vector),
+                (arm.clone(), CompensationMode::Arm),
+                (arm, CompensationMode::ArmResidual),
+            ] {
+                let changed = with_effect(&file, mode, &CHANGE)
+                    .changed(&Rotation3::new(second.tilt), second.payload_kg);
+                let at_once = with_effect(&file, mode, &both);
+                for x in points() {
+                    let (a, b) = (changed.force(&x), at_once.force(&x));
+                    assert!(
+                        (a - b).norm() < 1e-9,
                         "{mode:?} at {x:?}: {a:?} against {b:?}"
                     );
                 }

@@ -357,7 +357,7 @@ impl Hub {
     fn watch_of(grid_path: &Path, model: Option<&GravityModel>) -> Option<ModelWatch> {
         let model = model?;
         match GridFile::load(grid_path) {
-            Ok(file) => Some(ModelWatch::new(&file, model.up)),
+            Ok(file) => Some(ModelWatch::new(&file, model)),
             Err(e) => {
                 warn!("not watching the gravity model in use: {}", chain(&e));
                 None

@@ -18,9 +18,11 @@
 //! (and [`AGREEMENT`] of the offset) read as a missed force, and only one beyond what friction
 //! could hold.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Rotation3, Vector3};
 
 use crate::app::protocol::StaleEvidence;
+use crate::control::compensation::GravityModel;
+use crate::fit::across;
 use crate::grid::GridFile;
 use crate::mailbox::PublishedState;
 use crate::protocol::Status;
@@ -53,6 +55,11 @@ pub const HELD_APART: f64 = 0.005;
 /// States further apart than this many of the shortest step seen break a window (dropped
 /// samples, a pause).
 const GAP_STEPS: f64 = 3.0;
+/// Gauss–Newton steps reading a missed force as a payload and a tilt.
+const TURNS: usize = 6;
+/// A tilt (or payload) changing the model's force by less than this per degree (per gram), N,
+/// is not read from the force there.
+const UNREADABLE: f64 = 1e-4;
 
 /// What a watch noticed: the force the model misses, read as a payload and what is left.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -71,34 +78,53 @@ pub struct Noticed {
 }
 
 impl Noticed {
-    /// What `missed` (N) at a place where the model's force is `model` (N) says: the force
-    /// needed there, `model + missed`, is the model's grown by a payload's weight (its length)
-    /// and turned by a tilt (its direction). `moving_mass` (kg, along `up`): a released handle's,
-    /// which its payload rides along with (the missed force read from its acceleration is the
-    /// payload's weight times M / (M + m_p)); None at rest.
+    /// What `missed` (N) at `at` (m) says of `model`: the payload and the tilt (gravity turned
+    /// across v_G) that make the model's force there its force plus `missed`
+    /// ([`GravityModel::changed`]). On a uniform field the payload's weight is the missed force
+    /// along v_G and the tilt turns the field; on a linkage the arm's own force turns with the
+    /// arm, so they are read through the model, by Gauss–Newton from no change. A tilt that
+    /// hardly changes the force there is not read (left at none).
     fn of(
         missed: Vector3<f64>,
-        model: Vector3<f64>,
-        (up, g): (Vector3<f64>, f64),
-        moving_mass: Option<f64>,
+        at: &Vector3<f64>,
+        model: &GravityModel,
         time: f64,
         evidence: StaleEvidence,
     ) -> Self {
-        let needed = model + missed;
-        let read = (needed.norm() - model.norm()) / g;
-        let payload_kg = match moving_mass {
-            Some(m) => read * m / (m - read),
-            None => read,
+        let up = model.up;
+        let (e1, e2) = across(&up);
+        // The change: a turn of gravity across v_G (rad about e1, e2) and a payload (kg).
+        let force = |c: &Vector3<f64>| {
+            model
+                .changed(&Rotation3::new(e1 * c.x + e2 * c.y), c.z)
+                .force(at)
         };
-        let turn = model.cross(&needed);
-        let tilt = match turn.try_normalize(f64::MIN_POSITIVE) {
-            Some(axis) => axis * turn.norm().atan2(model.dot(&needed)),
-            None => Vector3::zeros(),
-        };
+        let target = model.force(at) + missed;
+        // Steps of a tenth of a degree and a gram: the columns in N per degree and per gram.
+        let steps = Vector3::new(1f64.to_radians(), 1f64.to_radians(), 1e-3) * 0.1;
+        let mut change = Vector3::zeros();
+        for _ in 0..TURNS {
+            let here = force(&change);
+            let columns: Vec<Vector3<f64>> = (0..3)
+                .map(|n| {
+                    let mut c = change;
+                    c[n] += steps[n];
+                    (force(&c) - here) * 10.0
+                })
+                .collect();
+            let jacobian = Matrix3::from_columns(&columns);
+            let Ok(step) = jacobian.svd(true, true).solve(&(target - here), UNREADABLE) else {
+                break;
+            };
+            change += step.component_mul(&steps) * 10.0;
+            if (target - force(&change)).norm() < 1e-9 {
+                break;
+            }
+        }
         Self {
-            payload_kg,
+            payload_kg: change.z,
             sideways_n: (missed - up * missed.dot(&up)).norm(),
-            tilt,
+            tilt: e1 * change.x + e2 * change.y,
             time,
             evidence,
         }
@@ -139,23 +165,25 @@ struct Window {
     tt: f64,
     v: Vector3<f64>,
     tv: Vector3<f64>,
-    /// Σ F of the forces sent (the model's), N.
+    /// Σ F of the forces sent (the model's), N, and Σ X, m.
     force: Vector3<f64>,
+    position: Vector3<f64>,
 }
 
 /// The watch over one gravity model.
 #[derive(Clone, Debug)]
 pub struct ModelWatch {
+    /// The model watched (its v_G, what a payload or a tilt would make its force).
+    model: GravityModel,
     /// Moving mass along each axis, kg, and friction along each, N (the calibration's).
     moving_mass: Vector3<f64>,
     friction: Vector3<f64>,
-    up: Vector3<f64>,
-    g: f64,
     window: Option<Window>,
     /// Accelerations and mean velocities of the last windows in a row, oldest first.
     recent: Vec<(Vector3<f64>, Vector3<f64>)>,
-    /// The mean force the model gave in the last window (or rest), N.
+    /// The mean force the model gave in the last window (or rest), N, and where, m.
     model_force: Vector3<f64>,
+    at: Vector3<f64>,
     /// Windows in a row whose acceleration alone shows a force of [`MIN_FORCE`].
     moving: usize,
     step: f64,
@@ -167,9 +195,9 @@ pub struct ModelWatch {
 }
 
 impl ModelWatch {
-    /// A watch over the model of `file`, whose v_G is `up`: the moving mass and friction its
-    /// calibration recorded (without them, the apparent mass at its centre and no friction).
-    pub fn new(file: &GridFile, up: Vector3<f64>) -> Self {
+    /// A watch over `model`, built from `file`: the moving mass and friction its calibration
+    /// recorded (without them, the apparent mass at its centre and no friction).
+    pub fn new(file: &GridFile, model: &GravityModel) -> Self {
         let grid = &file.grid;
         let record = file.calibration.as_ref();
         let centre = (grid.origin + grid.far_corner()) / 2.0;
@@ -181,12 +209,12 @@ impl ModelWatch {
             friction: record
                 .and_then(|c| c.friction_n)
                 .map_or(Vector3::zeros(), Vector3::from),
-            up,
-            g: grid.g,
+            model: model.clone(),
             window: None,
             recent: Vec::with_capacity(WINDOWS + 1),
             moving: 0,
             model_force: Vector3::zeros(),
+            at: Vector3::zeros(),
             step: f64::INFINITY,
             noticed: false,
             held: None,
@@ -243,6 +271,7 @@ impl ModelWatch {
         w.v += s.velocity;
         w.tv += s.velocity * t;
         w.force += p.force;
+        w.position += s.position;
         if t < WINDOW {
             return None;
         }
@@ -254,6 +283,7 @@ impl ModelWatch {
         let acceleration = (w.tv * w.n - w.v * w.t) / spread;
         let velocity = w.v / w.n;
         self.model_force = w.force / w.n;
+        self.at = w.position / w.n;
         if self.moving_mass.component_mul(&acceleration).norm() >= MIN_FORCE {
             self.moving += 1;
         } else {
@@ -328,8 +358,8 @@ impl ModelWatch {
     }
 
     /// [`HELD_RESTS`] rests whose offsets agree within the friction and [`AGREEMENT`] of their
-    /// mean, the mean beyond what friction could hold by [`MIN_FORCE`] (and [`MIN_SHARE`] of
-    /// the model's force): the application holds a force the model misses, the same wherever
+    /// mean, the mean beyond what friction could hold along each axis by [`MIN_FORCE`] (and
+    /// [`MIN_SHARE`] of the model's force): the application holds a force the model misses, the same wherever
     /// the handle rests.
     fn judge_rests(&mut self, time: f64) -> Option<Noticed> {
         if self.rests.len() < HELD_RESTS {
@@ -342,17 +372,26 @@ impl ModelWatch {
                 .zip(self.friction.iter())
                 .all(|(d, f)| d.abs() <= f + AGREEMENT * missed.norm())
         });
-        let beyond_friction = missed.norm() - self.friction.norm();
+        // What friction could not hold, along each axis.
+        let beyond_friction = missed
+            .zip_map(&self.friction, |m, f| (m.abs() - f).max(0.0))
+            .norm();
         if !agree || beyond_friction < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
             return None;
         }
-        // At rest nothing accelerates: no moving mass shares the payload's weight.
+        // At rest nothing accelerates: no moving mass shares the payload's weight. Across
+        // gravity, what friction could hold is not told from what is missed (the moves between
+        // rests all stop against it the same way): only what is beyond it is read.
+        let up = self.model.up;
+        let along = up * missed.dot(&up);
+        let beyond =
+            (missed - along).zip_map(&self.friction, |s, f| s.signum() * (s.abs() - f).max(0.0));
         self.noticed = true;
+        let at = self.rests.iter().map(|r| r.position).sum::<Vector3<f64>>() / HELD_RESTS as f64;
         Some(Noticed::of(
-            missed,
-            self.model_force,
-            (self.up, self.g),
-            None,
+            along + beyond,
+            &at,
+            &self.model,
             time,
             StaleEvidence::HeldStill,
         ))
@@ -369,19 +408,27 @@ impl ModelWatch {
             return None;
         }
         let n = self.recent.len() as f64;
+        let up = self.model.up;
+        // A linkage's inertia couples the axes (its released handle swings along an arc the
+        // per-axis moving masses do not hold): on a device with an arm model only what acts
+        // along v_G is read.
+        let coupled = self.model.arm().is_some();
+        let read = |x: Vector3<f64>| if coupled { up * x.dot(&up) } else { x };
+        let sliding = |v: &Vector3<f64>| v.map(|v| if v.abs() > MOVING { v.signum() } else { 0.0 });
         // l = −M a − f sgn(v) = F + c v, per window.
-        let l: Vec<Vector3<f64>> = self
+        let windows: Vec<(Vector3<f64>, Vector3<f64>)> = self
             .recent
             .iter()
             .map(|(a, v)| {
-                let sliding = v.map(|v| if v.abs() > MOVING { v.signum() } else { 0.0 });
-                -self.moving_mass.component_mul(a) - self.friction.component_mul(&sliding)
+                let l =
+                    -self.moving_mass.component_mul(a) - self.friction.component_mul(&sliding(v));
+                (read(l), read(*v))
             })
             .collect();
-        let l_mean = l.iter().sum::<Vector3<f64>>() / n;
-        let v_mean = self.recent.iter().map(|(_, v)| v).sum::<Vector3<f64>>() / n;
+        let l_mean = windows.iter().map(|(l, _)| l).sum::<Vector3<f64>>() / n;
+        let v_mean = windows.iter().map(|(_, v)| v).sum::<Vector3<f64>>() / n;
         let (mut covariance, mut variance) = (0.0, 0.0);
-        for (l, (_, v)) in l.iter().zip(&self.recent) {
+        for (l, v) in &windows {
             covariance += (l - l_mean).dot(&(v - v_mean));
             variance += (v - v_mean).norm_squared();
         }
@@ -391,21 +438,26 @@ impl ModelWatch {
             0.0
         };
         let missed = l_mean - v_mean * damping;
-        let steady = l
+        let steady = windows
             .iter()
-            .zip(&self.recent)
-            .all(|(l, (_, v))| (l - missed - v * damping).norm() <= AGREEMENT * missed.norm());
+            .all(|(l, v)| (l - missed - v * damping).norm() <= AGREEMENT * missed.norm());
         if !steady || missed.norm() < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
             return None;
         }
-        // A payload m_p also rides along: l = (m_p g v_G + c v) M / (M + m_p) along v_G.
-        let mass = self.up.dot(&self.moving_mass.component_mul(&self.up));
+        // A payload m_p rides along, and friction f_s = f sgn(v) does not:
+        // (M + m_p) a + f_s = −F − c v, so what was read is (M F − m_p f_s) / (M + m_p), and
+        // F · v_G = m_p g gives m_p (M the moving mass along v_G).
+        let mass = up.dot(&self.moving_mass.component_mul(&up));
+        let (_, v) = self.recent[self.recent.len() - 1];
+        let friction = read(self.friction.component_mul(&sliding(&v)));
+        let along = missed.dot(&up);
+        let payload = mass * along / (mass * self.model.grid.g - along - friction.dot(&up));
+        let missed = (missed * (mass + payload) + friction * payload) / mass;
         self.noticed = true;
         Some(Noticed::of(
             missed,
-            self.model_force,
-            (self.up, self.g),
-            Some(mass),
+            &self.at,
+            &self.model,
             time,
             StaleEvidence::Released,
         ))
@@ -415,6 +467,7 @@ impl ModelWatch {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::OutsideGrid;
     use crate::control::DeviceState;
     use crate::grid::MassGrid;
 
@@ -427,7 +480,9 @@ mod tests {
             0.04,
             [3, 3, 3],
         );
-        ModelWatch::new(&GridFile::from(grid), Vector3::z())
+        let file = GridFile::from(grid);
+        let model = GravityModel::configured(file.clone(), None, OutsideGrid::HoldNearest).unwrap();
+        ModelWatch::new(&file, &model)
     }
 
     /// A handle released at `t0` under a force `missed` the model does not hold, 1 kHz.
@@ -486,7 +541,7 @@ mod tests {
         let tilt = found[0].tilt;
         assert!((tilt.norm().to_degrees() - 3.0).abs() < 0.01, "{found:?}");
         assert!((tilt.normalize() - Vector3::x()).norm() < 1e-3, "{found:?}");
-        assert!(found[0].payload_kg.abs() < 1e-9, "{found:?}");
+        assert!(found[0].payload_kg.abs() < 1e-6, "{found:?}");
     }
 
     /// With viscous damping c the handle approaches its sinking speed: v = −(F / c)(1 − e^{−t/τ}),

@@ -1,5 +1,6 @@
-//! One way to start a daemon in a test: the simulated point mass, in a temporary directory of
-//! its own (state dir, socket, truth field), behind whatever transport wrapper the test needs.
+//! One way to start a daemon in a test: a simulated device (the point mass unless told), in a
+//! temporary directory of its own (state dir, socket, truth field), behind whatever transport
+//! wrapper the test needs.
 
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
@@ -18,6 +19,8 @@ use super::{truth_field_27, WAIT};
 /// What to start: a config, the device's stored grid, the plant's truth field, the pacing.
 pub struct TestDaemon {
     config: Config,
+    /// `sim:MODEL`.
+    model: &'static str,
     grid: Option<GridFile>,
     /// The plant's mass field; None: the config's own plant, as it is.
     truth: Option<MassGrid>,
@@ -36,6 +39,7 @@ impl TestDaemon {
         config.servo.lock_memory = false;
         Self {
             config,
+            model: "point-mass",
             grid: None,
             truth: Some(truth_field_27()),
             pacing: Pacing::Virtual,
@@ -68,6 +72,12 @@ impl TestDaemon {
         self
     }
 
+    /// `sim:MODEL` instead of the point mass, its plant the config's `[sim]` section.
+    pub fn model(mut self, model: &'static str) -> Self {
+        self.model = model;
+        self.plant_from_config()
+    }
+
     /// Run the simulated device in real time for `seconds`.
     pub fn real_time_for(mut self, seconds: f64) -> Self {
         self.pacing = Pacing::RealTime;
@@ -98,11 +108,11 @@ impl TestDaemon {
             }
         }
         let sim = SimTransport::new(
-            SimDevice::from_config("point-mass", &self.config).unwrap(),
+            SimDevice::from_config(self.model, &self.config).unwrap(),
             self.pacing,
         );
         let request = RunRequest {
-            device: "sim:point-mass".parse().unwrap(),
+            device: format!("sim:{}", self.model).parse().unwrap(),
             duration: self.duration,
             pacing: self.pacing,
             config_file: self.config_file.clone(),
