@@ -17,6 +17,10 @@
 //! [`HELD_RESTS`] rests at places [`HELD_APART`] apart whose offsets agree within the friction
 //! (and [`AGREEMENT`] of the offset) read as a missed force, and only one beyond what friction
 //! could hold.
+//!
+//! A missed force is read through the model ([`Noticed::of`]): the payload and the turn of
+//! gravity that make the model's force the one needed. On a device with an arm model (a
+//! linkage, whose inertia couples the axes) a released handle shows only what acts along v_G.
 
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
@@ -359,8 +363,8 @@ impl ModelWatch {
 
     /// [`HELD_RESTS`] rests whose offsets agree within the friction and [`AGREEMENT`] of their
     /// mean, the mean beyond what friction could hold along each axis by [`MIN_FORCE`] (and
-    /// [`MIN_SHARE`] of the model's force): the application holds a force the model misses, the same wherever
-    /// the handle rests.
+    /// [`MIN_SHARE`] of the model's force): the application holds a force the model misses,
+    /// the same wherever the handle rests.
     fn judge_rests(&mut self, time: f64) -> Option<Noticed> {
         if self.rests.len() < HELD_RESTS {
             return None;
