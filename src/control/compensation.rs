@@ -85,7 +85,10 @@ impl StaticEffect {
                     angle_rad,
                     rotation_axis,
                 } => {
-                    effect.tilt = Rotation3::new(Vector3::from(*rotation_axis) * *angle_rad);
+                    // Tilts compose, the later turning the earlier (a model file's, then
+                    // what `auto_update` took in).
+                    effect.tilt =
+                        Rotation3::new(Vector3::from(*rotation_axis) * *angle_rad) * effect.tilt;
                     any = true;
                 }
                 EffectRecord::Spring {
@@ -698,6 +701,22 @@ mod tests {
                     );
                 }
             }
+        }
+
+        /// A model file's tilt and the one `auto_update` took in after it compose (before, the
+        /// later replaced the earlier).
+        #[test]
+        fn tilts_of_several_records_compose() {
+            let tilt = |v: Vector3<f64>| EffectRecord::GravityTilt {
+                angle_rad: v.norm(),
+                rotation_axis: v.normalize().into(),
+            };
+            let (first, second) = (Vector3::new(0.03, 0.0, 0.0), Vector3::new(0.0, -0.05, 0.01));
+            let (effect, refused) =
+                StaticEffect::from_records(&[tilt(first), tilt(second)], &Vector3::z(), 9.81);
+            assert!(refused.is_empty());
+            let both = Rotation3::new(second) * Rotation3::new(first);
+            assert!((effect.unwrap().tilt.matrix() - both.matrix()).norm() < 1e-12);
         }
 
         /// A change read on top of one taken in (what the in-use watch reads after

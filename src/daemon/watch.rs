@@ -68,12 +68,13 @@ const UNREADABLE: f64 = 1e-4;
 /// What a watch noticed: the force the model misses, read as a payload and what is left.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Noticed {
-    /// The payload whose weight explains the missed force along v_G, kg.
+    /// The payload that, with [`Noticed::tilt`], makes the model's force the one needed, kg.
     pub payload_kg: f64,
-    /// The missed force across v_G, N.
+    /// The missed force read across v_G, N (none from a linkage's released handle; at rest,
+    /// only what is beyond the friction).
     pub sideways_n: f64,
-    /// The missed force across v_G read as gravity turned: the rotation (axis times angle, rad)
-    /// that turns the model's force there, with the payload's weight, onto the force needed.
+    /// Gravity turned (axis times angle, rad, across v_G): a lattice's field turned, an arm
+    /// model's gravity turned ([`GravityModel::changed`]).
     pub tilt: Vector3<f64>,
     /// Device time of the last state read, s.
     pub time: f64,
@@ -87,14 +88,16 @@ impl Noticed {
     /// ([`GravityModel::changed`]). On a uniform field the payload's weight is the missed force
     /// along v_G and the tilt turns the field; on a linkage the arm's own force turns with the
     /// arm, so they are read through the model, by Gauss–Newton from no change. A tilt that
-    /// hardly changes the force there is not read (left at none).
+    /// hardly changes the force there is not read (left at none), nor any without `read_tilt`
+    /// (what was missed across v_G is not known). None when the reading is not finite.
     fn of(
         missed: Vector3<f64>,
         at: &Vector3<f64>,
         model: &GravityModel,
+        read_tilt: bool,
         time: f64,
         evidence: StaleEvidence,
-    ) -> Self {
+    ) -> Option<Self> {
         let up = model.up;
         let (e1, e2) = across(&up);
         // The change: a turn of gravity across v_G (rad about e1, e2) and a payload (kg).
@@ -104,13 +107,16 @@ impl Noticed {
                 .force(at)
         };
         let target = model.force(at) + missed;
-        // Steps of a tenth of a degree and a gram: the columns in N per degree and per gram.
+        // Steps of 0.1° and 0.1 g: the columns in N per degree and per gram.
         let steps = Vector3::new(1f64.to_radians(), 1f64.to_radians(), 1e-3) * 0.1;
         let mut change = Vector3::zeros();
         for _ in 0..TURNS {
             let here = force(&change);
             let columns: Vec<Vector3<f64>> = (0..3)
                 .map(|n| {
+                    if n < 2 && !read_tilt {
+                        return Vector3::zeros();
+                    }
                     let mut c = change;
                     c[n] += steps[n];
                     (force(&c) - here) * 10.0
@@ -125,13 +131,17 @@ impl Noticed {
                 break;
             }
         }
-        Self {
+        let noticed = Self {
             payload_kg: change.z,
             sideways_n: (missed - up * missed.dot(&up)).norm(),
             tilt: e1 * change.x + e2 * change.y,
             time,
             evidence,
-        }
+        };
+        (noticed.payload_kg.is_finite()
+            && noticed.sideways_n.is_finite()
+            && noticed.tilt.iter().all(|t| t.is_finite()))
+        .then_some(noticed)
     }
 }
 
@@ -179,6 +189,9 @@ struct Window {
 pub struct ModelWatch {
     /// The model watched (its v_G, what a payload or a tilt would make its force).
     model: GravityModel,
+    /// The grid has an arm model, whatever the compensation mode: a linkage, whose inertia
+    /// couples the axes.
+    coupled: bool,
     /// Moving mass along each axis, kg, and friction along each, N (the calibration's).
     moving_mass: Vector3<f64>,
     friction: Vector3<f64>,
@@ -214,6 +227,7 @@ impl ModelWatch {
                 .and_then(|c| c.friction_n)
                 .map_or(Vector3::zeros(), Vector3::from),
             model: model.clone(),
+            coupled: file.arm.is_some(),
             window: None,
             recent: Vec::with_capacity(WINDOWS + 1),
             moving: 0,
@@ -390,15 +404,17 @@ impl ModelWatch {
         let along = up * missed.dot(&up);
         let beyond =
             (missed - along).zip_map(&self.friction, |s, f| s.signum() * (s.abs() - f).max(0.0));
-        self.noticed = true;
         let at = self.rests.iter().map(|r| r.position).sum::<Vector3<f64>>() / HELD_RESTS as f64;
-        Some(Noticed::of(
+        let noticed = Noticed::of(
             along + beyond,
             &at,
             &self.model,
+            true,
             time,
             StaleEvidence::HeldStill,
-        ))
+        )?;
+        self.noticed = true;
+        Some(noticed)
     }
 
     /// The last [`WINDOWS`] windows, all moving and not the first of their motion: a missed
@@ -414,9 +430,9 @@ impl ModelWatch {
         let n = self.recent.len() as f64;
         let up = self.model.up;
         // A linkage's inertia couples the axes (its released handle swings along an arc the
-        // per-axis moving masses do not hold): on a device with an arm model only what acts
-        // along v_G is read.
-        let coupled = self.model.arm().is_some();
+        // per-axis moving masses do not hold): on a device with an arm model (whichever model
+        // compensates) only what acts along v_G is read.
+        let coupled = self.coupled;
         let read = |x: Vector3<f64>| if coupled { up * x.dot(&up) } else { x };
         let sliding = |v: &Vector3<f64>| v.map(|v| if v.abs() > MOVING { v.signum() } else { 0.0 });
         // l = −M a − f sgn(v) = F + c v, per window.
@@ -455,16 +471,31 @@ impl ModelWatch {
         let (_, v) = self.recent[self.recent.len() - 1];
         let friction = read(self.friction.component_mul(&sliding(&v)));
         let along = missed.dot(&up);
-        let payload = mass * along / (mass * self.model.grid.g - along - friction.dot(&up));
-        let missed = (missed * (mass + payload) + friction * payload) / mass;
-        self.noticed = true;
-        Some(Noticed::of(
+        let denominator = mass * self.model.grid.g - along - friction.dot(&up);
+        if denominator <= 0.0 {
+            // More than a payload could show, rising faster than friction and the moving
+            // mass's weight allow: not a payload's signature.
+            return None;
+        }
+        let payload = mass * along / denominator;
+        // Each axis with its own moving mass (along v_G alone on a linkage).
+        let masses = if coupled {
+            Vector3::repeat(mass)
+        } else {
+            self.moving_mass
+        };
+        let missed = (missed.component_mul(&masses.add_scalar(payload)) + friction * payload)
+            .component_div(&masses);
+        let noticed = Noticed::of(
             missed,
             &self.at,
             &self.model,
+            !coupled,
             time,
             StaleEvidence::Released,
-        ))
+        )?;
+        self.noticed = true;
+        Some(noticed)
     }
 }
 
@@ -546,6 +577,24 @@ mod tests {
         assert!((tilt.norm().to_degrees() - 3.0).abs() < 0.01, "{found:?}");
         assert!((tilt.normalize() - Vector3::x()).norm() < 1e-3, "{found:?}");
         assert!(found[0].payload_kg.abs() < 1e-6, "{found:?}");
+    }
+
+    /// Against friction f (its calibration's) a heavier handle sinks slower:
+    /// (M + m_p) a = −(m_p g − f) along z; the watch, knowing M and f, reads m_p exactly.
+    #[test]
+    fn a_sinking_against_friction_is_read_as_its_payload() {
+        let mut w = watch();
+        let friction = 0.1;
+        w.friction = Vector3::new(0.05, 0.05, friction);
+        let (payload, moving) = (0.03, 0.12);
+        let slowed = Vector3::z() * (payload * 9.81 - friction);
+        let found: Vec<Noticed> = falling(slowed, moving + payload, 400)
+            .iter()
+            .filter_map(|p| w.observe(p))
+            .collect();
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert!((found[0].payload_kg - payload).abs() < 1e-4, "{found:?}");
+        assert!(found[0].tilt.norm() < 1e-6, "{found:?}");
     }
 
     /// With viscous damping c the handle approaches its sinking speed: v = −(F / c)(1 − e^{−t/τ}),
