@@ -112,24 +112,22 @@ impl Noticed {
         let mut change = Vector3::zeros();
         for _ in 0..TURNS {
             let here = force(&change);
-            let columns: Vec<Vector3<f64>> = (0..3)
-                .map(|n| {
-                    if n < 2 && !read_tilt {
-                        return Vector3::zeros();
-                    }
-                    let mut c = change;
-                    c[n] += steps[n];
-                    (force(&c) - here) * 10.0
-                })
-                .collect();
+            if (target - here).norm() < 1e-9 {
+                break;
+            }
+            let columns: [Vector3<f64>; 3] = std::array::from_fn(|n| {
+                if n < 2 && !read_tilt {
+                    return Vector3::zeros();
+                }
+                let mut c = change;
+                c[n] += steps[n];
+                (force(&c) - here) * 10.0
+            });
             let jacobian = Matrix3::from_columns(&columns);
             let Ok(step) = jacobian.svd(true, true).solve(&(target - here), UNREADABLE) else {
                 break;
             };
             change += step.component_mul(&steps) * 10.0;
-            if (target - force(&change)).norm() < 1e-9 {
-                break;
-            }
         }
         let noticed = Self {
             payload_kg: change.z,
@@ -391,9 +389,10 @@ impl ModelWatch {
                 .all(|(d, f)| d.abs() <= f + AGREEMENT * missed.norm())
         });
         // What friction could not hold, along each axis.
-        let beyond_friction = missed
-            .zip_map(&self.friction, |m, f| (m.abs() - f).max(0.0))
-            .norm();
+        let beyond = |force: Vector3<f64>| {
+            force.zip_map(&self.friction, |x, f| x.signum() * (x.abs() - f).max(0.0))
+        };
+        let beyond_friction = beyond(missed).norm();
         if !agree || beyond_friction < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
             return None;
         }
@@ -402,11 +401,9 @@ impl ModelWatch {
         // rests all stop against it the same way): only what is beyond it is read.
         let up = self.model.up;
         let along = up * missed.dot(&up);
-        let beyond =
-            (missed - along).zip_map(&self.friction, |s, f| s.signum() * (s.abs() - f).max(0.0));
         let at = self.rests.iter().map(|r| r.position).sum::<Vector3<f64>>() / HELD_RESTS as f64;
         let noticed = Noticed::of(
-            along + beyond,
+            along + beyond(missed - along),
             &at,
             &self.model,
             true,
