@@ -8,8 +8,9 @@
 //! the strokes along the arm make them (0.1–0.3 %), the geometry itself can be estimated: a
 //! Levenberg–Marquardt search over the frame's origin and the link lengths, each step the arm
 //! fit's own weighted residual, with a prior that holds each offset to its tolerance (a
-//! maximum a posteriori estimate, so a geometry the holds do not pin stays the profile's).
-//! docs/calibration.md §13.4 measures what it gains.
+//! maximum a posteriori estimate, so a geometry the holds do not pin stays the profile's). The
+//! geometry found is kept only where it explains the holds better than the profile's
+//! ([`EVIDENCE_PER_OFFSET`]). docs/calibration.md §13.4 measures what it gains.
 
 use nalgebra::{DMatrix, DVector, Vector3};
 
@@ -31,6 +32,19 @@ const CONVERGED: f64 = 1e-4;
 const MAX_TOLERANCES: f64 = 3.0;
 /// Offsets all below this share of their tolerances are no move at all.
 const MOVED: f64 = 1e-3;
+/// Weight of the prior against the holds' residuals, each over its noise. That noise (0.5 % of
+/// the force or 1 mN, [`super::HOLD_NOISE_SHARE`]) is a bound: the strokes measure to about
+/// 0.13 % RMS (docs/calibration.md §4.6), and a unit's offsets spread evenly within their
+/// tolerances (σ = t/√3). Weighted by those, the prior counts (0.13 / 0.5) √3 ≈ 0.45 as much as
+/// at full weight; with full weight it held a delta unit's geometry halfway to the profile's
+/// even from exact holds (3.5 mN at p95 where the unit's own gives none).
+const PRIOR_WEIGHT: f64 = 0.5;
+/// The unit's geometry is kept only where it takes the holds' weighted residual sum of squares
+/// down by more than this, per offset: a geometry the holds do not ask for is the profile's.
+/// (Measured: 0.2–4.6 on the simulated PHANToM and delta units, which differ from their
+/// profiles; under 0.01 on WoodenHaptics', built to theirs, where a moved geometry followed the
+/// holds' errors and cost up to 1 mN at p95 over the whole workspace.)
+const EVIDENCE_PER_OFFSET: f64 = 0.02;
 
 /// The geometry offsets estimated, and what they did to the fit.
 #[derive(Clone, Debug, PartialEq)]
@@ -104,7 +118,7 @@ fn residual(
             [r.x, r.y, r.z]
         })
         .collect();
-    r.extend_from_slice(p);
+    r.extend(p.iter().map(|offset| PRIOR_WEIGHT * offset));
     Some(DVector::from_vec(r))
 }
 
@@ -189,6 +203,15 @@ pub fn fit_arm_and_geometry(
         Ok(fit) if moved && !beyond && storable => fit,
         _ => return Ok((profile, None)),
     };
+    let weighted_rss = |fit: &ArmFit| -> f64 {
+        holds
+            .iter()
+            .map(|h| ((h.force - fit.gravity.force(&h.position)) / h.noise).norm_squared())
+            .sum()
+    };
+    if weighted_rss(&profile) - weighted_rss(&fitted) < EVIDENCE_PER_OFFSET * n as f64 {
+        return Ok((profile, None));
+    }
     let shift = shift_of(arm, &p, t, &profile);
     Ok((fitted, Some(shift)))
 }
