@@ -284,6 +284,13 @@ impl GravityModel {
         model
     }
 
+    /// v_G as this model compensates now (unit, against gravity): [`up`](Self::up) turned by the
+    /// tilt a model file or `compensation.auto_update` gave a lattice (an arm's tilts are folded
+    /// into its `up`). What a watch reads along.
+    pub fn gravity_up(&self) -> Vector3<f64> {
+        self.effect.as_ref().map_or(self.up, |e| e.tilt * self.up)
+    }
+
     /// The arm model (arm modes).
     pub fn arm(&self) -> Option<&ArmGravity> {
         self.arm.as_ref()
@@ -731,17 +738,7 @@ mod tests {
                 payload_kg: CHANGE.payload_kg + second.payload_kg,
                 tilt: (Rotation3::new(second.tilt) * Rotation3::new(CHANGE.tilt)).scaled_axis(),
             };
-            let mut arm = calibrated();
-            arm.arm = Some(ArmRecord::new(
-                "test",
-                &crate::arm::tests::phantom_gravity(),
-            ));
-            for (file, mode) in [
-                (calibrated(), CompensationMode::Scalar),
-                (calibrated(), CompensationMode::Vector),
-                (arm.clone(), CompensationMode::Arm),
-                (arm, CompensationMode::ArmResidual),
-            ] {
+            for (file, mode) in every_mode() {
                 let changed = with_effect(&file, mode, &CHANGE)
                     .changed(&Rotation3::new(second.tilt), second.payload_kg);
                 let at_once = with_effect(&file, mode, &both);
@@ -752,6 +749,39 @@ mod tests {
                         "{mode:?} at {x:?}: {a:?} against {b:?}"
                     );
                 }
+            }
+        }
+
+        /// A calibrated grid in each mode it serves: the lattices, and with an arm the arm modes.
+        fn every_mode() -> [(GridFile, CompensationMode); 4] {
+            let mut arm = calibrated();
+            arm.arm = Some(ArmRecord::new(
+                "test",
+                &crate::arm::tests::phantom_gravity(),
+            ));
+            [
+                (calibrated(), CompensationMode::Scalar),
+                (calibrated(), CompensationMode::Vector),
+                (arm.clone(), CompensationMode::Arm),
+                (arm, CompensationMode::ArmResidual),
+            ]
+        }
+
+        /// After a tilt taken in, the model's gravity points where the tilt turned it, in
+        /// every mode: the watch reads along it.
+        #[test]
+        fn a_tilt_taken_in_turns_the_models_gravity_direction() {
+            let turn = Rotation3::new(Vector3::new(-0.05, 0.01, 0.03));
+            for (file, mode) in every_mode() {
+                let before = GravityModel::new(file.clone(), mode, OutsideGrid::HoldNearest)
+                    .unwrap()
+                    .gravity_up();
+                let expected = turn * Rotation3::new(CHANGE.tilt) * before;
+                let after = with_effect(&file, mode, &CHANGE)
+                    .changed(&turn, 0.01)
+                    .gravity_up();
+                assert!((after - expected).norm() < 1e-12, "{mode:?}: {after:?}");
+                assert!((after - before).norm() > 0.05, "{mode:?}: turned");
             }
         }
 

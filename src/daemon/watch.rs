@@ -98,7 +98,7 @@ impl Noticed {
         time: f64,
         evidence: StaleEvidence,
     ) -> Option<Self> {
-        let up = model.up;
+        let up = model.gravity_up();
         let (e1, e2) = across(&up);
         // The change: a turn of gravity across v_G (rad about e1, e2) and a payload (kg).
         let force = |c: &Vector3<f64>| {
@@ -399,7 +399,7 @@ impl ModelWatch {
         // At rest nothing accelerates: no moving mass shares the payload's weight. Across
         // gravity, what friction could hold is not told from what is missed (the moves between
         // rests all stop against it the same way): only what is beyond it is read.
-        let up = self.model.up;
+        let up = self.model.gravity_up();
         let along = up * missed.dot(&up);
         let at = self.rests.iter().map(|r| r.position).sum::<Vector3<f64>>() / HELD_RESTS as f64;
         let noticed = Noticed::of(
@@ -425,7 +425,7 @@ impl ModelWatch {
             return None;
         }
         let n = self.recent.len() as f64;
-        let up = self.model.up;
+        let up = self.model.gravity_up();
         // A linkage's inertia couples the axes (its released handle swings along an arc the
         // per-axis moving masses do not hold): on a device with an arm model (whichever model
         // compensates) only what acts along v_G is read.
