@@ -34,10 +34,12 @@ const MAX_TOLERANCES: f64 = 3.0;
 const MOVED: f64 = 1e-3;
 /// Weight of the prior against the holds' residuals, each over its noise. That noise (0.5 % of
 /// the force or 1 mN, [`super::HOLD_NOISE_SHARE`]) is a bound: the strokes measure to about
-/// 0.13 % RMS (docs/calibration.md §4.6), and a unit's offsets spread evenly within their
-/// tolerances (σ = t/√3). Weighted by those, the prior counts (0.13 / 0.5) √3 ≈ 0.45 as much as
-/// at full weight; with full weight it held a delta unit's geometry halfway to the profile's
-/// even from exact holds (3.5 mN at p95 where the unit's own gives none).
+/// 0.13 % RMS of the force (0.075 % per component, docs/calibration.md §4.6), and a unit's
+/// offsets spread evenly within their tolerances (σ = t/√3), which would weigh the prior
+/// (0.075 / 0.5) √3 ≈ 0.26. At full weight it held a delta unit's geometry halfway to the
+/// profile's even from exact holds (3.5 mN at p95 where the unit's own gives none); at 0.26 it
+/// followed the less accurate holds of a handle without friction (the delta over 5 mN at p95
+/// in 8 runs of 40). Half is the measured middle (docs/calibration.md §13.3).
 const PRIOR_WEIGHT: f64 = 0.5;
 /// The unit's geometry is kept only where it takes the holds' weighted residual sum of squares
 /// down by more than this, per offset: a geometry the holds do not ask for is the profile's.
