@@ -28,8 +28,9 @@ pub struct VertexResult {
     /// Distance from the vertex of the rest the band was measured at, m.
     pub final_error: f64,
     /// Where `force` was measured, m: the second rest near the vertex without friction, the mean
-    /// of the rests the bands were crossed from with it. The result carries `force` from there
-    /// to the vertex (`fit::lattice::carry_to_vertices`).
+    /// of the rests the bands were crossed from with it, or, measured by strokes, where their
+    /// windows had the handle on average. The result carries `force` from there to the vertex
+    /// (`fit::lattice::carry_to_vertices`).
     pub measured_at: Vector3<f64>,
     /// Device time spent on this vertex, move included, s.
     pub duration: f64,

@@ -678,18 +678,27 @@ pub(super) struct Strokes {
     /// Sums of the commanded force over each direction's forward and backward windows, and
     /// counts.
     sums: [[(Vector3<f64>, u32); 2]; 3],
+    /// Sums of the handle's position over the same windows, relative to `centre`.
+    positions: [[Vector3<f64>; 2]; 3],
     /// Whether the handle was seen before and beyond the window on each pass: only a pass that
     /// carried it through the whole window measured anything.
     through: [[(bool, bool); 2]; 3],
 }
 
-/// What strokes measured at their centre: the holding force, and the sliding friction (half the
-/// difference of the passes), N: along each of three strokes' directions, or, for one stroke,
-/// the whole vector of the difference.
+/// What strokes measured: the holding force, and the sliding friction (half the difference of
+/// the passes), N: along each of three strokes' directions, or, for one stroke, the whole vector
+/// of the difference; and where the force was measured, m.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct Stroked {
     pub force: Vector3<f64>,
     pub friction: Vector3<f64>,
+    /// Where the handle was, on average over the windows (each pass weighted as its force is):
+    /// the centre, unless the hold kept the handle off the set point's line, as it does by
+    /// (F_G − F̂) / K where its feedforward F̂ is off. The passes' mean force is the holding
+    /// force there, not at the centre: on the simulated WoodenHaptics without friction at the
+    /// handle, a first vertex's F̂ held the handle 0.3 mm off, and its force read 3 mN off the
+    /// centre's.
+    pub at: Vector3<f64>,
 }
 
 impl Strokes {
@@ -707,6 +716,7 @@ impl Strokes {
             count: 3,
             start: now,
             sums: [[(Vector3::zeros(), 0); 2]; 3],
+            positions: [[Vector3::zeros(); 2]; 3],
             through: [[(false, false); 2]; 3],
         }
     }
@@ -845,6 +855,7 @@ impl Strokes {
             let (sum, count) = &mut self.sums[k][pass];
             *sum += commanded;
             *count += 1;
+            self.positions[k][pass] += s.position - self.centre;
         }
         Step::Running
     }
@@ -852,19 +863,25 @@ impl Strokes {
     fn result(&self) -> Step<Stroked> {
         let blocked = Step::Blocked { sign: 1.0 };
         let mut means = [[Vector3::zeros(); 2]; 3];
-        let stroked = self.sums.iter().zip(&self.through).take(self.count);
-        for (mean, ([(forward, n_f), (backward, n_b)], through)) in means.iter_mut().zip(stroked) {
+        let mut at = Vector3::zeros();
+        let stroked = self.sums.iter().zip(&self.through).zip(&self.positions);
+        for (mean, (([(forward, n_f), (backward, n_b)], through), [x_f, x_b])) in
+            means.iter_mut().zip(stroked.take(self.count))
+        {
             let through = through.iter().all(|&(before, beyond)| before && beyond);
             if !through || (*n_f).min(*n_b) < STROKE_MIN_SAMPLES {
                 return blocked;
             }
             *mean = [forward / f64::from(*n_f), backward / f64::from(*n_b)];
+            at += 0.5 * (x_f / f64::from(*n_f) + x_b / f64::from(*n_b));
         }
+        let at = self.centre + at / self.count as f64;
         if self.count == 1 {
             let [forward, backward] = means[0];
             return Step::Done(Stroked {
                 force: 0.5 * (forward + backward),
                 friction: 0.5 * (forward - backward),
+                at,
             });
         }
         let mut along = Vector3::zeros();
@@ -879,6 +896,7 @@ impl Strokes {
             Some(inverse) => Step::Done(Stroked {
                 force: inverse * along,
                 friction,
+                at,
             }),
             None => blocked,
         }
@@ -970,11 +988,23 @@ mod tests {
     /// force `hold`, read through an encoder of 10 µm steps, held on the strokes' set point by a
     /// PD with a feedforward `off` from the holding force; what `strokes` measure.
     fn strokes_on(
-        mut strokes: Strokes,
+        strokes: Strokes,
         m: f64,
         f: f64,
         hold: Vector3<f64>,
         off: Vector3<f64>,
+    ) -> Stroked {
+        strokes_in(strokes, m, f, |_| hold, hold + off)
+    }
+
+    /// [`strokes_on`] with a holding force that depends on where the handle is, `hold(x)`, and
+    /// the hold's feedforward `estimate`, constant as the calibration's is.
+    fn strokes_in(
+        mut strokes: Strokes,
+        m: f64,
+        f: f64,
+        hold: impl Fn(&Vector3<f64>) -> Vector3<f64>,
+        estimate: Vector3<f64>,
     ) -> Stroked {
         let (k, c) = (300.0, 2.0 * (300.0 * m).sqrt());
         let (mut x, mut v) = (strokes.centre(), Vector3::<f64>::zeros());
@@ -983,7 +1013,7 @@ mod tests {
             let t = n as f64 * dt;
             let reading = (x / 1e-5).map(f64::round) * 1e-5;
             let (target, target_v) = strokes.set_point(t);
-            let force = (target - reading) * k - (v - target_v) * c + hold + off;
+            let force = (target - reading) * k - (v - target_v) * c + estimate;
             let mut s = state(t, 0.0);
             s.position = reading;
             match strokes.observe(&s, &force) {
@@ -991,9 +1021,34 @@ mod tests {
                 Step::Blocked { .. } => panic!("blocked"),
                 Step::Running => {}
             }
-            slide(&mut x, &mut v, force - hold, m, f, dt);
+            let net = force - hold(&x);
+            slide(&mut x, &mut v, net, m, f, dt);
         }
         panic!("never done");
+    }
+
+    /// Where the holding force changes with the position and the hold's feedforward is off, the
+    /// hold keeps the handle off the set point's line, and the strokes read the holding force
+    /// there: they say where (on the simulated WoodenHaptics without friction at the handle, a
+    /// first vertex's feedforward held the handle 0.3 mm off, and read 3 mN off the centre's).
+    #[test]
+    fn strokes_say_where_they_read_the_holding_force() {
+        let centre = Vector3::new(0.01, -0.02, 0.0);
+        // As steep as the simulated delta's field at its top vertex (26 mN more per millimetre
+        // upward).
+        let gradient = Matrix3::from_diagonal(&Vector3::new(-20.0, -20.0, 26.0));
+        let field = |x: &Vector3<f64>| Vector3::new(0.05, -0.03, 1.2) + gradient * (x - centre);
+        let direction = Vector3::new(0.3, -0.5, 0.8).normalize();
+        for (m, f) in [(0.12, 0.1), (0.05, 0.0)] {
+            let strokes = Strokes::along(Stroke::MEASURE, centre, direction, 0.0);
+            // 87 mN across the stroke: the handle about 0.3 mm off its line.
+            let off = Vector3::new(-0.075, -0.045, 0.0);
+            let stroked = strokes_in(strokes, m, f, field, field(&centre) + off);
+            let at_centre = (stroked.force - field(&centre)).norm();
+            let where_read = (stroked.force - field(&stroked.at)).norm();
+            assert!(at_centre > 3e-3, "{m} kg, {f} N: {at_centre} N");
+            assert!(where_read < 3e-4, "{m} kg, {f} N: off by {where_read} N");
+        }
     }
 
     #[test]

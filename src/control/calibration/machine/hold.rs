@@ -359,7 +359,7 @@ impl Calibration {
             Step::Done(stroked) => {
                 let change = (stroked.force - self.estimate).norm();
                 self.estimate = stroked.force;
-                self.measured_at = strokes.centre();
+                self.measured_at = stroked.at;
                 self.iteration += 1;
                 let again =
                     STROKE_REPEAT.max(self.params.strokes_again_share * stroked.force.norm());
