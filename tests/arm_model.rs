@@ -529,7 +529,8 @@ fn scaled_tolerances(model: &str, config: &Config, factor: &str) -> String {
 #[test]
 #[ignore = "about a minute: a question docs/calibration.md §13.2 answers"]
 fn which_eight_holds() {
-    use hgcd::arm::{ArmGeometry, ArmGravity};
+    use hgcd::arm::ArmGravity;
+    use hgcd::fit::geometry::{offsets, placed};
     use nalgebra::{DMatrix, Dyn, OMatrix, U3};
     use rand::{seq::SliceRandom, SeedableRng};
     type Rows = OMatrix<f64, U3, Dyn>;
@@ -599,7 +600,7 @@ fn which_eight_holds() {
                 let (all, _) =
                     fit_arm_and_geometry(&arm, &holds, g, &[arm.up()], &tolerances).unwrap();
                 let k = arm.parameter_count();
-                let unknowns = k + 2 + if model == "delta" { 6 } else { 5 };
+                let unknowns = k + 2 + offsets(&arm);
                 let perturbed = |j: usize, step: f64| {
                     let mut model: ArmGravity = all.gravity;
                     if j < k {
@@ -608,16 +609,9 @@ fn which_eight_holds() {
                         let tilt = if j == k { Vector3::x() } else { Vector3::y() };
                         model.up = (model.up + tilt * step * 1e-3).normalize();
                     } else {
-                        let o = j - k - 2;
-                        let t = &tolerances;
-                        match (&mut model.arm.geometry, o) {
-                            (_, 0..=2) => model.arm.frame.origin[o] += step * t.origin,
-                            (ArmGeometry::Serial(a), 3) => a.upper *= 1.0 + step * t.length,
-                            (ArmGeometry::Serial(a), _) => a.fore *= 1.0 + step * t.length,
-                            (ArmGeometry::Delta(a), 3) => a.arm *= 1.0 + step * t.length,
-                            (ArmGeometry::Delta(a), 4) => a.rod *= 1.0 + step * t.length,
-                            (ArmGeometry::Delta(a), _) => a.base_radius += step * t.radius,
-                        }
+                        let mut p = vec![0.0; offsets(&arm)];
+                        p[j - k - 2] = step;
+                        model.arm = placed(&model.arm, &p, &tolerances);
                     }
                     model
                 };

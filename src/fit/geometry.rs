@@ -77,15 +77,15 @@ impl GeometryShift {
 }
 
 /// How many geometry offsets `arm` has: origin x, y, z, two lengths, and the delta's radius.
-fn offsets(arm: &Arm) -> usize {
+pub fn offsets(arm: &Arm) -> usize {
     match arm.geometry {
         ArmGeometry::Serial(_) => 5,
         ArmGeometry::Delta(_) => 6,
     }
 }
 
-/// `arm` with the offsets `p` (each in its tolerance `t`) applied.
-fn placed(arm: &Arm, p: &[f64], t: &GeometryTolerances) -> Arm {
+/// `arm` with the offsets `p` (each in its tolerance `t`, in [`offsets`]' order) applied.
+pub fn placed(arm: &Arm, p: &[f64], t: &GeometryTolerances) -> Arm {
     let mut a = *arm;
     a.frame.origin += Vector3::new(p[0], p[1], p[2]) * t.origin;
     match &mut a.geometry {
@@ -205,12 +205,8 @@ pub fn fit_arm_and_geometry(
         Ok(fit) if moved && !beyond && storable => fit,
         _ => return Ok((profile, None)),
     };
-    let weighted_rss = |fit: &ArmFit| -> f64 {
-        holds
-            .iter()
-            .map(|h| ((h.force - fit.gravity.force(&h.position)) / h.noise).norm_squared())
-            .sum()
-    };
+    // Each fit's weighted residual sum of squares over the holds, from its own figure.
+    let weighted_rss = |fit: &ArmFit| fit.normalised_residual.powi(2) * (3 * holds.len()) as f64;
     if weighted_rss(&profile) - weighted_rss(&fitted) < EVIDENCE_PER_OFFSET * n as f64 {
         return Ok((profile, None));
     }
