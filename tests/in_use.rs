@@ -70,8 +70,17 @@ fn start_with_file(auto_update: bool, file: Option<&std::path::Path>) -> Rig {
 /// `sim:MODEL` with 0.04 N of Coulomb friction at its handle, calibrated by `hgcd calibrate`
 /// in virtual time (its built-in profile: the arm model), then run by the daemon with that model.
 fn start_linkage(model: &'static str, auto_update: bool) -> Rig {
-    let mut config =
-        Config::from_toml_str("[sim]\ncoulomb_friction_n = 0.04\n", Path::new("test")).unwrap();
+    start_unit(model, auto_update, "").0
+}
+
+/// [`start_linkage`] with more of the `[sim]` section (`unit_seed = 2\nseed = 3`, say); also
+/// the moving mass along each axis its calibration recorded, kg.
+fn start_unit(model: &'static str, auto_update: bool, sim: &str) -> (Rig, [f64; 3]) {
+    let mut config = Config::from_toml_str(
+        &format!("[sim]\ncoulomb_friction_n = 0.04\n{sim}\n"),
+        Path::new("test"),
+    )
+    .unwrap();
     let state = tempfile::tempdir().unwrap();
     let request = CalibrateRequest {
         device: format!("sim:{model}").parse().unwrap(),
@@ -87,7 +96,14 @@ fn start_linkage(model: &'static str, auto_update: bool) -> Rig {
     )
     .expect("the linkage calibrates");
     config.compensation.auto_update = auto_update;
-    rig(TestDaemon::new(config).model(model).grid(Some(&run.grid)))
+    let inertia = run
+        .grid
+        .calibration
+        .as_ref()
+        .and_then(|c| c.inertia_kg)
+        .expect("a calibration records the moving mass");
+    let rig = rig(TestDaemon::new(config).model(model).grid(Some(&run.grid)));
+    (rig, inertia)
 }
 
 /// Start `daemon` behind a gate, keeping its simulated device's world.
@@ -150,6 +166,15 @@ fn until_noticed(rig: &Rig, client: &mut Client) -> (u64, hgcd::client::ModelSta
 /// Until the daemon's status reports a stale model: the ticks it took, what it says, and the
 /// `stale` event the client received on the way (state samples in between are read past).
 fn noticed(rig: &Rig, client: &mut Client) -> (u64, hgcd::client::ModelStale, f64) {
+    noticed_within(rig, client, TEN_SECONDS).expect("not noticed within 10 s of device time")
+}
+
+/// [`noticed`], or None once `ticks` have passed without.
+fn noticed_within(
+    rig: &Rig,
+    client: &mut Client,
+    ticks: u64,
+) -> Option<(u64, hgcd::client::ModelStale, f64)> {
     let start = rig.gate.passed();
     let mut event = None;
     loop {
@@ -171,13 +196,12 @@ fn noticed(rig: &Rig, client: &mut Client) -> (u64, hgcd::client::ModelStale, f6
         };
         if let Some(stale) = status.model_stale {
             // The event goes out before the status changes.
-            let ticks = rig.gate.passed() - start;
-            return (ticks, stale, event.expect("a `stale` event"));
+            let passed = rig.gate.passed() - start;
+            return Some((passed, stale, event.expect("a `stale` event")));
         }
-        assert!(
-            rig.gate.passed() - start < TEN_SECONDS,
-            "not noticed within 10 s of device time"
-        );
+        if rig.gate.passed() - start >= ticks {
+            return None;
+        }
     }
 }
 
@@ -423,7 +447,7 @@ fn with_auto_update_a_tilt_is_taken_in_within_its_bound() {
 /// mass changes too much along the way, docs/calibration.md §2.3.)
 #[test]
 fn on_a_linkage_a_grown_payload_is_noticed_and_taken_in() {
-    for model in ["phantom", "woodenhaptics"] {
+    for model in ["phantom", "delta", "woodenhaptics"] {
         let rig = start_linkage(model, true);
         let mut client = rig.client();
         rig.run(&mut client, 3000);
@@ -447,6 +471,96 @@ fn on_a_linkage_a_grown_payload_is_noticed_and_taken_in() {
             drift * 1e3
         );
     }
+}
+
+/// A delta left alone raises no alarm: at rest its velocity reads a few mm/s of its encoders'
+/// noise for windows on end, and the watch took the friction term of that "motion" for a
+/// payload of about 20 g (units 1 and 3, 8 of their 10 noise seeds; with `auto_update` it would
+/// have taken it in).
+#[test]
+fn a_delta_left_alone_raises_no_alarm() {
+    for sim in ["unit_seed = 1\nseed = 1", "unit_seed = 3\nseed = 2"] {
+        let (rig, _) = start_unit("delta", true, sim);
+        let mut client = rig.client();
+        let before = rig.run(&mut client, 1);
+        let after = rig.run(&mut client, 5000);
+        let status = client.status().unwrap();
+        assert_eq!(status.model_stale, None, "{sim}: a false alarm");
+        let moved = (Vector3::from(after.position) - Vector3::from(before.position)).norm();
+        assert!(
+            moved < 0.001,
+            "{sim}: the handle moved {:.3} mm",
+            moved * 1e3
+        );
+    }
+}
+
+/// The released handle's reading over units and noise seeds (issue 36's Must show asks within
+/// 20 % and no false alarm): each linkage (`RELEASED_MODELS`, default all three), units 1–3
+/// (`RELEASED_UNITS`), noise seeds 1–5 (`RELEASED_SEEDS`), 0.04 N at the handle, calibrated,
+/// left alone for 3 s (an alarm there is a false one), then 30 g more. Prints each run with
+/// the moving mass its calibration timed along z, and a summary; fails while any run misses.
+/// About two minutes: `cargo test --release --test in_use -- --ignored --nocapture
+/// released_payload_over_units_and_seeds` (docs/calibration.md §2.3).
+#[test]
+#[ignore = "about two minutes: 45 calibrations and runs"]
+fn released_payload_over_units_and_seeds() {
+    let list = |name: &str, default: &str| -> Vec<String> {
+        std::env::var(name)
+            .unwrap_or_else(|_| default.to_string())
+            .split(',')
+            .map(str::to_string)
+            .collect()
+    };
+    let models = list("RELEASED_MODELS", "phantom,delta,woodenhaptics");
+    let units = list("RELEASED_UNITS", "1,2,3");
+    let seeds: u64 = std::env::var("RELEASED_SEEDS").map_or(5, |s| s.parse().unwrap());
+    let mut misses = Vec::new();
+    for model in &models {
+        let model: &'static str = Box::leak(model.clone().into_boxed_str());
+        let (mut within, mut runs, mut alarms) = (0, 0, 0);
+        let (mut low, mut high) = (f64::INFINITY, f64::NEG_INFINITY);
+        for unit in &units {
+            for seed in 1..=seeds {
+                let (rig, inertia) =
+                    start_unit(model, false, &format!("unit_seed = {unit}\nseed = {seed}"));
+                let mut client = rig.client();
+                rig.run(&mut client, 3000);
+                runs += 1;
+                let case = format!("{model} unit {unit} seed {seed}");
+                if let Some(stale) = client.status().unwrap().model_stale {
+                    alarms += 1;
+                    println!("{case}: FALSE ALARM {:+.1} g", stale.payload_g);
+                    misses.push(format!("{case}: a false alarm ({:+.1} g)", stale.payload_g));
+                    continue;
+                }
+                rig.world.set(PAYLOAD, Vector3::z());
+                let Some((ticks, stale, _)) = noticed_within(&rig, &mut client, TEN_SECONDS) else {
+                    println!("{case}: not noticed in 10 s");
+                    misses.push(format!("{case}: not noticed"));
+                    continue;
+                };
+                low = low.min(stale.payload_g);
+                high = high.max(stale.payload_g);
+                let ok = (stale.payload_g - 30.0).abs() <= 0.2 * 30.0;
+                within += usize::from(ok);
+                println!(
+                    "{case}: {:+.1} g after {ticks} ticks (moving mass along z {:.3} kg){}",
+                    stale.payload_g,
+                    inertia[2],
+                    if ok { "" } else { "  MISSED" }
+                );
+                if !ok {
+                    misses.push(format!("{case}: {:+.1} g", stale.payload_g));
+                }
+            }
+        }
+        println!(
+            "SUMMARY {model}: {within} of {runs} within 20 %, {alarms} false alarms, \
+             estimates {low:+.1} to {high:+.1} g"
+        );
+    }
+    assert!(misses.is_empty(), "{misses:#?}");
 }
 
 /// [`an_application_holding_the_heavier_handle_still_shows_the_payload`] on each calibrated

@@ -194,8 +194,9 @@ pub struct ModelWatch {
     moving_mass: Vector3<f64>,
     friction: Vector3<f64>,
     window: Option<Window>,
-    /// Accelerations and mean velocities of the last windows in a row, oldest first.
-    recent: Vec<(Vector3<f64>, Vector3<f64>)>,
+    /// Accelerations, mean velocities and mean positions of the last windows in a row, oldest
+    /// first.
+    recent: Vec<(Vector3<f64>, Vector3<f64>, Vector3<f64>)>,
     /// The mean force the model gave in the last window (or rest), N, and where, m.
     model_force: Vector3<f64>,
     at: Vector3<f64>,
@@ -305,7 +306,7 @@ impl ModelWatch {
         } else {
             self.moving = 0;
         }
-        self.recent.push((acceleration, velocity));
+        self.recent.push((acceleration, velocity, self.at));
         if self.recent.len() > WINDOWS {
             self.recent.remove(0);
         }
@@ -436,7 +437,7 @@ impl ModelWatch {
         let windows: Vec<(Vector3<f64>, Vector3<f64>)> = self
             .recent
             .iter()
-            .map(|(a, v)| {
+            .map(|(a, v, _)| {
                 let l =
                     -self.moving_mass.component_mul(a) - self.friction.component_mul(&sliding(v));
                 (read(l), read(*v))
@@ -461,11 +462,34 @@ impl ModelWatch {
         if !steady || missed.norm() < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
             return None;
         }
+        // A force beyond the friction moves the released handle, faster and faster. A handle at
+        // rest whose velocity reads its encoder's noise, or one that creeps, does not: its
+        // windows' accelerations scatter about zero (each alone may pass MIN_FORCE), it covers
+        // less than half the way its velocities say, and the friction term f sgn(v) would read
+        // as a force (the simulated delta left alone: 18-24 g).
+        if v_mean.norm() == 0.0 {
+            return None;
+        }
+        let heading = v_mean.normalize();
+        let speeding_up = self
+            .recent
+            .iter()
+            .map(|(a, _, _)| read(self.moving_mass.component_mul(a)))
+            .sum::<Vector3<f64>>()
+            / n;
+        let (_, _, first) = self.recent[0];
+        let (_, _, last) = self.recent[self.recent.len() - 1];
+        let covered = read(last - first).dot(&heading);
+        if speeding_up.dot(&heading) < MIN_FORCE
+            || covered < 0.5 * v_mean.norm() * (n - 1.0) * WINDOW
+        {
+            return None;
+        }
         // A payload m_p rides along, and friction f_s = f sgn(v) does not:
         // (M + m_p) a + f_s = −F − c v, so what was read is (M F − m_p f_s) / (M + m_p), and
         // F · v_G = m_p g gives m_p (M the moving mass along v_G).
         let mass = up.dot(&self.moving_mass.component_mul(&up));
-        let (_, v) = self.recent[self.recent.len() - 1];
+        let (_, v, _) = self.recent[self.recent.len() - 1];
         let friction = read(self.friction.component_mul(&sliding(&v)));
         let along = missed.dot(&up);
         let denominator = mass * self.model.grid.g - along - friction.dot(&up);
@@ -526,7 +550,7 @@ mod tests {
                     tick: n,
                     time,
                     host_time: time,
-                    position: Vector3::zeros(),
+                    position: -missed / mass * (time * time / 2.0),
                     velocity: -missed / mass * time,
                     status: Status::default().with(Status::MOTORS_ENABLED, true),
                 };
@@ -605,12 +629,13 @@ mod tests {
             .map(|n| {
                 let time = n as f64 * 1e-3;
                 let sinking = -weight / damping * (1.0 - (-time / tau).exp());
+                let sunk = -weight / damping * (time - tau * (1.0 - (-time / tau).exp()));
                 PublishedState {
                     state: DeviceState {
                         tick: n,
                         time,
                         host_time: time,
-                        position: Vector3::zeros(),
+                        position: Vector3::z() * sunk,
                         velocity: Vector3::z() * sinking,
                         status: Status::default().with(Status::MOTORS_ENABLED, true),
                     },
@@ -624,6 +649,34 @@ mod tests {
             .collect();
         assert_eq!(found.len(), 1, "{found:?}");
         assert!((found[0].payload_kg - 0.03).abs() < 1e-3, "{found:?}");
+    }
+
+    /// A frictional handle at rest whose velocity reads a few mm/s of noise, one way for a
+    /// while, with accelerations scattered about zero: the friction term of that "motion"
+    /// (0.19 N) is not a missed force. The simulated delta left alone looked like this.
+    #[test]
+    fn a_handle_at_rest_with_a_noisy_velocity_says_nothing() {
+        let mut w = watch();
+        w.friction = Vector3::new(0.15, 0.15, 0.19);
+        let noticed = (0..2000u64).find_map(|n| {
+            let time = n as f64 * 1e-3;
+            let wobble = 0.003 * (2.0 * std::f64::consts::PI * time / 0.16).sin();
+            w.observe(&PublishedState {
+                state: DeviceState {
+                    tick: n,
+                    time,
+                    host_time: time,
+                    position: Vector3::zeros(),
+                    velocity: Vector3::z() * (-0.0045 + wobble),
+                    status: Status::default().with(Status::MOTORS_ENABLED, true),
+                },
+                force: Vector3::z() * (0.12 * 9.81),
+                gravity: Vector3::z() * (0.12 * 9.81),
+                offset_seq: 0,
+                gravity_only: true,
+            })
+        });
+        assert!(noticed.is_none(), "{noticed:?}");
     }
 
     /// A model 2 % off (a calibration a little out between its vertices) is not stale.
