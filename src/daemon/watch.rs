@@ -7,8 +7,10 @@
 //! with M the moving mass and f the friction the calibration measured (its `[calibration]`
 //! record) and c a viscous damping it did not. Over windows of [`WINDOW`] the velocity's slope
 //! gives a; [`WINDOWS`] windows in a row that one missed force and one damping explain within
-//! [`AGREEMENT`] give the force the model misses: the payload's weight along v_G, something
-//! else across it. A hand on the handle, a stop, a bump do not move it that way for long.
+//! [`AGREEMENT`] give the force the model misses (the payload's weight along v_G, something
+//! else across it), if the handle really moves that way: speeding up along its motion and
+//! covering the way its velocities say (velocity noise at rest does neither). A hand on the
+//! handle, a stop, a bump do not move it that way for long.
 //!
 //! While an application renders a force (its own spring, say) and the handle rests, the
 //! application's offset holds what the model misses, give or take the friction: at rest
