@@ -21,6 +21,9 @@ use hgcd::sim::SimDevice;
 use hgcd::transport::sim::SimTransport;
 use hgcd::transport::Pacing;
 
+mod common;
+use common::env_list;
+
 /// One calibration of the sweep.
 #[derive(Clone, Debug)]
 struct Case {
@@ -99,31 +102,16 @@ fn calibrate(case: &Case) -> Outcome {
     Ok((worst, result.duration))
 }
 
-/// The comma-separated values of the environment variable `key`, or `default`.
-fn list<T: std::str::FromStr + Clone>(key: &str, default: &[T]) -> Vec<T> {
-    match std::env::var(key) {
-        Ok(v) => v
-            .split(',')
-            .map(|s| {
-                s.trim()
-                    .parse()
-                    .unwrap_or_else(|_| panic!("{key}: cannot read {s:?}"))
-            })
-            .collect(),
-        Err(_) => default.to_vec(),
-    }
-}
-
 #[test]
 #[ignore]
 fn every_device_unit_friction_and_seed_calibrates_first_time_within_half_a_percent() {
-    let models: Vec<String> = list(
+    let models: Vec<String> = env_list(
         "SWEEP_DEVICES",
         &["point-mass", "phantom", "delta", "woodenhaptics"].map(String::from),
     );
-    let units: Vec<u64> = list("SWEEP_UNITS", &[1, 2, 3]);
-    let frictions: Vec<f64> = list("SWEEP_FRICTION", &[0.02, 0.04, 0.08]);
-    let seeds: u64 = list("SWEEP_SEEDS", &[20])[0];
+    let units: Vec<u64> = env_list("SWEEP_UNITS", &[1, 2, 3]);
+    let frictions: Vec<f64> = env_list("SWEEP_FRICTION", &[0.02, 0.04, 0.08]);
+    let seeds: u64 = env_list("SWEEP_SEEDS", &[20])[0];
     let mut cases = Vec::new();
     for model in &models {
         let model: &'static str = Box::leak(model.clone().into_boxed_str());

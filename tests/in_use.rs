@@ -22,7 +22,7 @@ use hgcd::transport::Pacing;
 mod common;
 use common::daemon::{Running, TestDaemon};
 use common::tap::{Gate, Tap};
-use common::{tilted_v_g, WAIT};
+use common::{env_list, tilted_v_g, WAIT};
 
 const PAYLOAD: f64 = 0.03;
 /// Ticks at 1 kHz.
@@ -443,8 +443,8 @@ fn with_auto_update_a_tilt_is_taken_in_within_its_bound() {
 /// The released handle of a calibrated linkage (its arm model, 0.04 N of friction at the
 /// handle) stays where it is for three seconds, no alarm raised; under 30 g more it sinks:
 /// noticed within 10 s of device time, its estimate within 20 %, taken in with `auto_update`,
-/// and the handle then stays where it is. (The delta reads 36 g here, 21 % high: its moving
-/// mass changes too much along the way, docs/calibration.md §2.3.)
+/// and the handle then stays where it is (over units and seeds:
+/// [`released_payload_over_units_and_seeds`]).
 #[test]
 fn on_a_linkage_a_grown_payload_is_noticed_and_taken_in() {
     for model in ["phantom", "delta", "woodenhaptics"] {
@@ -505,16 +505,12 @@ fn a_delta_left_alone_raises_no_alarm() {
 #[test]
 #[ignore = "about two minutes: 45 calibrations and runs"]
 fn released_payload_over_units_and_seeds() {
-    let list = |name: &str, default: &str| -> Vec<String> {
-        std::env::var(name)
-            .unwrap_or_else(|_| default.to_string())
-            .split(',')
-            .map(str::to_string)
-            .collect()
-    };
-    let models = list("RELEASED_MODELS", "phantom,delta,woodenhaptics");
-    let units = list("RELEASED_UNITS", "1,2,3");
-    let seeds: u64 = std::env::var("RELEASED_SEEDS").map_or(5, |s| s.parse().unwrap());
+    let models: Vec<String> = env_list(
+        "RELEASED_MODELS",
+        &["phantom", "delta", "woodenhaptics"].map(String::from),
+    );
+    let units: Vec<u64> = env_list("RELEASED_UNITS", &[1, 2, 3]);
+    let seeds: u64 = env_list("RELEASED_SEEDS", &[5])[0];
     let mut misses = Vec::new();
     for model in &models {
         let model: &'static str = Box::leak(model.clone().into_boxed_str());

@@ -301,3 +301,19 @@ impl<C: hgcd::control::Controller> hgcd::control::Controller for Ticks<C> {
         }
     }
 }
+
+/// The comma-separated values of the environment variable `key`, or `default` (the ignored
+/// sweeps' narrowing variables).
+pub fn env_list<T: std::str::FromStr + Clone>(key: &str, default: &[T]) -> Vec<T> {
+    match std::env::var(key) {
+        Ok(v) => v
+            .split(',')
+            .map(|s| {
+                s.trim()
+                    .parse()
+                    .unwrap_or_else(|_| panic!("{key}: cannot read {s:?}"))
+            })
+            .collect(),
+        Err(_) => default.to_vec(),
+    }
+}
