@@ -679,7 +679,7 @@ fn a_profile_naming_the_wrong_arm_leaves_the_lattice_with_a_warning() {
     assert!(warning.contains("arm model"), "{warning}");
     let gravity = GravityModel::configured(file, None, Default::default()).unwrap();
     assert_eq!(gravity.mode.to_string(), model.chosen);
-    println!("{warning}");
+    println!("{warning}\n{:?}", model.held_out_pct);
 }
 
 /// `device.profile` naming a profile file whose `[geometry_tolerances]` are all 0: the saved
