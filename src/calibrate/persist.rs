@@ -92,6 +92,7 @@ pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpe
         extrapolated_vertices: Some(result.extrapolated.iter().map(|v| v.index).collect()),
         load_n: Some(i.load.into()),
         friction_n: Some(i.friction.into()),
+        sliding_friction_n: i.sliding_friction.map(Into::into),
         inertia_kg: Some(i.inertia.into()),
         noise_mm: Some(i.noise * 1e3),
         step_mm: Some(i.step * 1e3),

@@ -4,8 +4,8 @@
 //! While the force sent is the model's alone (no application offset, no calibration), a handle
 //! the model holds exactly does not accelerate, apart from friction. Under a payload the model
 //! does not know, a released handle keeps sinking: (M + m_p) a = −m_p g v_G − c v − f sgn(v),
-//! with M the moving mass and f the friction the calibration measured (its `[calibration]`
-//! record) and c a viscous damping it did not. Over windows of [`WINDOW`] the velocity's slope
+//! with M the moving mass and f the sliding friction the calibration measured (its
+//! `[calibration]` record) and c a viscous damping it did not. Over windows of [`WINDOW`] the velocity's slope
 //! gives a; [`WINDOWS`] windows in a row that one missed force and one damping explain within
 //! [`AGREEMENT`] give the force the model misses (the payload's weight along v_G, something
 //! else across it), if the handle really moves that way: speeding up along its motion and
@@ -224,9 +224,17 @@ impl ModelWatch {
             moving_mass: record
                 .and_then(|c| c.inertia_kg)
                 .map_or(Vector3::repeat(mass), Vector3::from),
+            // What a sliding handle meets: the strokes' sliding friction where the file has it
+            // (the bands' half-widths read 5–30 % more).
             friction: record
-                .and_then(|c| c.friction_n)
-                .map_or(Vector3::zeros(), Vector3::from),
+                .and_then(|c| {
+                    [c.sliding_friction_n, c.friction_n]
+                        .into_iter()
+                        .flatten()
+                        .map(Vector3::from)
+                        .find(|f| f.iter().all(|f| f.is_finite() && *f >= 0.0))
+                })
+                .unwrap_or_else(Vector3::zeros),
             model: model.clone(),
             coupled: file.arm.is_some(),
             window: None,
@@ -529,18 +537,48 @@ mod tests {
     use crate::control::DeviceState;
     use crate::grid::MassGrid;
 
-    fn watch() -> ModelWatch {
-        let grid = MassGrid::uniform(
+    /// 120 g over a 3 × 3 × 3 lattice, 40 mm apart.
+    fn uniform_grid() -> MassGrid {
+        MassGrid::uniform(
             0.12,
             9.81,
             Vector3::z(),
             Vector3::repeat(-0.04),
             0.04,
             [3, 3, 3],
-        );
-        let file = GridFile::from(grid);
+        )
+    }
+
+    fn watch() -> ModelWatch {
+        let file = GridFile::from(uniform_grid());
         let model = GravityModel::configured(file.clone(), None, OutsideGrid::HoldNearest).unwrap();
         ModelWatch::new(&file, &model)
+    }
+
+    /// The friction a sliding handle meets is the survey strokes' where the file records it;
+    /// the bands' half-widths (5–30 % more) where it does not or its is not a friction.
+    #[test]
+    fn the_watch_takes_the_sliding_friction_over_the_bands() {
+        let friction = |sliding: Option<[f64; 3]>| {
+            let mut file = GridFile::from(uniform_grid());
+            file.calibration = Some(crate::grid::CalibrationRecord {
+                friction_n: Some([0.1, 0.1, 0.12]),
+                sliding_friction_n: sliding,
+                ..Default::default()
+            });
+            let model =
+                GravityModel::configured(file.clone(), None, OutsideGrid::HoldNearest).unwrap();
+            ModelWatch::new(&file, &model).friction
+        };
+        assert_eq!(
+            friction(Some([0.08, 0.09, 0.1])),
+            Vector3::new(0.08, 0.09, 0.1)
+        );
+        assert_eq!(friction(None), Vector3::new(0.1, 0.1, 0.12));
+        assert_eq!(
+            friction(Some([0.08, f64::NAN, 0.1])),
+            Vector3::new(0.1, 0.1, 0.12)
+        );
     }
 
     /// A handle released at `t0` under a force `missed` the model does not hold, 1 kHz.

@@ -107,6 +107,9 @@ pub struct CalibrationRecord {
     /// without one), mm; and the hold stiffness built from them, N/mm.
     pub load_n: Option<[f64; 3]>,
     pub friction_n: Option<[f64; 3]>,
+    /// The sliding friction along x, y, z that the survey strokes at X_C measured, N (the
+    /// bands' edges, read at a slip, put `friction_n` 5–30 % above it).
+    pub sliding_friction_n: Option<[f64; 3]>,
     pub inertia_kg: Option<[f64; 3]>,
     pub noise_mm: Option<f64>,
     pub step_mm: Option<f64>,
@@ -1048,6 +1051,7 @@ pub(crate) mod tests {
                 extrapolated_vertices: Some(vec![[i32::MIN; 3]; n]),
                 load_n: Some([longest; 3]),
                 friction_n: Some([longest; 3]),
+                sliding_friction_n: Some([longest; 3]),
                 inertia_kg: Some([longest; 3]),
                 noise_mm: Some(longest),
                 step_mm: Some(longest),

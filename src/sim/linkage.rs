@@ -744,6 +744,16 @@ impl<M: Mechanism> Plant for Linkage<M> {
             .unwrap_or_else(|| Vector3::repeat(f64::NAN))
     }
 
+    fn moving_mass_per_axis(&self) -> Vector3<f64> {
+        let handle = self.mechanism.handle(&self.q, &Vector3::zeros());
+        let mobility = self
+            .dynamics(&handle)
+            .inertia
+            .try_inverse()
+            .map(|h| handle.jacobian * h * handle.jacobian.transpose());
+        mobility.map_or(Vector3::repeat(f64::NAN), |m| m.diagonal().map(|d| 1.0 / d))
+    }
+
     fn up(&self) -> Vector3<f64> {
         -self.env.gravity.normalize()
     }

@@ -41,6 +41,11 @@ pub trait Plant: Send {
     /// The actuator force that holds the handle still where it is now, payload included, N: the
     /// plant's own analytic answer to what calibration measures (ground truth for tests).
     fn holding_force(&self) -> Vector3<f64>;
+    /// The moving mass along x, y and z where the handle is now, kg: the force along an axis
+    /// over the acceleration it gives along it from rest, the other axes free (1 / (J H⁻¹ Jᵀ)_aa
+    /// on a linkage, rotors and payload included): what calibration's pulses time (ground truth
+    /// for tests).
+    fn moving_mass_per_axis(&self) -> Vector3<f64>;
     /// The position the device's own sensors report with the handle displaced by `noise` (m)
     /// from where it is: quantised as its encoders quantise (Cartesian for the point mass, joint
     /// angles then forward kinematics for a linkage).

@@ -181,6 +181,9 @@ impl Plant for PointMass {
         self.field.gravity_direction * (self.mass() * self.field.g)
             + (self.x - self.spring_anchor) * self.spring
     }
+    fn moving_mass_per_axis(&self) -> Vector3<f64> {
+        Vector3::repeat(self.moving_mass())
+    }
     fn up(&self) -> Vector3<f64> {
         self.field.gravity_direction
     }

@@ -71,7 +71,11 @@ pub struct InitialMeasurement {
     /// Half-widths of the stick bands along x, y, z, N; where the bands were misread, the
     /// sliding friction the survey strokes measured along each axis.
     pub friction: Vector3<f64>,
-    /// Moving mass along x, y, z, kg.
+    /// The sliding friction along x, y, z that the survey strokes measured (half the difference
+    /// of their passes), N; none where they did not carry the handle through.
+    pub sliding_friction: Option<Vector3<f64>>,
+    /// Moving mass along x, y, z, kg: timed by the pulses, scaled by the share of their excess
+    /// they pushed with once the survey strokes have measured the load and sliding friction.
     pub inertia: Vector3<f64>,
     /// Standard deviation of the reported position at rest, m.
     pub noise: f64,

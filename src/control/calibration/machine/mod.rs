@@ -252,6 +252,11 @@ pub(super) const STROKES_AGAIN_SHARE: f64 = 0.1;
 /// 0–35 % of the sliding friction, sound ones 105–130 %.
 const INIT_REMEASURES: u32 = 2;
 const MISREAD_SHARE: f64 = 0.5;
+/// A pulse pushed by its excess plus what the bands' load and friction overstate (the survey
+/// strokes' load and sliding friction say by how much): the moving mass is scaled by that share
+/// of the excess where it lies within these bounds (beyond them the pulse did not push as the
+/// strokes say, and its reading is kept).
+const PULSE_SHARES: std::ops::RangeInclusive<f64> = 0.1..=10.0;
 /// Share of the hold's damping strokes keep along axes where friction dominates: a sliding
 /// joint's friction damps the hold there, and the velocity feedback's noise, multiplied by the
 /// full damping, shakes the joints so that the passes' windows no longer cancel their friction.
@@ -453,6 +458,8 @@ pub struct Calibration {
     /// Mean square of the velocity lately while the initial field holds the handle, m²/s².
     speed_square: f64,
     initial: InitialMeasurement,
+    /// The force beyond the bands' load and friction each moving-mass pulse pushed with, N.
+    pulse_excess: Vector3<f64>,
     /// Displacement of the smoothed position that counts as a slip, m, and how far a single
     /// reading may lie from where the handle stuck before it counts as moving, m.
     slip: f64,
@@ -598,11 +605,13 @@ impl Calibration {
             initial: InitialMeasurement {
                 load: Vector3::zeros(),
                 friction: Vector3::zeros(),
+                sliding_friction: None,
                 inertia: Vector3::zeros(),
                 noise: 0.0,
                 step: 0.0,
                 stiffness: Vector3::zeros(),
             },
+            pulse_excess: Vector3::zeros(),
             slip: MIN_SLIP,
             still: 0.0,
             noise: NoiseMeter::new(n_init),
