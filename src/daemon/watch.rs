@@ -192,9 +192,12 @@ pub struct ModelWatch {
     /// The grid has an arm model, whatever the compensation mode: a linkage, whose inertia
     /// couples the axes.
     coupled: bool,
-    /// Moving mass along each axis, kg, and friction along each, N (the calibration's).
+    /// Moving mass along each axis, kg, and friction along each, N (the calibration's): what
+    /// holds a handle at rest (half its stick band) and what a sliding handle meets (the survey
+    /// strokes', usually 5–30 % less; the band's in files without it).
     moving_mass: Vector3<f64>,
     friction: Vector3<f64>,
+    sliding_friction: Vector3<f64>,
     window: Option<Window>,
     /// Accelerations, mean velocities and mean positions of the last windows in a row, oldest
     /// first.
@@ -220,21 +223,22 @@ impl ModelWatch {
         let record = file.calibration.as_ref();
         let centre = (grid.origin + grid.far_corner()) / 2.0;
         let mass = grid.mass_at(&centre).abs().max(0.001);
+        let is_friction = |f: &Vector3<f64>| f.iter().all(|f| f.is_finite() && *f >= 0.0);
+        let friction = record
+            .and_then(|c| c.friction_n)
+            .map(Vector3::from)
+            .filter(is_friction)
+            .unwrap_or_else(Vector3::zeros);
         Self {
             moving_mass: record
                 .and_then(|c| c.inertia_kg)
                 .map_or(Vector3::repeat(mass), Vector3::from),
-            // What a sliding handle meets: the strokes' sliding friction where the file has it
-            // (the bands' half-widths read 5–30 % more).
-            friction: record
-                .and_then(|c| {
-                    [c.sliding_friction_n, c.friction_n]
-                        .into_iter()
-                        .flatten()
-                        .map(Vector3::from)
-                        .find(|f| f.iter().all(|f| f.is_finite() && *f >= 0.0))
-                })
-                .unwrap_or_else(Vector3::zeros),
+            friction,
+            sliding_friction: record
+                .and_then(|c| c.sliding_friction_n)
+                .map(Vector3::from)
+                .filter(is_friction)
+                .unwrap_or(friction),
             model: model.clone(),
             coupled: file.arm.is_some(),
             window: None,
@@ -448,8 +452,8 @@ impl ModelWatch {
             .recent
             .iter()
             .map(|(a, v, _)| {
-                let l =
-                    -self.moving_mass.component_mul(a) - self.friction.component_mul(&sliding(v));
+                let l = -self.moving_mass.component_mul(a)
+                    - self.sliding_friction.component_mul(&sliding(v));
                 (read(l), read(*v))
             })
             .collect();
@@ -500,7 +504,7 @@ impl ModelWatch {
         // F · v_G = m_p g gives m_p (M the moving mass along v_G).
         let mass = up.dot(&self.moving_mass.component_mul(&up));
         let (_, v, _) = self.recent[self.recent.len() - 1];
-        let friction = read(self.friction.component_mul(&sliding(&v)));
+        let friction = read(self.sliding_friction.component_mul(&sliding(&v)));
         let along = missed.dot(&up);
         let denominator = mass * self.model.grid.g - along - friction.dot(&up);
         if denominator <= 0.0 {
@@ -555,8 +559,9 @@ mod tests {
         ModelWatch::new(&file, &model)
     }
 
-    /// The friction a sliding handle meets is the survey strokes' where the file records it;
-    /// the bands' half-widths (5–30 % more) where it does not or its is not a friction.
+    /// A sliding handle meets the survey strokes' sliding friction where the file records it,
+    /// the bands' half-widths (usually 5–30 % more) where it does not or its is not a
+    /// friction; a resting one is held by up to the bands' half-widths either way.
     #[test]
     fn the_watch_takes_the_sliding_friction_over_the_bands() {
         let friction = |sliding: Option<[f64; 3]>| {
@@ -568,7 +573,9 @@ mod tests {
             });
             let model =
                 GravityModel::configured(file.clone(), None, OutsideGrid::HoldNearest).unwrap();
-            ModelWatch::new(&file, &model).friction
+            let watch = ModelWatch::new(&file, &model);
+            assert_eq!(watch.friction, Vector3::new(0.1, 0.1, 0.12));
+            watch.sliding_friction
         };
         assert_eq!(
             friction(Some([0.08, 0.09, 0.1])),
@@ -640,13 +647,13 @@ mod tests {
         assert!(found[0].payload_kg.abs() < 1e-6, "{found:?}");
     }
 
-    /// Against friction f (its calibration's) a heavier handle sinks slower:
+    /// Against sliding friction f (its calibration's) a heavier handle sinks slower:
     /// (M + m_p) a = −(m_p g − f) along z; the watch, knowing M and f, reads m_p exactly.
     #[test]
     fn a_sinking_against_friction_is_read_as_its_payload() {
         let mut w = watch();
         let friction = 0.1;
-        w.friction = Vector3::new(0.05, 0.05, friction);
+        w.sliding_friction = Vector3::new(0.05, 0.05, friction);
         let (payload, moving) = (0.03, 0.12);
         let slowed = Vector3::z() * (payload * 9.81 - friction);
         let found: Vec<Noticed> = falling(slowed, moving + payload, 400)
@@ -698,6 +705,7 @@ mod tests {
     fn a_handle_at_rest_with_a_noisy_velocity_says_nothing() {
         let mut w = watch();
         w.friction = Vector3::new(0.15, 0.15, 0.19);
+        w.sliding_friction = w.friction;
         let noticed = (0..2000u64).find_map(|n| {
             let time = n as f64 * 1e-3;
             let wobble = 0.003 * (2.0 * std::f64::consts::PI * time / 0.16).sin();

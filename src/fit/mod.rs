@@ -308,13 +308,17 @@ pub fn choose(
 
 /// The candidate used: the best held-out score, or among those within the tolerance of it the
 /// model that covers the whole workspace (arm, then arm + residual, then the lattices), unless
-/// the arm alone predicts worse than the vector lattice. Then the arm has failed (the wrong arm
+/// the arm alone predicts worse than the vector lattice by more than that tolerance. Then the
+/// arm has failed (the wrong arm
 /// named, or its geometry far off), what the arm + residual model gets right its residual
 /// lattice gets right, and the lattices win the tie (the delta's profile on the simulated
 /// PHANToM: vector 36 %, arm 58 %, arm + residual 42 %, and in one calibration 39.7 %, within
 /// the tolerance). The arm models count only where `arm_fitted` (their fit to every hold).
 fn preferred(scores: &Scores, arm_fitted: bool) -> CompensationMode {
-    let arm_failed = scores.arm.is_some_and(|arm| arm > scores.vector);
+    let within = |score: f64| SCORE_TOLERANCE_PCT.max(0.1 * score);
+    let arm_failed = scores
+        .arm
+        .is_some_and(|arm| arm > scores.vector + within(scores.vector));
     let order = if arm_failed {
         [
             CompensationMode::Vector,
@@ -339,7 +343,7 @@ fn preferred(scores: &Scores, arm_fitted: bool) -> CompensationMode {
         .filter(|m| usable(m))
         .filter_map(|&m| scores.of(m))
         .fold(f64::INFINITY, f64::min);
-    let tolerance = SCORE_TOLERANCE_PCT.max(0.1 * best);
+    let tolerance = within(best);
     order
         .into_iter()
         .filter(|m| usable(m))
@@ -370,6 +374,8 @@ mod tests {
         // The delta's profile on the PHANToM: arm + residual within 10 % of the vector
         // lattice, but only through its residual lattice.
         assert_eq!(preferred(&scores(67.3, 36.1, 56.6, 39.7), true), Vector);
+        // An arm as good as the lattice, within the tolerance, has not failed.
+        assert_eq!(preferred(&scores(9.0, 1.0, 1.05, 1.02), true), Arm);
         // A failed arm whose residual still beats the lattice beyond the tolerance is used.
         assert_eq!(preferred(&scores(9.0, 5.0, 6.0, 1.0), true), ArmResidual);
         // No fit to every hold: the lattices only.

@@ -108,7 +108,7 @@ pub struct CalibrationRecord {
     pub load_n: Option<[f64; 3]>,
     pub friction_n: Option<[f64; 3]>,
     /// The sliding friction along x, y, z that the survey strokes at X_C measured, N (the
-    /// bands' edges, read at a slip, put `friction_n` 5–30 % above it).
+    /// bands' edges, read at a slip, usually put `friction_n` 5–30 % above it).
     pub sliding_friction_n: Option<[f64; 3]>,
     pub inertia_kg: Option<[f64; 3]>,
     pub noise_mm: Option<f64>,

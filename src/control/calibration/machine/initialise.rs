@@ -377,7 +377,7 @@ impl Calibration {
             }
             Step::Done(mass) => {
                 self.initial.inertia[a] = mass;
-                self.pulse_excess[a] = pulse.excess;
+                self.timed_excess[a] = pulse.excess;
                 (a + 1, self.pulse_excess((a + 1).min(2)))
             }
             Step::Blocked { .. } => {
@@ -485,7 +485,7 @@ impl Calibration {
     /// friction where the handle slides against 0.087, its load 8 mN off; the pulse pushed by
     /// 0.18 of its 0.052 N excess and timed 0.353 kg where the arm's is about 0.065.
     fn pulse_share(&self, a: usize, stroked: &Stroked) -> f64 {
-        let excess = self.pulse_excess[a];
+        let excess = self.timed_excess[a];
         let overstated = self.initial.load[a] + self.initial.friction[a]
             - stroked.force[a]
             - stroked.friction[a].abs();

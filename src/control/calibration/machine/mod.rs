@@ -459,7 +459,7 @@ pub struct Calibration {
     speed_square: f64,
     initial: InitialMeasurement,
     /// The force beyond the bands' load and friction each moving-mass pulse pushed with, N.
-    pulse_excess: Vector3<f64>,
+    timed_excess: Vector3<f64>,
     /// Displacement of the smoothed position that counts as a slip, m, and how far a single
     /// reading may lie from where the handle stuck before it counts as moving, m.
     slip: f64,
@@ -611,7 +611,7 @@ impl Calibration {
                 step: 0.0,
                 stiffness: Vector3::zeros(),
             },
-            pulse_excess: Vector3::zeros(),
+            timed_excess: Vector3::zeros(),
             slip: MIN_SLIP,
             still: 0.0,
             noise: NoiseMeter::new(n_init),
