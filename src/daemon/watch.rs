@@ -5,12 +5,12 @@
 //! the model holds exactly does not accelerate, apart from friction. Under a payload the model
 //! does not know, a released handle keeps sinking: (M + m_p) a = −m_p g v_G − c v − f sgn(v),
 //! with M the moving mass and f the sliding friction the calibration measured (its
-//! `[calibration]` record) and c a viscous damping it did not. Over windows of [`WINDOW`] the velocity's slope
-//! gives a; [`WINDOWS`] windows in a row that one missed force and one damping explain within
-//! [`AGREEMENT`] give the force the model misses (the payload's weight along v_G, something
-//! else across it), if the handle really moves that way: speeding up along its motion and
-//! covering the way its velocities say (velocity noise at rest does neither). A hand on the
-//! handle, a stop, a bump do not move it that way for long.
+//! `[calibration]` record) and c a viscous damping it did not. Over windows of [`WINDOW`] the
+//! velocity's slope gives a; [`WINDOWS`] windows in a row that one missed force and one
+//! damping explain within [`AGREEMENT`] give the force the model misses (the payload's weight
+//! along v_G, something else across it), if the handle really moves that way: speeding up
+//! along its motion and covering the way its velocities say (velocity noise at rest does
+//! neither). A hand on the handle, a stop, a bump do not move it that way for long.
 //!
 //! While an application renders a force (its own spring, say) and the handle rests, the
 //! application's offset holds what the model misses, give or take the friction: at rest

@@ -309,11 +309,11 @@ pub fn choose(
 /// The candidate used: the best held-out score, or among those within the tolerance of it the
 /// model that covers the whole workspace (arm, then arm + residual, then the lattices), unless
 /// the arm alone predicts worse than the vector lattice by more than that tolerance. Then the
-/// arm has failed (the wrong arm
-/// named, or its geometry far off), what the arm + residual model gets right its residual
-/// lattice gets right, and the lattices win the tie (the delta's profile on the simulated
-/// PHANToM: vector 36 %, arm 58 %, arm + residual 42 %, and in one calibration 39.7 %, within
-/// the tolerance). The arm models count only where `arm_fitted` (their fit to every hold).
+/// arm has failed (the wrong arm named, or its geometry far off), what the arm + residual
+/// model gets right its residual lattice gets right, and the lattices win the tie (the delta's
+/// profile on the simulated PHANToM: vector 36 %, arm 58 %, arm + residual 42 %, and in one
+/// calibration 39.7 %, within the tolerance). The arm models count only where `arm_fitted`
+/// (their fit to every hold).
 fn preferred(scores: &Scores, arm_fitted: bool) -> CompensationMode {
     let within = |score: f64| SCORE_TOLERANCE_PCT.max(0.1 * score);
     let arm_failed = scores

@@ -483,17 +483,13 @@ impl Calibration {
     /// friction on the simulated PHANToM): a pulse pushed harder than meant, and the moving
     /// mass read light. PHANToM unit 2, seed 1 at 0.04 N: the band along z read 0.052 N of
     /// friction where the handle slides against 0.087, its load 8 mN off; the pulse pushed by
-    /// 0.18 of its 0.052 N excess and timed 0.353 kg where the arm's is about 0.065.
+    /// 0.18 of its 0.052 N excess and timed 0.353 kg where the arm's is about 0.065. (An axis
+    /// never pulsed has no excess: its share is not finite, and `PULSE_SHARES` leaves it.)
     fn pulse_share(&self, a: usize, stroked: &Stroked) -> f64 {
-        let excess = self.timed_excess[a];
         let overstated = self.initial.load[a] + self.initial.friction[a]
             - stroked.force[a]
             - stroked.friction[a].abs();
-        if excess > 0.0 {
-            1.0 + overstated / excess
-        } else {
-            1.0
-        }
+        1.0 + overstated / self.timed_excess[a]
     }
 
     /// The moving mass along each axis as the pulse pushed it (see [`Self::pulse_share`]; a
