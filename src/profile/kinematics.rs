@@ -24,6 +24,39 @@ pub struct Point {
     pub bias: Vector3<f64>,
 }
 
+/// Joint angles q (rad) and rates q̇ (rad/s) with the angles' sines and cosines, worked out once
+/// and read by every point of an arm (a simulated linkage's step visits the handle and each of
+/// its lumped masses at the same joints).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JointState {
+    pub q: Vector3<f64>,
+    pub qd: Vector3<f64>,
+    pub sin: Vector3<f64>,
+    pub cos: Vector3<f64>,
+}
+
+impl JointState {
+    /// The joints at `q` moving at `qd`.
+    pub fn new(q: &Vector3<f64>, qd: &Vector3<f64>) -> Self {
+        let mut sin = Vector3::zeros();
+        let mut cos = Vector3::zeros();
+        for j in 0..3 {
+            (sin[j], cos[j]) = q[j].sin_cos();
+        }
+        Self {
+            q: *q,
+            qd: *qd,
+            sin,
+            cos,
+        }
+    }
+
+    /// The joints at rest at `q`.
+    pub fn at_rest(q: &Vector3<f64>) -> Self {
+        Self::new(q, &Vector3::zeros())
+    }
+}
+
 /// The parameters of one arm, SI units (a profile's `[kinematics]` table).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ArmModel {
@@ -84,11 +117,12 @@ impl ArmModel {
     }
 
     /// The point `upper` along body b from the shoulder and then `fore` along body c's direction
-    /// (from elbow to handle), at joint angles `q` moving at `qd`, in the device frame.
-    pub fn point(&self, q: &Vector3<f64>, qd: &Vector3<f64>, upper: f64, fore: f64) -> Point {
-        let (sa, ca) = q[0].sin_cos();
-        let (sb, cb) = q[1].sin_cos();
-        let (sc, cc) = q[2].sin_cos();
+    /// (from elbow to handle), at `joints`, in the device frame.
+    pub fn point(&self, joints: &JointState, upper: f64, fore: f64) -> Point {
+        let qd = &joints.qd;
+        let (sa, ca) = (joints.sin[0], joints.cos[0]);
+        let (sb, cb) = (joints.sin[1], joints.cos[1]);
+        let (sc, cc) = (joints.sin[2], joints.cos[2]);
         let r = upper * sb + fore * sc;
         let h = self.lengths[0] + upper * cb - fore * cc;
         let (rb, rc) = (upper * cb, fore * cc);
@@ -120,7 +154,7 @@ impl ArmModel {
 
     /// The handle at joint angles `q` (at rest: no bias).
     pub fn handle(&self, q: &Vector3<f64>) -> Point {
-        self.point(q, &Vector3::zeros(), self.lengths[1], self.lengths[2])
+        self.point(&JointState::at_rest(q), self.lengths[1], self.lengths[2])
     }
 
     /// Joint angles that put the handle at `x` (device frame, m), elbow up and the handle in
@@ -263,7 +297,7 @@ mod tests {
                 let q = arm.joints_at(&x).unwrap();
                 let qd = Vector3::new(0.7, -1.1, 1.3);
                 let (upper, fore) = (arm.lengths[1], arm.lengths[2]);
-                let j = arm.point(&q, &qd, upper, fore);
+                let j = arm.point(&JointState::new(&q, &qd), upper, fore);
                 for c in 0..3 {
                     let mut e = Vector3::zeros();
                     e[c] = h;

@@ -12,7 +12,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use super::linkage::{Drives, JointState, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use crate::config::SimConfig;
 
 /// Geometry and masses of the delta (SI units).
@@ -96,9 +96,10 @@ impl Delta {
     }
 
     /// Kinematics of the point `along` from pivot `i` along arm i (only θ_i moves it).
-    fn arm_point(&self, i: usize, q: &Vector3<f64>, qd: &Vector3<f64>, along: f64) -> Point {
+    fn arm_point(&self, i: usize, joints: &JointState, along: f64) -> Point {
         let u = self.legs[i];
-        let (s, c) = q[i].sin_cos();
+        let (s, c) = (joints.sin[i], joints.cos[i]);
+        let qd = &joints.qd;
         let mut jacobian = Matrix3::zeros();
         jacobian.set_column(i, &((-u * s - Vector3::z() * c) * along));
         Point {
@@ -117,10 +118,10 @@ impl Delta {
     /// `rod` about the elbows shifted in by the platform radius. Out of reach (the spheres do not
     /// meet) it returns the nearest point the construction gives (rods stretched), which the joint
     /// limits keep the plant from reaching.
-    fn platform(&self, q: &Vector3<f64>) -> Vector3<f64> {
+    fn platform(&self, joints: &JointState) -> Vector3<f64> {
         let u = &self.legs;
         let centre = |i: usize| {
-            let (s, c) = q[i].sin_cos();
+            let (s, c) = (joints.sin[i], joints.cos[i]);
             self.pivot(i) + (u[i] * c - Vector3::z() * s) * self.arm - u[i] * self.platform_radius
         };
         let (c0, c1, c2) = (centre(0), centre(1), centre(2));
@@ -141,8 +142,9 @@ impl Delta {
 }
 
 impl Mechanism for Delta {
-    fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point {
-        let p = self.platform(q);
+    fn handle(&self, joints: &JointState) -> Point {
+        let p = self.platform(joints);
+        let qd = &joints.qd;
         let u = &self.legs;
         // Each rod keeps its length: s_i · (ṗ − ė_i) = 0 with s_i the rod vector, e_i the elbow.
         let mut a = Matrix3::zeros();
@@ -151,7 +153,7 @@ impl Mechanism for Delta {
         let mut elbow_rate = [Vector3::zeros(); 3];
         let mut rods = [Vector3::zeros(); 3];
         for i in 0..3 {
-            let (s, c) = q[i].sin_cos();
+            let (s, c) = (joints.sin[i], joints.cos[i]);
             let elbow = self.pivot(i) + (u[i] * c - Vector3::z() * s) * self.arm;
             let de = (-u[i] * s - Vector3::z() * c) * self.arm;
             let dde = (-u[i] * c + Vector3::z() * s) * self.arm;
@@ -205,14 +207,14 @@ impl Mechanism for Delta {
         self.m_platform + 1.5 * self.m_rods
     }
 
-    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
+    fn masses(&self, joints: &JointState, visit: &mut dyn FnMut(f64, &Point)) {
         for i in 0..3 {
-            visit(0.5 * self.m_rods, &self.arm_point(i, q, qd, self.arm));
-            visit(self.m_arm, &self.arm_point(i, q, qd, self.arm_com));
+            visit(0.5 * self.m_rods, &self.arm_point(i, joints, self.arm));
+            visit(self.m_arm, &self.arm_point(i, joints, self.arm_com));
         }
     }
 
-    fn rotations(&self, _q: &Vector3<f64>, _qd: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
+    fn rotations(&self, _joints: &JointState) -> (Matrix3<f64>, Vector3<f64>) {
         // The arms turn about their fixed pivot axes; the rods' own rotation is neglected.
         (Matrix3::from_diagonal_element(self.i_arm), Vector3::zeros())
     }
@@ -263,7 +265,7 @@ mod tests {
         let delta = Delta::nominal();
         let zero = Vector3::zeros();
         let home = delta.joints_at(&zero).unwrap();
-        assert!(delta.handle(&home, &zero).position.norm() < 1e-12);
+        assert!(delta.handle(&JointState::at_rest(&home)).position.norm() < 1e-12);
         // Symmetric: every arm at the same angle, about 23° below horizontal.
         assert!((home.amax() - home.amin()).abs() < 1e-12);
         assert!((home[0].to_degrees() - 23.4).abs() < 0.1, "{home:?}");
@@ -271,7 +273,7 @@ mod tests {
             let x = Vector3::from(x) * 1e-3;
             let q = delta.joints_at(&x).unwrap();
             assert!(
-                (delta.handle(&q, &zero).position - x).amax() < 1e-12,
+                (delta.handle(&JointState::at_rest(&q)).position - x).amax() < 1e-12,
                 "{x:?}"
             );
         }
@@ -353,7 +355,7 @@ mod tests {
         let home = delta_at([0.0; 3], env(1.0, 0.0));
         let j = home
             .mechanism()
-            .handle(&home.joints(), &Vector3::zeros())
+            .handle(&JointState::at_rest(&home.joints()))
             .jacobian;
         let drives = nominal_drives();
         let peak = drives.peak_joint_torque();

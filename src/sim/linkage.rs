@@ -17,7 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use super::{ContactLog, Plant};
 use crate::config::SimConfig;
 
-pub use crate::profile::kinematics::Point;
+pub use crate::profile::kinematics::{JointState, Point};
 
 /// How far the handle must leave the obstacle for its next touch to count as a new contact, m.
 const RELEASE: f64 = 1e-4;
@@ -33,7 +33,7 @@ const IMPULSE_ROUNDS: usize = 4;
 /// unit (a unit's home may sit up to [`UnitVariation::HOME_SPREAD`] from it).
 pub trait Mechanism: Send + 'static {
     /// The handle's kinematics (the point forces act on and the device reports).
-    fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point;
+    fn handle(&self, joints: &JointState) -> Point;
     /// Joint angles that put the handle at `x`, in the mechanism's working assembly mode; `None`
     /// out of reach.
     fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>>;
@@ -44,11 +44,11 @@ pub trait Mechanism: Send + 'static {
     }
     /// Visit every other lumped mass (kg) with its kinematics: the masses carry both weight and
     /// inertia.
-    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point));
+    fn masses(&self, joints: &JointState, visit: &mut dyn FnMut(f64, &Point));
     /// What the links' rotation about their own centres of mass adds to the joint-space
     /// dynamics: (inertia, kg m²; velocity-product torques, N m), from the kinetic energy
     /// ½ ωᵀ I ω of each link.
-    fn rotations(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>);
+    fn rotations(&self, joints: &JointState) -> (Matrix3<f64>, Vector3<f64>);
     /// Mechanical stops: (lower, upper) joint angle, rad.
     fn joint_limits(&self) -> (Vector3<f64>, Vector3<f64>);
 }
@@ -324,36 +324,43 @@ impl<M: Mechanism> Linkage<M> {
     /// ∂U/∂q at the current joints, payload included, N m: the joint torques that hold the
     /// mechanism still against gravity.
     pub fn gravity_torque(&self) -> Vector3<f64> {
-        self.dynamics(&self.mechanism.handle(&self.q, &self.qd))
+        let joints = self.joint_state();
+        self.dynamics(&joints, &self.mechanism.handle(&joints))
             .gravity
     }
 
     /// Kinetic energy, J.
     pub fn kinetic_energy(&self) -> f64 {
-        let d = self.dynamics(&self.mechanism.handle(&self.q, &self.qd));
+        let joints = self.joint_state();
+        let d = self.dynamics(&joints, &self.mechanism.handle(&joints));
         0.5 * self.qd.dot(&(d.inertia * self.qd))
     }
 
     /// Potential energy in gravity, J (zero level at the device origin).
     pub fn potential_energy(&self) -> f64 {
         let g = self.env.gravity;
-        let zero = Vector3::zeros();
-        let handle = self.mechanism.handle(&self.q, &zero);
+        let at_rest = JointState::at_rest(&self.q);
+        let handle = self.mechanism.handle(&at_rest);
         let mut u = -self.env.payload * g.dot(&handle.position);
         let on_handle = self.mechanism.handle_mass();
         if on_handle > 0.0 {
             u -= on_handle * g.dot(&handle.position);
         }
         self.mechanism
-            .masses(&self.q, &zero, &mut |m, p| u -= m * g.dot(&p.position));
+            .masses(&at_rest, &mut |m, p| u -= m * g.dot(&p.position));
         u
     }
 
-    /// Inertia, velocity-product and gravity terms at the current state; `handle` is the
-    /// handle's kinematics there (the payload rides on it).
-    fn dynamics(&self, handle: &Point) -> Dynamics {
+    /// The joints where the mechanism is now, moving as it moves.
+    fn joint_state(&self) -> JointState {
+        JointState::new(&self.q, &self.qd)
+    }
+
+    /// Inertia, velocity-product and gravity terms at `joints`; `handle` is the handle's
+    /// kinematics there (the payload rides on it).
+    fn dynamics(&self, joints: &JointState, handle: &Point) -> Dynamics {
         let g = self.env.gravity;
-        let (inertia, bias) = self.mechanism.rotations(&self.q, &self.qd);
+        let (inertia, bias) = self.mechanism.rotations(joints);
         let mut d = Dynamics {
             inertia: inertia + Matrix3::from_diagonal(&self.rotor_inertia),
             bias,
@@ -372,7 +379,7 @@ impl<M: Mechanism> Linkage<M> {
         if on_handle > 0.0 {
             add_mass(on_handle, handle);
         }
-        self.mechanism.masses(&self.q, &self.qd, &mut add_mass);
+        self.mechanism.masses(joints, &mut add_mass);
         d
     }
 
@@ -465,13 +472,12 @@ fn reachable_box<M: Mechanism>(
     const STEPS: usize = 12;
     let mut lo = Vector3::repeat(f64::INFINITY);
     let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-    let zero = Vector3::zeros();
     for i in 0..=STEPS {
         for j in 0..=STEPS {
             for k in 0..=STEPS {
                 let s = Vector3::new(i as f64, j as f64, k as f64) / STEPS as f64;
                 let q = lower + (upper - lower).component_mul(&s);
-                let x = mechanism.handle(&q, &zero).position;
+                let x = mechanism.handle(&JointState::at_rest(&q)).position;
                 if x.iter().all(|c| c.is_finite()) {
                     lo = lo.inf(&x);
                     hi = hi.sup(&x);
@@ -486,8 +492,9 @@ impl<M: Mechanism> Linkage<M> {
     /// Integrate for `dt` seconds under the motor torques `torque` at the joints (N m, limited
     /// here to the motors' peak): a joint-space device's firmware drives its arm this way.
     pub fn step_joint_torque(&mut self, torque: &Vector3<f64>, dt: f64) {
-        let handle = self.mechanism.handle(&self.q, &self.qd);
-        self.step_with(&handle, torque, dt);
+        let joints = self.joint_state();
+        let handle = self.mechanism.handle(&joints);
+        self.step_with(&joints, &handle, torque, dt);
     }
 
     /// The joint angles the encoders see with the handle displaced by `noise` (m) from where it
@@ -497,7 +504,10 @@ impl<M: Mechanism> Linkage<M> {
         if *noise == zero {
             return self.q;
         }
-        let j = self.mechanism.handle(&self.q, &zero).jacobian;
+        let j = self
+            .mechanism
+            .handle(&JointState::at_rest(&self.q))
+            .jacobian;
         self.q + j.lu().solve(noise).unwrap_or(zero)
     }
 
@@ -591,9 +601,9 @@ impl<M: Mechanism> Linkage<M> {
         self.qd += through(&(slide * (-limit / slide.norm())));
     }
 
-    fn step_with(&mut self, handle: &Point, torque: &Vector3<f64>, dt: f64) {
+    fn step_with(&mut self, joints: &JointState, handle: &Point, torque: &Vector3<f64>, dt: f64) {
         let actuator = torque.zip_map(&self.peak, |t, peak| t.clamp(-peak, peak));
-        let d = self.dynamics(handle);
+        let d = self.dynamics(joints, handle);
         let scale = self.env.friction_scale;
         // Every torque but the holding reaction of held joints; sliding joints feel Coulomb
         // friction against their motion.
@@ -703,11 +713,13 @@ fn towards_stop(jacobian: &Matrix3<f64>, j: usize, rate: f64) -> f64 {
 
 impl<M: Mechanism> Plant for Linkage<M> {
     fn step(&mut self, force: &Vector3<f64>, dt: f64) {
-        let handle = self.mechanism.handle(&self.q, &self.qd);
+        let joints = self.joint_state();
+        let handle = self.mechanism.handle(&joints);
         let (k, anchor) = self.env.spring;
         let external =
             -(handle.position - anchor) * k - handle.jacobian * self.qd * self.env.handle_damping;
         self.step_with(
+            &joints,
             &handle,
             &(handle.jacobian.transpose() * (force + external)),
             dt,
@@ -715,11 +727,13 @@ impl<M: Mechanism> Plant for Linkage<M> {
     }
 
     fn position(&self) -> Vector3<f64> {
-        self.mechanism.handle(&self.q, &Vector3::zeros()).position
+        self.mechanism
+            .handle(&JointState::at_rest(&self.q))
+            .position
     }
 
     fn velocity(&self) -> Vector3<f64> {
-        self.mechanism.handle(&self.q, &self.qd).jacobian * self.qd
+        self.mechanism.handle(&self.joint_state()).jacobian * self.qd
     }
 
     fn workspace(&self) -> (Vector3<f64>, Vector3<f64>) {
@@ -732,8 +746,9 @@ impl<M: Mechanism> Plant for Linkage<M> {
 
     fn holding_force(&self) -> Vector3<f64> {
         // NaN only at a singular pose, which the joint limits keep the mechanisms away from.
-        let handle = self.mechanism.handle(&self.q, &Vector3::zeros());
-        let tau = self.dynamics(&handle).gravity;
+        let at_rest = JointState::at_rest(&self.q);
+        let handle = self.mechanism.handle(&at_rest);
+        let tau = self.dynamics(&at_rest, &handle).gravity;
         let (k, anchor) = self.env.spring;
         handle
             .jacobian
@@ -745,9 +760,10 @@ impl<M: Mechanism> Plant for Linkage<M> {
     }
 
     fn moving_mass_per_axis(&self) -> Vector3<f64> {
-        let handle = self.mechanism.handle(&self.q, &Vector3::zeros());
+        let at_rest = JointState::at_rest(&self.q);
+        let handle = self.mechanism.handle(&at_rest);
         let mobility = self
-            .dynamics(&handle)
+            .dynamics(&at_rest, &handle)
             .inertia
             .try_inverse()
             .map(|h| handle.jacobian * h * handle.jacobian.transpose());
@@ -762,7 +778,9 @@ impl<M: Mechanism> Plant for Linkage<M> {
         let q = self.sensed_joints(noise);
         let counts = q.component_div(&self.resolution).map(f64::round);
         self.mechanism
-            .handle(&counts.component_mul(&self.resolution), &Vector3::zeros())
+            .handle(&JointState::at_rest(
+                &counts.component_mul(&self.resolution),
+            ))
             .position
     }
 
@@ -835,9 +853,10 @@ pub(crate) mod checks {
         let zero = Vector3::zeros();
         let h = 1e-6;
         let points = |q: &Vector3<f64>, qd: &Vector3<f64>| {
-            let handle = mechanism.handle(q, qd);
+            let joints = JointState::new(q, qd);
+            let handle = mechanism.handle(&joints);
             let mut all = vec![handle];
-            mechanism.masses(q, qd, &mut |_, p| all.push(*p));
+            mechanism.masses(&joints, &mut |_, p| all.push(*p));
             all
         };
         for (n, p) in points(q, qd).iter().enumerate() {
@@ -962,7 +981,7 @@ pub(crate) mod checks {
         }
         let mut plant = plant_at(x_mm, env);
         let q = plant.joints();
-        let handle = plant.mechanism().handle(&q, &Vector3::zeros());
+        let handle = plant.mechanism().handle(&JointState::at_rest(&q));
         let thrown = handle
             .jacobian
             .lu()
@@ -1082,8 +1101,9 @@ mod tests {
                 let q = plant.joints();
                 let qd = Vector3::from_fn(|_, _| rng.gen_range(-0.5..0.5));
                 plant.set_state(q, qd);
-                let handle = plant.mechanism().handle(&q, &qd);
-                let d = plant.dynamics(&handle);
+                let joints = JointState::new(&q, &qd);
+                let handle = plant.mechanism().handle(&joints);
+                let d = plant.dynamics(&joints, &handle);
                 let j = handle.jacobian;
                 let a = j * d.inertia.try_inverse().unwrap() * j.transpose();
                 let stopping = (a.try_inverse().unwrap() * (j * qd)).norm();

@@ -10,7 +10,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use super::linkage::{Drives, JointState, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use crate::config::SimConfig;
 
 /// Geometry and masses of the arm (SI units).
@@ -105,34 +105,38 @@ impl Phantom {
 
     /// Kinematics of the point `along_upper` along the upper arm from the shoulder and then
     /// `along_fore` along the forearm direction (the direction from elbow to handle).
-    fn arm_point(&self, t: &Trig, qd: &Vector3<f64>, along_upper: f64, along_fore: f64) -> Point {
+    fn arm_point(&self, joints: &JointState, along_upper: f64, along_fore: f64) -> Point {
         let (a, b) = (along_upper, along_fore);
+        let qd = &joints.qd;
+        let (s1, c1) = (joints.sin[0], joints.cos[0]);
+        let (s2, c2) = (joints.sin[1], joints.cos[1]);
+        let (s3, c3) = (joints.sin[2], joints.cos[2]);
         // In the arm's vertical plane, from the shoulder: r outward, h up.
-        let r = a * t.c2 + b * t.s3;
-        let h = a * t.s2 - b * t.c3;
-        let (r2, r3) = (-a * t.s2, b * t.c3);
-        let (h2, h3) = (a * t.c2, b * t.s3);
+        let r = a * c2 + b * s3;
+        let h = a * s2 - b * c3;
+        let (r2, r3) = (-a * s2, b * c3);
+        let (h2, h3) = (a * c2, b * s3);
         let rd = r2 * qd[1] + r3 * qd[2];
-        let r_bias = -a * t.c2 * qd[1] * qd[1] - b * t.s3 * qd[2] * qd[2];
-        let h_bias = -a * t.s2 * qd[1] * qd[1] + b * t.c3 * qd[2] * qd[2];
+        let r_bias = -a * c2 * qd[1] * qd[1] - b * s3 * qd[2] * qd[2];
+        let h_bias = -a * s2 * qd[1] * qd[1] + b * c3 * qd[2] * qd[2];
         let w1 = qd[0];
         Point {
             // The shoulder is l1 behind and l2 above the home handle position.
-            position: Vector3::new(t.c1 * r - self.l1, t.s1 * r, self.l2 + h) + self.home_offset,
+            position: Vector3::new(c1 * r - self.l1, s1 * r, self.l2 + h) + self.home_offset,
             jacobian: Matrix3::new(
-                -t.s1 * r,
-                t.c1 * r2,
-                t.c1 * r3, //
-                t.c1 * r,
-                t.s1 * r2,
-                t.s1 * r3, //
+                -s1 * r,
+                c1 * r2,
+                c1 * r3, //
+                c1 * r,
+                s1 * r2,
+                s1 * r3, //
                 0.0,
                 h2,
                 h3,
             ),
             bias: Vector3::new(
-                -t.c1 * w1 * w1 * r - 2.0 * t.s1 * w1 * rd + t.c1 * r_bias,
-                -t.s1 * w1 * w1 * r + 2.0 * t.c1 * w1 * rd + t.s1 * r_bias,
+                -c1 * w1 * w1 * r - 2.0 * s1 * w1 * rd + c1 * r_bias,
+                -s1 * w1 * w1 * r + 2.0 * c1 * w1 * rd + s1 * r_bias,
                 h_bias,
             ),
         }
@@ -146,19 +150,14 @@ impl Phantom {
     /// −φ̇, θ̇1 cos φ) and T = ½ (I_yy φ̇² + m11(φ) θ̇1²) with m11 = I_xx sin²φ + I_zz cos²φ (device
     /// axes x, y, z are the paper's z, x, y).
     fn add_link_rotation(
-        t: &Trig,
-        qd: &Vector3<f64>,
+        joints: &JointState,
         pitch: usize,
         principal: &Vector3<f64>,
         m: &mut Matrix3<f64>,
         h: &mut Vector3<f64>,
     ) {
         let (i_x, i_y, i_z) = (principal[2], principal[0], principal[1]);
-        let (s, c) = if pitch == 1 {
-            (t.s2, t.c2)
-        } else {
-            (t.s3, t.c3)
-        };
+        let (s, c, qd) = (joints.sin[pitch], joints.cos[pitch], &joints.qd);
         let m11 = i_x * s * s + i_z * c * c;
         let dm11 = 2.0 * (i_x - i_z) * s * c;
         m[(0, 0)] += m11;
@@ -169,35 +168,9 @@ impl Phantom {
     }
 }
 
-/// Sines and cosines of the joint angles.
-struct Trig {
-    s1: f64,
-    c1: f64,
-    s2: f64,
-    c2: f64,
-    s3: f64,
-    c3: f64,
-}
-
-impl Trig {
-    fn new(q: &Vector3<f64>) -> Self {
-        let (s1, c1) = q[0].sin_cos();
-        let (s2, c2) = q[1].sin_cos();
-        let (s3, c3) = q[2].sin_cos();
-        Self {
-            s1,
-            c1,
-            s2,
-            c2,
-            s3,
-            c3,
-        }
-    }
-}
-
 impl Mechanism for Phantom {
-    fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point {
-        self.arm_point(&Trig::new(q), qd, self.l1, self.l2)
+    fn handle(&self, joints: &JointState) -> Point {
+        self.arm_point(joints, self.l1, self.l2)
     }
 
     fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
@@ -218,30 +191,28 @@ impl Mechanism for Phantom {
         Some(Vector3::new(theta1, theta2, theta3))
     }
 
-    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
-        let t = Trig::new(q);
+    fn masses(&self, joints: &JointState, visit: &mut dyn FnMut(f64, &Point)) {
         visit(
             self.m_a,
-            &self.arm_point(&t, qd, self.l1, self.a_along_forearm),
+            &self.arm_point(joints, self.l1, self.a_along_forearm),
         );
         visit(
             self.m_c,
-            &self.arm_point(&t, qd, self.c_along_upper_arm, self.l3),
+            &self.arm_point(joints, self.c_along_upper_arm, self.l3),
         );
-        visit(self.m_be, &self.arm_point(&t, qd, self.l5, 0.0));
-        visit(self.m_df, &self.arm_point(&t, qd, 0.0, -self.l6));
+        visit(self.m_be, &self.arm_point(joints, self.l5, 0.0));
+        visit(self.m_df, &self.arm_point(joints, 0.0, -self.l6));
     }
 
-    fn rotations(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
-        let t = Trig::new(q);
+    fn rotations(&self, joints: &JointState) -> (Matrix3<f64>, Vector3<f64>) {
         let mut m = Matrix3::zeros();
         let mut h = Vector3::zeros();
         // The base turns about the vertical θ1 axis only.
         m[(0, 0)] = self.i_base_yy;
-        Self::add_link_rotation(&t, qd, 2, &self.i_a, &mut m, &mut h);
-        Self::add_link_rotation(&t, qd, 1, &self.i_c, &mut m, &mut h);
-        Self::add_link_rotation(&t, qd, 1, &self.i_be, &mut m, &mut h);
-        Self::add_link_rotation(&t, qd, 2, &self.i_df, &mut m, &mut h);
+        Self::add_link_rotation(joints, 2, &self.i_a, &mut m, &mut h);
+        Self::add_link_rotation(joints, 1, &self.i_c, &mut m, &mut h);
+        Self::add_link_rotation(joints, 1, &self.i_be, &mut m, &mut h);
+        Self::add_link_rotation(joints, 2, &self.i_df, &mut m, &mut h);
         (m, h)
     }
 
@@ -340,9 +311,9 @@ mod tests {
     fn inverse_kinematics_inverts_forward_kinematics_and_home_is_the_origin() {
         let arm = Phantom::published();
         let zero = Vector3::zeros();
-        assert!(arm.handle(&zero, &zero).position.norm() < 1e-15);
+        assert!(arm.handle(&JointState::at_rest(&zero)).position.norm() < 1e-15);
         for q in poses() {
-            let x = arm.handle(&q, &zero).position;
+            let x = arm.handle(&JointState::at_rest(&q)).position;
             let back = arm.joints_at(&x).unwrap();
             assert!((back - q).amax() < 1e-9, "{q:?} -> {x:?} -> {back:?}");
         }
@@ -408,7 +379,7 @@ mod tests {
             let start = plant.position();
             let jt = plant
                 .mechanism()
-                .handle(&plant.joints(), &Vector3::zeros())
+                .handle(&JointState::at_rest(&plant.joints()))
                 .jacobian
                 .transpose();
             // A load whose net joint torques are `fraction` of the static band, on every joint.
@@ -518,12 +489,21 @@ mod tests {
         let m = Phantom::published();
         let (lo, hi) = m.joint_limits();
         let zero = Vector3::zeros();
-        let home = m.handle(&zero, &zero).jacobian.determinant().abs();
+        let home = m
+            .handle(&JointState::at_rest(&zero))
+            .jacobian
+            .determinant()
+            .abs();
         let mut least = f64::INFINITY;
         for n in 0..729 {
             let s = Vector3::new((n % 9) as f64, ((n / 9) % 9) as f64, (n / 81) as f64) / 8.0;
             let q = lo + (hi - lo).component_mul(&s);
-            least = least.min(m.handle(&q, &zero).jacobian.determinant().abs());
+            least = least.min(
+                m.handle(&JointState::at_rest(&q))
+                    .jacobian
+                    .determinant()
+                    .abs(),
+            );
         }
         // The least is 4.5 % of home, at θ2 = 40°, θ3 = −40° (forearm 10° from folded, handle
         // near the base axis).

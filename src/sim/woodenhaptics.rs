@@ -8,7 +8,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::linkage::{Drives, Linkage, Mechanism, Point, UnitVariation, Unreachable};
+use super::linkage::{Drives, JointState, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use super::{Encoder, Plant};
 use crate::config::SimConfig;
 use crate::profile::woodenhaptics::{
@@ -62,27 +62,27 @@ impl WoodenArm {
 }
 
 impl Mechanism for WoodenArm {
-    fn handle(&self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Point {
+    fn handle(&self, joints: &JointState) -> Point {
         let l = self.model.lengths;
-        self.model.point(q, qd, l[1], l[2])
+        self.model.point(joints, l[1], l[2])
     }
 
     fn joints_at(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
         self.model.joints_at(x)
     }
 
-    fn masses(&self, q: &Vector3<f64>, qd: &Vector3<f64>, visit: &mut dyn FnMut(f64, &Point)) {
+    fn masses(&self, joints: &JointState, visit: &mut dyn FnMut(f64, &Point)) {
         // The upper arm's along body b from the shoulder, the forearm's along body c from the
         // elbow.
         let [b, c] = self.centres;
-        visit(self.masses[0], &self.model.point(q, qd, b, 0.0));
+        visit(self.masses[0], &self.model.point(joints, b, 0.0));
         visit(
             self.masses[1],
-            &self.model.point(q, qd, self.model.lengths[1], c),
+            &self.model.point(joints, self.model.lengths[1], c),
         );
     }
 
-    fn rotations(&self, _q: &Vector3<f64>, _qd: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
+    fn rotations(&self, _joints: &JointState) -> (Matrix3<f64>, Vector3<f64>) {
         (Matrix3::from_diagonal(&self.inertia), Vector3::zeros())
     }
 
