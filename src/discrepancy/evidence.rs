@@ -372,17 +372,18 @@ fn spectrum(r: &[Vector3<f64>], period: f64) -> Vec<(f64, f64)> {
             let hz = 0.2 * (250.0f64).powf(i as f64 / 399.0);
             let hz = (hz * duration).round() / duration;
             let w = std::f64::consts::TAU * hz * period;
+            // One sine and cosine per sample, for the three axes.
+            let (mut re, mut im) = (Vector3::<f64>::zeros(), Vector3::<f64>::zeros());
+            for k in (0..n).step_by(step) {
+                let (sin, cos) = (w * k as f64).sin_cos();
+                for a in 0..3 {
+                    re[a] += r[k][a] * cos;
+                    im[a] += r[k][a] * sin;
+                }
+            }
+            let m = n.div_ceil(step) as f64;
             let power: f64 = (0..3)
-                .map(|a| {
-                    let (mut re, mut im) = (0.0, 0.0);
-                    for k in (0..n).step_by(step) {
-                        let phase = w * k as f64;
-                        re += r[k][a] * phase.cos();
-                        im += r[k][a] * phase.sin();
-                    }
-                    let m = n.div_ceil(step) as f64;
-                    2.0 * (re * re + im * im) / (m * m)
-                })
+                .map(|a| 2.0 * (re[a] * re[a] + im[a] * im[a]) / (m * m))
                 .sum();
             (hz, power)
         })

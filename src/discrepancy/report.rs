@@ -157,16 +157,17 @@ impl Diagnostics {
             .map(|i| {
                 let hz = MAX_FREQUENCY * i as f64 / FREQUENCIES as f64;
                 let w = 2.0 * std::f64::consts::PI * hz * signals.period;
+                // One sine and cosine per sample, for the three axes.
+                let (mut re, mut im) = (Vector3::<f64>::zeros(), Vector3::<f64>::zeros());
+                for (k, v) in r.iter().enumerate() {
+                    let (sin, cos) = (w * k as f64).sin_cos();
+                    for a in 0..3 {
+                        re[a] += v[a] * cos;
+                        im[a] += v[a] * sin;
+                    }
+                }
                 let amplitude: f64 = (0..3)
-                    .map(|a| {
-                        let (mut re, mut im) = (0.0, 0.0);
-                        for (k, v) in r.iter().enumerate() {
-                            let phase = w * k as f64;
-                            re += v[a] * phase.cos();
-                            im += v[a] * phase.sin();
-                        }
-                        2.0 * (re * re + im * im).sqrt() / n
-                    })
+                    .map(|a| 2.0 * (re[a] * re[a] + im[a] * im[a]).sqrt() / n)
                     .sum();
                 (hz, amplitude)
             })
