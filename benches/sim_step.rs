@@ -1,7 +1,7 @@
 //! One millisecond of a simulated linkage: the ten 0.1 ms substeps (`sim.substep_hz`) the
 //! simulated firmware integrates per report, for `sim:phantom` and `sim:delta` without and with
-//! 0.04 N of friction at the handle, held against gravity and pushed by a slow 0.3 N sine so the
-//! joints stick and slide as they do in a calibration's strokes.
+//! 0.04 N of friction at the handle, held against gravity and pushed by a slow sine of about
+//! 0.44 N so the joints stick and slide as they do in a calibration's strokes.
 //!
 //! `cargo bench --bench sim_step`. The plants are what the test suite spends most of its time
 //! in (every calibration and validation runs in virtual time), so this is the figure that moves

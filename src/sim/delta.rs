@@ -114,7 +114,7 @@ impl Delta {
         self.legs[i] * self.base_radius + Vector3::z() * self.home_depth + self.home_offset
     }
 
-    /// The platform centre for joints q: the lower intersection of the three spheres of radius
+    /// The platform centre at `joints`: the lower intersection of the three spheres of radius
     /// `rod` about the elbows shifted in by the platform radius. Out of reach (the spheres do not
     /// meet) it returns the nearest point the construction gives (rods stretched), which the joint
     /// limits keep the plant from reaching.
