@@ -11,7 +11,7 @@ use plotters::prelude::*;
 use serde_json::json;
 
 use super::analysis::{self, Fit, Signals};
-use super::effects::{Effect, ARM_COLUMNS};
+use super::effects::{Effect, ARM_COLUMNS, ARM_FRICTION};
 use super::{evidence, Analysis, AnalyzeError, AnalyzeRequest};
 use crate::control::compensation::GravityModel;
 use crate::figure::{self, Figure, OutError};
@@ -256,10 +256,11 @@ fn parameters(fit: &Fit, up: &Vector3<f64>) -> serde_json::Value {
         // The arm's nominal model: M₀ (xx, yy, zz, xy, xz, yz), then each joint's Coulomb and
         // viscous friction (docs/discrepancy.md §2).
         let b = &fit.base;
+        let friction = |first: usize| [0, 2, 4].map(|j| b[ARM_FRICTION + first + j]);
         json!({
             "joint_inertia_kg_m2": &b[..6],
-            "joint_coulomb_friction_n_m": [b[24], b[26], b[28]],
-            "joint_viscous_friction_n_m_s": [b[25], b[27], b[29]],
+            "joint_coulomb_friction_n_m": friction(0),
+            "joint_viscous_friction_n_m_s": friction(1),
         })
     } else {
         json!({ "moving_mass_kg": [m.x, m.y, m.z] })
