@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use thiserror::Error;
-use tracing::info;
+use tracing::{info, warn};
 
 use crate::calibrate::{device_grid, GridModelError};
 use crate::config::{Config, ConfigError, DeviceSpec};
@@ -77,6 +77,17 @@ pub enum RecordError {
         .0.display()
     )]
     OutExists(PathBuf),
+    #[error(
+        "the excitation's loop stayed unstable with its softest gains (K = {} N/m, D = {} N·s/m): \
+         the safety layer limited the command on {:.0} % of the last {} s; the run stopped with \
+         zero force and no log was written: the device's loop delay (or a very light handle) is \
+         beyond what hgcd record excites (docs/discrepancy.md §1)",
+        .0.stiffness,
+        .0.damping,
+        .1 * 1e2,
+        record::LIMIT_WINDOW
+    )]
+    Unstable(log::Excitation, f64),
 }
 
 /// A finished recording.
@@ -85,6 +96,9 @@ pub struct Recording {
     pub log: Log,
     /// Stopped early by Ctrl-C (the log is valid, only shorter).
     pub interrupted: bool,
+    /// Each time the excitation's loop went unstable and the run started again with softer
+    /// gains (docs/discrepancy.md §1); the log holds the last run only.
+    pub softenings: Vec<record::Softening>,
 }
 
 /// Drive the device through the excitation (compensation on) and write the log. `progress` sees
@@ -151,9 +165,32 @@ pub fn record(
         ExitReason::Stopped => true,
         exit => return Err(RecordError::Ended(exit)),
     };
-    let log = record::log_of(&recorder.into_rows(), device.grid_id(), params.excitation);
+    let softenings: Vec<record::Softening> = recorder.softenings().copied().collect();
+    for s in &softenings {
+        warn!(
+            "the excitation's loop went unstable {:.1} s into the run: the safety layer limited \
+             {:.0} % of the last {} s of commands (K = {} N/m, D = {} N·s/m); recording again \
+             from the start with K = {} N/m, D = {} N·s/m",
+            s.at,
+            s.limited * 1e2,
+            record::LIMIT_WINDOW,
+            s.from.stiffness,
+            s.from.damping,
+            s.to.stiffness,
+            s.to.damping
+        );
+    }
+    if let Some(share) = recorder.unstable() {
+        return Err(RecordError::Unstable(recorder.excitation(), share));
+    }
+    let excitation = recorder.excitation();
+    let log = record::log_of(&recorder.into_rows(), device.grid_id(), excitation);
     log.save(&request.out)?;
-    Ok(Recording { log, interrupted })
+    Ok(Recording {
+        log,
+        interrupted,
+        softenings,
+    })
 }
 
 /// What `hgcd analyze` is asked to do.

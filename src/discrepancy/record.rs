@@ -73,6 +73,53 @@ impl RecordParams {
     }
 }
 
+/// The excitation's loop has gone unstable when the safety layer changed the command (clamped
+/// its magnitude or its rate) on this share of a [`LIMIT_WINDOW`]: a healthy run stays far
+/// from the limits (a clean log of the simulated PHANToM peaks at 0.75 N of the 8 N), and a loop
+/// that rings into them is limited on 15 % of the window at a loop delay of 10 ms there, 44 % at 20.
+const UNSTABLE_SHARE: f64 = 0.1;
+/// Device time over which the limited ticks are counted, s.
+pub const LIMIT_WINDOW: f64 = 0.5;
+/// How many times the excitation softens; unstable once more, it stops the run (zero force).
+pub const MAX_SOFTENINGS: usize = 3;
+/// After it softens, the excitation holds the handle where its reference was for this long,
+/// s, so the run starts again from rest (and the ringing the old gains left is not taken for
+/// the new gains' own).
+const SETTLE: f64 = 1.0;
+
+/// The excitation softened once: its loop went unstable `at` s into the run under `from`, the
+/// safety layer having changed the command on `limited` of the last [`LIMIT_WINDOW`]; the run
+/// started again under `to`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Softening {
+    pub at: f64,
+    pub limited: f64,
+    pub from: Excitation,
+    pub to: Excitation,
+}
+
+/// The gains after softening `e` for the `n`th time (from 1): the damping halves first, then
+/// the stiffness falls to a quarter, then the damping halves again. On a light handle the PD's
+/// crossover is about D / m, and a loop delay τ leaves it a phase margin of about 90° − D τ / m;
+/// but the delayed spring also damps negatively by about K τ, which D must outweigh. So a
+/// moderate delay needs less damping (on the simulated PHANToM, 10 ms of loop delay: D from 9 to
+/// 4.5 N·s/m), a longer one a softer spring too (12 ms: no damping is stable at K = 200 N/m).
+/// The stiffness goes last: a softer spring lets joint friction stick the handle (K = 100 N/m
+/// left a clean PHANToM log 15 % more residual than 200 N/m).
+pub fn softer(e: &Excitation, n: usize) -> Excitation {
+    if n % 2 == 0 {
+        Excitation {
+            stiffness: e.stiffness / 4.0,
+            damping: e.damping,
+        }
+    } else {
+        Excitation {
+            stiffness: e.stiffness,
+            damping: e.damping / 2.0,
+        }
+    }
+}
+
 /// One logged tick.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Row {
@@ -95,6 +142,16 @@ pub struct Recorder {
     rows: Vec<Row>,
     /// Device time recorded so far, ms: for a progress display on another thread.
     elapsed_ms: Arc<AtomicU64>,
+    /// The force this tick asked for, before the safety layer.
+    asked: Vector3<f64>,
+    /// The current [`LIMIT_WINDOW`]: when it began (s into the run), its ticks and those the
+    /// safety layer changed.
+    window: (f64, u32, u32),
+    softenings: [Option<Softening>; MAX_SOFTENINGS],
+    /// After softening: until when (device time, s) the handle is held, and where.
+    settling: Option<(f64, Vector3<f64>)>,
+    /// Unstable at the softest gains, the share of limited commands that said so: the run ends.
+    unstable: Option<f64>,
 }
 
 impl Recorder {
@@ -109,7 +166,64 @@ impl Recorder {
             reference_time: f64::NEG_INFINITY,
             rows: Vec::with_capacity(capacity),
             elapsed_ms: Arc::new(AtomicU64::new(0)),
+            asked: Vector3::zeros(),
+            window: (0.0, 0, 0),
+            softenings: [None; MAX_SOFTENINGS],
+            settling: None,
+            unstable: None,
         }
+    }
+
+    /// The gains the log was recorded with (the last, if the excitation softened).
+    pub fn excitation(&self) -> Excitation {
+        self.params.excitation
+    }
+
+    /// Each time the excitation softened and started again ([`Softening`]), in order.
+    pub fn softenings(&self) -> impl Iterator<Item = &Softening> {
+        self.softenings.iter().flatten()
+    }
+
+    /// Whether the loop was still unstable after [`MAX_SOFTENINGS`] (the share of the last
+    /// window's commands the safety layer limited): the run stopped there, and its rows are not
+    /// a log of the excitation.
+    pub fn unstable(&self) -> Option<f64> {
+        self.unstable
+    }
+
+    /// Count tick `u` s into the run (device time `now`), `limited` if the safety layer changed
+    /// its command; at the end of a window whose share of limited ticks says the loop is
+    /// unstable, soften the excitation, hold the handle for [`SETTLE`] and start the run again
+    /// (allocation-free: the rows keep their room).
+    fn watch_the_limits(&mut self, u: f64, now: f64, limited: bool) {
+        let (since, ticks, changed) = &mut self.window;
+        *ticks += 1;
+        *changed += u32::from(limited);
+        if u - *since < LIMIT_WINDOW {
+            return;
+        }
+        let share = f64::from(*changed) / f64::from(*ticks);
+        self.window = (u, 0, 0);
+        if share < UNSTABLE_SHARE {
+            return;
+        }
+        let Some(n) = self.softenings.iter().position(Option::is_none) else {
+            self.unstable = Some(share);
+            return;
+        };
+        let from = self.params.excitation;
+        self.params.excitation = softer(&from, n + 1);
+        self.softenings[n] = Some(Softening {
+            at: u,
+            limited: share,
+            from,
+            to: self.params.excitation,
+        });
+        self.settling = Some((now + SETTLE, self.reference));
+        self.start = None;
+        self.reference_time = f64::NEG_INFINITY;
+        self.window = (0.0, 0, 0);
+        self.rows.clear();
     }
 
     /// Device time recorded so far, ms, readable from any thread.
@@ -165,6 +279,18 @@ fn min_jerk(u: f64) -> f64 {
 
 impl Controller for Recorder {
     fn tick(&mut self, s: &DeviceState) -> ControlOutput {
+        if self.unstable.is_some() {
+            return ControlOutput::done(Vector3::zeros());
+        }
+        if let Some((until, point)) = self.settling {
+            if s.time < until {
+                let e = &self.params.excitation;
+                self.asked = self.model.force(&s.position) + (point - s.position) * e.stiffness
+                    - s.velocity * e.damping;
+                return ControlOutput::force(self.asked);
+            }
+            self.settling = None;
+        }
         let (t0, from) = *self.start.get_or_insert((s.time, s.position));
         let u = s.time - t0;
         self.elapsed_ms.store((u * 1e3) as u64, Ordering::Relaxed);
@@ -182,13 +308,21 @@ impl Controller for Recorder {
             Vector3::zeros()
         };
         let e = &self.params.excitation;
-        let force = self.model.force(&s.position)
+        self.asked = self.model.force(&s.position)
             + (self.reference - s.position) * e.stiffness
             + (velocity - s.velocity) * e.damping;
-        ControlOutput::force(force)
+        ControlOutput::force(self.asked)
     }
 
     fn after_tick(&mut self, s: &DeviceState, sent: &Vector3<f64>) {
+        let Some((t0, _)) = self.start else {
+            return;
+        };
+        let limited = (sent - self.asked).norm() > 1e-9 * (1.0 + self.asked.norm());
+        self.watch_the_limits(s.time - t0, s.time, limited);
+        if self.start.is_none() {
+            return;
+        }
         if self.rows.len() < self.rows.capacity() {
             self.rows.push(Row {
                 time: s.time,
