@@ -132,6 +132,11 @@ fn record_and_analyze_on(
 ) -> serde_json::Value {
     let recording = record_on(model, dir, grid, hidden, seed).unwrap();
     assert!(!recording.interrupted);
+    // Only a loop delay rings the excitation's loop (docs/discrepancy.md §1).
+    let delayed = hidden
+        .iter()
+        .any(|h| matches!(h, Hidden::Delay(_) | Hidden::SensingDelay(_)));
+    assert!(delayed || recording.softenings.is_empty(), "{hidden:?}");
     analyze(dir, grid, &dir.join("log.csv"))
 }
 
@@ -550,6 +555,23 @@ fn a_recording_stopped_early_leaves_a_valid_shorter_log() {
         written.duration()
     );
     assert_eq!(written.len(), recording.log.len());
+
+    // Stopped before the first tick: one line, and no empty log left behind.
+    let error = discrepancy::record(
+        &config,
+        &RecordRequest {
+            out: dir.path().join("never.csv"),
+            ..request
+        },
+        Arc::new(AtomicBool::new(true)),
+        &mut |_| {},
+    )
+    .unwrap_err();
+    assert!(
+        matches!(error, discrepancy::RecordError::NothingRecorded(false)),
+        "{error}"
+    );
+    assert!(!dir.path().join("never.csv").exists());
 }
 
 /// Why `hgcd record` on the simulated point mass, recording `duration` s with `grid` into `out`,
@@ -1045,9 +1067,11 @@ fn a_loop_delay_that_rings_into_the_force_limit_softens_the_excitation() {
         .collect();
     assert_eq!(softened, [(200.0, 4.5)], "{:?}", recording.softenings);
     let log = &recording.log;
-    assert_eq!(
-        log.excitation.map(|e| (e.stiffness, e.damping)),
-        Some((200.0, 4.5))
+    let saved = std::fs::read_to_string(dir.path().join("log.csv")).unwrap();
+    assert!(
+        saved.contains("# stiffness_n_per_m = 200\n")
+            && saved.contains("# damping_n_s_per_m = 4.5\n"),
+        "the log's comments give the gains it was recorded with"
     );
     assert!(log.duration() > 39.9, "the whole run, recorded again");
     let largest = log.force.iter().map(|f| f.norm()).fold(0.0, f64::max);
@@ -1062,8 +1086,10 @@ fn a_loop_delay_that_rings_into_the_force_limit_softens_the_excitation() {
     // as it goes, then stops with one clear error, and no log is written.
     let hidden = [Hidden::Delay(20.0), Hidden::SensingDelay(20.0)];
     let error = record_on("phantom", dir.path(), &grid, &hidden, 1).unwrap_err();
+    // The softest gains: K / 4 and D / 4.
     assert!(
-        matches!(error, discrepancy::RecordError::Unstable(..)),
+        matches!(error, discrepancy::RecordError::Unstable(e, _)
+            if (e.stiffness, e.damping) == (50.0, 2.25)),
         "{error}"
     );
     let message = error.to_string();

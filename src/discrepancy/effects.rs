@@ -154,7 +154,7 @@ pub fn arm_columns(j: &JointSample, out: &mut [Vector3<f64>]) -> usize {
     let (offset, rate) = (&j.offset, &j.rate);
     for (n, (a, b)) in PAIRS.into_iter().enumerate() {
         let inertial = through(a, b, &j.acceleration);
-        let moving = through(a, b, rate);
+        let momentum = through(a, b, rate);
         let quadratic = if a == b {
             rate[a] * rate[a]
         } else {
@@ -163,7 +163,7 @@ pub fn arm_columns(j: &JointSample, out: &mut [Vector3<f64>]) -> usize {
         out[n] = inertial;
         for k in 0..3 {
             out[6 * (k + 1) + n] =
-                inertial * offset[k] + moving * rate[k] - column(k) * (0.5 * quadratic);
+                inertial * offset[k] + momentum * rate[k] - column(k) * (0.5 * quadratic);
         }
     }
     let mut n = ARM_FRICTION;
@@ -215,9 +215,9 @@ mod tests {
         Matrix3::new(e[0], e[3], e[4], e[3], e[1], e[5], e[4], e[5], e[2])
     }
 
-    /// The arm's inertia columns, weighted by M(q)'s entries, give the Euler–Lagrange torque
-    /// d/dt(M(q) q̇) − ½ ∂(q̇ᵀ M(q) q̇)/∂q of M(q) = M₀ + Σ_k δq_k M_k, worked out here by
-    /// finite differences along q(t) = q + q̇ t + q̈ t²/2.
+    /// The arm's columns, weighted by M(q)'s entries and the joints' friction, give J⁻ᵀ times
+    /// the Euler–Lagrange torque d/dt(M(q) q̇) − ½ ∂(q̇ᵀ M(q) q̇)/∂q of M(q) = M₀ + Σ_k δq_k M_k
+    /// (worked out here by finite differences along q(t) = q + q̇ t + q̈ t²/2) plus the friction.
     #[test]
     fn the_arm_columns_are_the_lagrangian_dynamics_of_an_inertia_first_order_in_the_pose() {
         let entries: [[f64; 6]; 4] = [
@@ -254,24 +254,35 @@ mod tests {
         });
         let lagrange = (momentum(h) - momentum(-h)) / (2.0 * h) - gradient;
 
+        // Each joint's Coulomb (along its direction of sliding) and viscous friction, interleaved
+        // as the columns are; and a J⁻ᵀ that is not symmetric, so rows and columns cannot mix.
+        let (coulomb, viscous) = ([0.01, 0.02, 0.03], [1e-3, 2e-3, 3e-3]);
+        let sliding = Vector3::new(0.9, -1.0, 0.5);
+        let to_handle = Matrix3::new(3.0, 1.0, -2.0, 0.5, 4.0, 1.5, -1.0, 2.5, 5.0);
+        let friction = Vector3::from_fn(|j, _| coulomb[j] * sliding[j] + viscous[j] * rate[j]);
+        let truth = to_handle * (lagrange + friction);
+
         let sample = JointSample {
             offset: q,
             rate,
             acceleration,
-            to_handle: Matrix3::identity(),
-            sliding: Vector3::zeros(),
+            to_handle,
+            sliding,
         };
         let mut columns = [Vector3::zeros(); ARM_COLUMNS];
         assert_eq!(arm_columns(&sample, &mut columns), ARM_COLUMNS);
-        let modelled: Vector3<f64> = entries
+        let parameters = entries
             .iter()
             .flatten()
+            .copied()
+            .chain((0..3).flat_map(|j| [coulomb[j], viscous[j]]));
+        let modelled: Vector3<f64> = parameters
             .zip(&columns)
-            .map(|(theta, column)| column * *theta)
+            .map(|(theta, column)| column * theta)
             .sum();
         assert!(
-            (modelled - lagrange).norm() < 1e-8 * lagrange.norm(),
-            "{modelled} against {lagrange}"
+            (modelled - truth).norm() < 1e-8 * truth.norm(),
+            "{modelled} against {truth}"
         );
         // The velocity-product part is there: the inertia alone leaves it out.
         let inertia_alone = inertia(&q) * acceleration;

@@ -88,6 +88,15 @@ pub enum RecordError {
         record::LIMIT_WINDOW
     )]
     Unstable(log::Excitation, f64),
+    #[error(
+        "the recording stopped before it logged a row{}; no log was written",
+        if *.0 {
+            " (the excitation had softened and was holding the handle before it started again)"
+        } else {
+            ""
+        }
+    )]
+    NothingRecorded(bool),
 }
 
 /// A finished recording.
@@ -105,8 +114,9 @@ pub struct Recording {
 /// the share done (0 to 1) now and then, on the calling thread.
 ///
 /// # Errors
-/// [`RecordError`]: a bad duration or config, a device that cannot be opened, no usable grid, or
-/// a fault during the run (no log is written then).
+/// [`RecordError`]: a bad duration or config, a device that cannot be opened, no usable grid, a
+/// fault during the run, an excitation whose loop stayed unstable at its softest gains, or a stop
+/// before the first row (no log is written then).
 pub fn record(
     config: &Config,
     request: &RecordRequest,
@@ -168,11 +178,11 @@ pub fn record(
     let softenings: Vec<record::Softening> = recorder.softenings().copied().collect();
     for s in &softenings {
         warn!(
-            "the excitation's loop went unstable {:.1} s into the run: the safety layer limited \
-             {:.0} % of the last {} s of commands (K = {} N/m, D = {} N·s/m); recording again \
-             from the start with K = {} N/m, D = {} N·s/m",
+            "the excitation's loop went unstable {:.1} s after the run started: the safety layer \
+             limited {:.0} % of the last {} s of commands (K = {} N/m, D = {} N·s/m); recording \
+             again from the start with K = {} N/m, D = {} N·s/m",
             s.at,
-            s.limited * 1e2,
+            s.limited_share * 1e2,
             record::LIMIT_WINDOW,
             s.from.stiffness,
             s.from.damping,
@@ -185,6 +195,9 @@ pub fn record(
     }
     let excitation = recorder.excitation();
     let log = record::log_of(&recorder.into_rows(), device.grid_id(), excitation);
+    if log.is_empty() {
+        return Err(RecordError::NothingRecorded(!softenings.is_empty()));
+    }
     log.save(&request.out)?;
     Ok(Recording {
         log,

@@ -87,23 +87,24 @@ pub const MAX_SOFTENINGS: usize = 3;
 /// the new gains' own).
 const SETTLE: f64 = 1.0;
 
-/// The excitation softened once: its loop went unstable `at` s into the run under `from`, the
-/// safety layer having changed the command on `limited` of the last [`LIMIT_WINDOW`]; the run
-/// started again under `to`.
+/// The excitation softened once: its loop went unstable `at` s after the run (last) started,
+/// under `from`, the safety layer having changed the command on `limited_share` of the last
+/// [`LIMIT_WINDOW`]; the run started again under `to`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Softening {
     pub at: f64,
-    pub limited: f64,
+    pub limited_share: f64,
     pub from: Excitation,
     pub to: Excitation,
 }
 
 /// The gains after softening `e` for the `n`th time (from 1): the damping halves first, then
 /// the stiffness falls to a quarter, then the damping halves again. On a light handle the PD's
-/// crossover is about D / m, and a loop delay τ leaves it a phase margin of about 90° − D τ / m;
-/// but the delayed spring also damps negatively by about K τ, which D must outweigh. So a
-/// moderate delay needs less damping (on the simulated PHANToM, 10 ms of loop delay: D from 9 to
-/// 4.5 N·s/m), a longer one a softer spring too (12 ms: no damping is stable at K = 200 N/m).
+/// crossover is about D / m, and a loop delay τ leaves it a phase margin of about π/2 − D τ / m
+/// (radians); but the delayed spring also damps negatively by about K τ, which D must outweigh.
+/// So a moderate delay needs less damping (on the simulated PHANToM, 10 ms of loop delay: D from
+/// 9 to 4.5 N·s/m), a longer one a softer spring too (12 ms: K = 200 N/m, D = 4.5 N·s/m still rang
+/// into the limit).
 /// The stiffness goes last: a softer spring lets joint friction stick the handle (K = 100 N/m
 /// left a clean PHANToM log 15 % more residual than 200 N/m).
 pub fn softer(e: &Excitation, n: usize) -> Excitation {
@@ -215,7 +216,7 @@ impl Recorder {
         self.params.excitation = softer(&from, n + 1);
         self.softenings[n] = Some(Softening {
             at: u,
-            limited: share,
+            limited_share: share,
             from,
             to: self.params.excitation,
         });
@@ -280,7 +281,8 @@ fn min_jerk(u: f64) -> f64 {
 impl Controller for Recorder {
     fn tick(&mut self, s: &DeviceState) -> ControlOutput {
         if self.unstable.is_some() {
-            return ControlOutput::done(Vector3::zeros());
+            self.asked = Vector3::zeros();
+            return ControlOutput::done(self.asked);
         }
         if let Some((until, point)) = self.settling {
             if s.time < until {
@@ -295,7 +297,9 @@ impl Controller for Recorder {
         let u = s.time - t0;
         self.elapsed_ms.store((u * 1e3) as u64, Ordering::Relaxed);
         if u >= self.params.duration {
-            return ControlOutput::done(Vector3::zeros());
+            // The run's last tick: zero force, asked for (not a limit the loop ran into).
+            self.asked = Vector3::zeros();
+            return ControlOutput::done(self.asked);
         }
         // The reference's velocity from the previous tick's (one evaluation per tick; it lags
         // half a period, which the damping term does not feel).
