@@ -890,9 +890,9 @@ fn handle_friction_on_every_linkage_and_seed() {
 
 /// The moving mass the initialisation times at X_C (saved as `inertia_kg`; the daemon's payload
 /// watch reads a released handle with it) against the plant's own 1 / (J H⁻¹ Jᵀ)_aa there:
-/// within 30 % along each axis on each linkage (two crossing times about 11 ms apart, read to
-/// the 1 ms tick and the encoder's steps, scatter it by about ±25 %: delta unit 2, seed 3 reads
-/// +23 % along y), including PHANToM unit 2, seed 1, whose band
+/// within 30 % along each axis on each linkage (the force each pulse pushes with scatters it
+/// by about ±25 %, docs/calibration.md §2.3: delta unit 2, seed 3 reads +23 % along y),
+/// including PHANToM unit 2, seed 1, whose band
 /// along z read 0.052 N of friction where the handle slides against 0.087 N, so that its pulse
 /// pushed with a fifth of the force it meant to and timed 0.353 kg along z, where the arm's is
 /// about 0.065 (docs/calibration.md §2.3). The survey strokes' load and sliding friction say
