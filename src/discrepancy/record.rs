@@ -227,6 +227,20 @@ impl Recorder {
         self.rows.clear();
     }
 
+    /// The excitation's law at `s`, tracking `reference` moving at `velocity`:
+    /// F = F_G(X) + K (X_r − X) + D (Ẋ_r − Ẋ).
+    fn pd(
+        &self,
+        s: &DeviceState,
+        reference: &Vector3<f64>,
+        velocity: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        let e = &self.params.excitation;
+        self.model.force(&s.position)
+            + (reference - s.position) * e.stiffness
+            + (velocity - s.velocity) * e.damping
+    }
+
     /// Device time recorded so far, ms, readable from any thread.
     pub fn elapsed_ms(&self) -> Arc<AtomicU64> {
         self.elapsed_ms.clone()
@@ -286,9 +300,7 @@ impl Controller for Recorder {
         }
         if let Some((until, point)) = self.settling {
             if s.time < until {
-                let e = &self.params.excitation;
-                self.asked = self.model.force(&s.position) + (point - s.position) * e.stiffness
-                    - s.velocity * e.damping;
+                self.asked = self.pd(s, &point, &Vector3::zeros());
                 return ControlOutput::force(self.asked);
             }
             self.settling = None;
@@ -311,10 +323,7 @@ impl Controller for Recorder {
         } else {
             Vector3::zeros()
         };
-        let e = &self.params.excitation;
-        self.asked = self.model.force(&s.position)
-            + (self.reference - s.position) * e.stiffness
-            + (velocity - s.velocity) * e.damping;
+        self.asked = self.pd(s, &self.reference, &velocity);
         ControlOutput::force(self.asked)
     }
 
