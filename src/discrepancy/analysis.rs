@@ -2,6 +2,8 @@
 //! candidate effect fitted on the first part of the log and scored on the rest, and the decision
 //! (docs/discrepancy.md §2).
 
+use std::borrow::Cow;
+
 use nalgebra::{DMatrix, DVector, Rotation3, Vector3};
 
 use super::effects::{
@@ -46,8 +48,11 @@ pub struct Signals {
     pub window: usize,
     /// The nominal model is the arm's (its samples carry their joints), not a point mass's.
     pub arm: bool,
-    /// For an arm: ΦᵀΦ of its nominal model's columns over the training samples in motion
-    /// (the same in every fit: they neither turn nor move with a delay).
+    /// For an arm: its nominal model's columns ([`arm_columns`]) at every sample,
+    /// [`ARM_COLUMNS`] per sample, worked out once (the same in every fit: they neither turn
+    /// nor move with a delay).
+    arm_design: Vec<Vector3<f64>>,
+    /// For an arm: ΦᵀΦ of those columns over the training samples in motion.
     arm_gram: Option<DMatrix<f64>>,
 }
 
@@ -145,6 +150,7 @@ impl Signals {
             // Smoothed white noise stays correlated over √(4π) σ samples.
             window: ((4.0 * std::f64::consts::PI).sqrt() * Signals::sigma(period)).ceil() as usize,
             arm: false,
+            arm_design: Vec::new(),
             arm_gram: None,
         };
         // The joints of every logged position (a reading out of reach keeps the last ones).
@@ -215,12 +221,24 @@ impl Signals {
                     j.offset -= mean;
                 }
             }
+            let mut design = vec![Vector3::zeros(); signals.len() * ARM_COLUMNS];
+            for (s, row) in signals
+                .samples
+                .iter()
+                .zip(design.chunks_exact_mut(ARM_COLUMNS))
+            {
+                if let Some(j) = &s.joint {
+                    arm_columns(j, row);
+                }
+            }
+            signals.arm_design = design;
             let mut gram = DMatrix::<f64>::zeros(ARM_COLUMNS, ARM_COLUMNS);
-            let mut phi = [Vector3::zeros(); ARM_COLUMNS];
-            for s in &signals.samples[signals.split().0] {
-                if let (Some(j), true) = (&s.joint, s.velocity.norm() >= STICK_SPEED) {
-                    arm_columns(j, &mut phi);
-                    accumulate(&mut gram, &phi, 0);
+            for k in signals.split().0 {
+                if let (Some(row), true) = (
+                    signals.arm_row(k),
+                    signals.samples[k].velocity.norm() >= STICK_SPEED,
+                ) {
+                    accumulate(&mut gram, &[], row, 0);
                 }
             }
             signals.arm_gram = Some(gram);
@@ -237,6 +255,11 @@ impl Signals {
 
     pub fn len(&self) -> usize {
         self.samples.len()
+    }
+
+    /// The arm's nominal columns at sample `k` ([`arm_columns`]); None for a point mass.
+    pub(super) fn arm_row(&self, k: usize) -> Option<&[Vector3<f64>]> {
+        self.arm_design.get(k * ARM_COLUMNS..(k + 1) * ARM_COLUMNS)
     }
 
     /// Each sample's direction of sliding (and each joint's), smoothed by `kernel` (the ends
@@ -308,16 +331,16 @@ impl Signals {
     /// The command as it reaches the handle `delay` s late (linear interpolation; the first
     /// samples repeat the first command).
     pub fn delayed_force(&self, delay: f64) -> Vec<Vector3<f64>> {
-        let shift = delay / self.period;
-        (0..self.len())
-            .map(|k| {
-                let at = (k as f64 - shift).max(0.0);
-                let i = at.floor() as usize;
-                let u = at - i as f64;
-                let next = (i + 1).min(self.len() - 1);
-                self.force[i] * (1.0 - u) + self.force[next] * u
-            })
-            .collect()
+        (0..self.len()).map(|k| self.delayed_at(k, delay)).collect()
+    }
+
+    /// [`Signals::delayed_force`] at sample `k`.
+    fn delayed_at(&self, k: usize, delay: f64) -> Vector3<f64> {
+        let at = (k as f64 - delay / self.period).max(0.0);
+        let i = at.floor() as usize;
+        let u = at - i as f64;
+        let next = (i + 1).min(self.len() - 1);
+        self.force[i] * (1.0 - u) + self.force[next] * u
     }
 }
 
@@ -373,12 +396,12 @@ impl Fit {
     }
 
     /// `s` with gravity (and v_G) turned by the fit's rotation.
-    fn turned(&self, s: &Sample) -> Sample {
+    fn turned<'a>(&self, s: &'a Sample) -> Cow<'a, Sample> {
         if self.rotation == Vector3::zeros() {
-            return *s;
+            return Cow::Borrowed(s);
         }
         let r = Rotation3::new(self.rotation);
-        Sample {
+        Cow::Owned(Sample {
             // An arm's tilt is its own linear term; only a payload's weight turns with it.
             gravity: if self.linear_tilt {
                 s.gravity
@@ -387,7 +410,7 @@ impl Fit {
             },
             up: r * s.up,
             ..*s
-        }
+        })
     }
 
     /// `effect`'s columns at `s` in this fit ([`Effect::columns`]; a linear tilt's with the
@@ -403,15 +426,13 @@ impl Fit {
         n
     }
 
-    /// The force the model needs for the motion at sample `s` (already turned), without the
-    /// Coulomb term, N.
-    fn smooth_force(&self, s: &Sample) -> Vector3<f64> {
+    /// The force the model needs for the motion at sample `s` (already turned; `arm` its
+    /// arm's columns, [`Signals::arm_row`]), without the Coulomb term, N.
+    fn smooth_force(&self, s: &Sample, arm: Option<&[Vector3<f64>]>) -> Vector3<f64> {
         let mut columns = [Vector3::zeros(); 4];
         let mut f = s.gravity;
-        match &s.joint {
-            Some(j) if self.base.len() == ARM_COLUMNS => {
-                let mut base = [Vector3::zeros(); ARM_COLUMNS];
-                arm_columns(j, &mut base);
+        match arm {
+            Some(base) if self.base.len() == ARM_COLUMNS => {
                 for (c, t) in base.iter().zip(&self.base) {
                     f += c * *t;
                 }
@@ -430,10 +451,11 @@ impl Fit {
         f
     }
 
-    /// The force the model says the device needs for the motion at sample `s`, N.
-    pub fn model_force(&self, s: &Sample) -> Vector3<f64> {
+    /// The force the model says the device needs for the motion at sample `s` (`arm` its
+    /// arm's columns, [`Signals::arm_row`]), N.
+    pub fn model_force(&self, s: &Sample, arm: Option<&[Vector3<f64>]>) -> Vector3<f64> {
         let s = self.turned(s);
-        let mut f = self.smooth_force(&s);
+        let mut f = self.smooth_force(&s, arm);
         if let [f_c] = self.theta_of(Effect::CoulombFriction) {
             let mut columns = [Vector3::zeros(); 4];
             Effect::CoulombFriction.columns(&s, &mut columns);
@@ -444,14 +466,14 @@ impl Fit {
 
     /// Command `f` minus what the model needs at `s`, N. A handle stuck in Coulomb friction
     /// (slower than [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual.
-    pub fn residual(&self, s: &Sample, f: &Vector3<f64>) -> Vector3<f64> {
+    fn residual(&self, s: &Sample, arm: Option<&[Vector3<f64>]>, f: &Vector3<f64>) -> Vector3<f64> {
         // An arm's joint friction holds any force up to its level at rest: not scored there.
         if self.base.len() == ARM_COLUMNS && s.velocity.norm() < STICK_SPEED {
             return Vector3::zeros();
         }
         if let [f_c] = self.theta_of(Effect::CoulombFriction) {
             if s.velocity.norm() < STICK_SPEED {
-                let r = f - self.smooth_force(&self.turned(s));
+                let r = f - self.smooth_force(&self.turned(s), arm);
                 let excess = r.norm() - f_c.max(0.0);
                 return if excess > 0.0 {
                     r * (excess / r.norm())
@@ -460,21 +482,26 @@ impl Fit {
                 };
             }
         }
-        f - self.model_force(s)
+        f - self.model_force(s, arm)
     }
 
     /// The residual at every sample, N.
     pub fn residuals(&self, signals: &Signals) -> Vec<Vector3<f64>> {
-        let force = if self.delay > 0.0 {
-            signals.delayed_force(self.delay)
+        if self.delay > 0.0 {
+            self.residuals_to(signals, &signals.delayed_force(self.delay))
         } else {
-            signals.force.clone()
-        };
+            self.residuals_to(signals, &signals.force)
+        }
+    }
+
+    /// The residual at every sample of the command `force`, N.
+    fn residuals_to(&self, signals: &Signals, force: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
         signals
             .samples
             .iter()
-            .zip(&force)
-            .map(|(s, f)| self.residual(s, f))
+            .zip(force)
+            .enumerate()
+            .map(|(k, (s, f))| self.residual(s, signals.arm_row(k), f))
             .collect()
     }
 
@@ -548,12 +575,24 @@ impl Fit {
     }
 }
 
-/// Adds the upper triangle of φᵀφ for one sample's columns `phi` to `normal`, leaving out the
-/// block of the first `known` columns with each other.
-fn accumulate(normal: &mut DMatrix<f64>, phi: &[Vector3<f64>], known: usize) {
-    for i in 0..phi.len() {
-        for j in i.max(known)..phi.len() {
-            normal[(i, j)] += phi[i].dot(&phi[j]);
+/// Column `i` of one sample's design ([`design_row`]): the arm's cached columns `arm` first,
+/// then `phi`'s.
+fn column<'a>(arm: &'a [Vector3<f64>], phi: &'a [Vector3<f64>], i: usize) -> &'a Vector3<f64> {
+    arm.get(i).unwrap_or(&phi[i])
+}
+
+/// Adds the upper triangle of φᵀφ for one sample's columns (`arm`'s, then `phi`'s; as many as
+/// `phi` has) to `normal`, leaving out the block of the first `known` columns with each other.
+fn accumulate(normal: &mut DMatrix<f64>, arm: &[Vector3<f64>], phi: &[Vector3<f64>], known: usize) {
+    for j in known..phi.len() {
+        let b = column(arm, phi, j);
+        let upper = &mut normal.column_mut(j);
+        let (from_arm, own) = upper.as_mut_slice()[..=j].split_at_mut(arm.len().min(j + 1));
+        for (n, a) in from_arm.iter_mut().zip(arm) {
+            *n += a.dot(b);
+        }
+        for (n, a) in own.iter_mut().zip(&phi[arm.len().min(j + 1)..]) {
+            *n += a.dot(b);
         }
     }
 }
@@ -582,17 +621,23 @@ fn cached(signals: &Signals, arm: bool) -> usize {
     }
 }
 
-/// The columns of the model at sample `s` (already turned) into `phi`: the nominal model's
-/// (the arm's, or a moving mass per axis), then each effect's.
-fn design_row(arm: bool, frame: &Fit, s: &Sample, phi: &mut [Vector3<f64>]) {
+/// The columns of the model at sample `s` (already turned): the nominal model's (the arm's
+/// columns `arm`, returned and not copied, or a moving mass per axis into `phi`), then each
+/// effect's into `phi` after them. [`column`] reads them.
+fn design_row<'a>(
+    arm: Option<&'a [Vector3<f64>]>,
+    frame: &Fit,
+    s: &Sample,
+    phi: &mut [Vector3<f64>],
+) -> &'a [Vector3<f64>] {
     let effects = &frame.effects;
-    let b = match (&s.joint, arm) {
-        (Some(j), true) => arm_columns(j, phi),
-        _ => {
+    let (arm, b) = match arm {
+        Some(columns) => (columns, columns.len()),
+        None => {
             phi[0] = Vector3::new(s.acceleration.x, 0.0, 0.0);
             phi[1] = Vector3::new(0.0, s.acceleration.y, 0.0);
             phi[2] = Vector3::new(0.0, 0.0, s.acceleration.z);
-            3
+            (&[][..], 3)
         }
     };
     let mut columns = [Vector3::zeros(); 4];
@@ -602,6 +647,7 @@ fn design_row(arm: bool, frame: &Fit, s: &Sample, phi: &mut [Vector3<f64>]) {
         phi[at..at + n].copy_from_slice(&columns[..n]);
         at += n;
     }
+    arm
 }
 
 /// [`fit_linear`] with the arm's nominal model (`arm`) or a point mass's.
@@ -638,11 +684,11 @@ fn fit_on(
         fitted += 1;
         let y = force[k] - s.gravity;
         yy += y.norm_squared();
-        design_row(arm, &fit, s, &mut phi);
+        let arm_row = design_row(arm.then(|| signals.arm_row(k)).flatten(), &fit, s, &mut phi);
         for i in 0..p {
-            rhs[i] += phi[i].dot(&y);
+            rhs[i] += column(arm_row, &phi, i).dot(&y);
         }
-        accumulate(&mut normal, &phi, known);
+        accumulate(&mut normal, arm_row, &phi, known);
     }
     complete(signals, arm, &mut normal);
     let cholesky = normal.clone().cholesky()?;
@@ -669,12 +715,7 @@ fn fit_on(
             at += 1;
         }
     }
-    let residuals: Vec<Vector3<f64>> = signals
-        .samples
-        .iter()
-        .zip(force)
-        .map(|(s, f)| fit.residual(s, f))
-        .collect();
+    let residuals = fit.residuals_to(signals, force);
     fit.train_error = rms(&residuals, train);
     fit.heldout_error = rms(&residuals, heldout);
     Some(fit)
@@ -699,8 +740,9 @@ const TILT_STEPS: usize = 4;
 const COARSE_DELAY_STEP: f64 = 1e-3;
 
 /// The delay in `range` (s) that best explains the training samples, searched every `step`,
-/// with the other effects fitted at each. Only the command moves with the delay: the design and
-/// its normal matrix are built once, and each delay costs one pass over the command.
+/// with the other effects fitted at each. Only the command moves with the delay: one pass over
+/// the samples builds the design's normal matrix once and each delay's right-hand side, so the
+/// design is never stored and each delay costs a solve.
 fn search_delay(
     effects: &[Effect],
     signals: &Signals,
@@ -716,9 +758,17 @@ fn search_delay(
         ..nominal_frame(effects, signals)
     };
     let moving_only = effects.contains(&Effect::CoulombFriction) || arm;
-    let mut rows = Vec::new();
-    let mut design: Vec<Vector3<f64>> = Vec::new();
-    let mut gravity = Vec::new();
+    let steps = ((range.1 - range.0) / step).round() as usize;
+    let delays: Vec<f64> = (0..=steps)
+        .map(|k| range.0 + k as f64 * step)
+        .filter(|delay| *delay > 0.0 && *delay <= MAX_DELAY + 1e-12)
+        .collect();
+    // Each delay's Φᵀy (row i of `rhs`: column i's product with each delay's y, delays
+    // contiguous so the products vectorise) and yᵀy; y at one sample, a component per array.
+    let count = delays.len();
+    let mut rhs = vec![0.0; p * count];
+    let mut yy = vec![0.0; count];
+    let mut y = [vec![0.0; count], vec![0.0; count], vec![0.0; count]];
     let mut phi = vec![Vector3::zeros(); p];
     let mut normal = DMatrix::<f64>::zeros(p, p);
     let known = cached(signals, arm);
@@ -727,31 +777,36 @@ fn search_delay(
         if moving_only && s.velocity.norm() < STICK_SPEED {
             continue;
         }
-        design_row(arm, &frame, &s, &mut phi);
-        accumulate(&mut normal, &phi, known);
-        rows.push(k);
-        gravity.push(s.gravity);
-        design.extend_from_slice(&phi);
+        let arm_row = design_row(
+            arm.then(|| signals.arm_row(k)).flatten(),
+            &frame,
+            &s,
+            &mut phi,
+        );
+        accumulate(&mut normal, arm_row, &phi, known);
+        for (d, delay) in delays.iter().enumerate() {
+            let y_d = signals.delayed_at(k, *delay) - s.gravity;
+            yy[d] += y_d.norm_squared();
+            for (a, y) in y.iter_mut().enumerate() {
+                y[d] = y_d[a];
+            }
+        }
+        for (i, row) in rhs.chunks_exact_mut(count).enumerate() {
+            let c = column(arm_row, &phi, i);
+            for (d, r) in row.iter_mut().enumerate() {
+                *r += c.x * y[0][d] + c.y * y[1][d] + c.z * y[2][d];
+            }
+        }
     }
     complete(signals, arm, &mut normal);
     let cholesky = normal.cholesky()?;
-    let steps = ((range.1 - range.0) / step).round() as usize;
-    let best = (0..=steps)
-        .map(|k| range.0 + k as f64 * step)
-        .filter(|delay| *delay > 0.0 && *delay <= MAX_DELAY + 1e-12)
-        .map(|delay| {
-            let force = signals.delayed_force(delay);
-            let mut rhs = DVector::<f64>::zeros(p);
-            let mut yy = 0.0;
-            for (r, &k) in rows.iter().enumerate() {
-                let y = force[k] - gravity[r];
-                yy += y.norm_squared();
-                for i in 0..p {
-                    rhs[i] += design[r * p + i].dot(&y);
-                }
-            }
+    let best = delays
+        .iter()
+        .enumerate()
+        .map(|(d, delay)| {
+            let rhs = DVector::from_fn(p, |i, _| rhs[i * count + d]);
             let theta = cholesky.solve(&rhs);
-            (delay, yy - theta.dot(&rhs))
+            (*delay, yy[d] - theta.dot(&rhs))
         })
         .min_by(|a, b| a.1.total_cmp(&b.1))?
         .0;
@@ -891,6 +946,17 @@ pub fn select(
     let mut steps = Vec::new();
     let mut first = Vec::new();
     let up = signals.samples.first().map_or(Vector3::z(), |s| s.up);
+    // Each set, in its order, is fitted once: a lookahead's sets are the next step's trials,
+    // and the backward pass's are earlier steps'.
+    let memo = std::cell::RefCell::new(Vec::<(Vec<Effect>, Option<Fit>)>::new());
+    let fit_once = |set: &[Effect], signals: &Signals| -> Option<Fit> {
+        if let Some((_, known)) = memo.borrow().iter().find(|(s, _)| s == set) {
+            return known.clone();
+        }
+        let new = fit(set, signals);
+        memo.borrow_mut().push((set.to_vec(), new.clone()));
+        new
+    };
     loop {
         let trials: Vec<Fit> = candidates
             .iter()
@@ -898,7 +964,7 @@ pub fn select(
             .filter_map(|e| {
                 let mut set = current.effects.clone();
                 set.push(*e);
-                fit(&set, signals)
+                fit_once(&set, signals)
             })
             .collect();
         if steps.is_empty() {
@@ -917,7 +983,7 @@ pub fn select(
                 .filter_map(|e| {
                     let mut set = fit.effects.clone();
                     set.push(*e);
-                    self::fit(&set, signals)
+                    fit_once(&set, signals)
                 })
                 .map(|f| f.heldout_error)
                 .min_by(f64::total_cmp)
@@ -949,7 +1015,7 @@ pub fn select(
             .filter_map(|(a, b)| {
                 let mut set = current.effects.clone();
                 set.extend([a, b]);
-                let fit = fit(&set, signals)?;
+                let fit = fit_once(&set, signals)?;
                 let significant = [a, b].iter().all(|e| {
                     fit.main_parameter(*e, &up)
                         .is_some_and(|(value, sd)| value.abs() >= SIGNIFICANCE * sd)
@@ -975,7 +1041,7 @@ pub fn select(
         let without = current.effects.iter().enumerate().find_map(|(i, _)| {
             let mut set = current.effects.clone();
             set.remove(i);
-            let reduced = fit(&set, signals)?;
+            let reduced = fit_once(&set, signals)?;
             (current.heldout_error > STEP_SHRINK * reduced.heldout_error).then_some(reduced)
         });
         match without {
@@ -1072,13 +1138,9 @@ pub fn confounded(
         (0..mains).any(|main| {
             let write = |k: usize, out: &mut Vec<Vector3<f64>>| {
                 let s = named.turned(&signals.samples[k]);
-                match &s.joint {
-                    Some(j) if signals.arm => {
-                        let mut base = [Vector3::zeros(); ARM_COLUMNS];
-                        arm_columns(j, &mut base);
-                        out.extend_from_slice(&base);
-                    }
-                    _ => {
+                match signals.arm_row(k) {
+                    Some(base) => out.extend_from_slice(base),
+                    None => {
                         out.push(Vector3::new(s.acceleration.x, 0.0, 0.0));
                         out.push(Vector3::new(0.0, s.acceleration.y, 0.0));
                         out.push(Vector3::new(0.0, 0.0, s.acceleration.z));
@@ -1245,7 +1307,7 @@ pub fn simulate(
                 joint: None,
                 tilt: None,
             };
-            let needed = fit.model_force(&s);
+            let needed = fit.model_force(&s, None);
             let a = (applied - needed).component_div(&inertia);
             v += a * dt;
             x += v * dt;
