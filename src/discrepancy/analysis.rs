@@ -7,7 +7,8 @@ use std::borrow::Cow;
 use nalgebra::{DMatrix, DVector, Rotation3, Vector3};
 
 use super::effects::{
-    across, arm_columns, Effect, JointSample, Sample, ARM_COLUMNS, STICK_RATE, STICK_SPEED,
+    across, arm_columns, Effect, JointSample, Sample, ARM_COLUMNS, ARM_FRICTION, STICK_RATE,
+    STICK_SPEED,
 };
 use super::log::{Excitation, Log};
 use crate::arm::Arm;
@@ -54,6 +55,12 @@ pub struct Signals {
     arm_design: Vec<Vector3<f64>>,
     /// For an arm: ΦᵀΦ of those columns over the training samples in motion.
     arm_gram: Option<DMatrix<f64>>,
+    /// For an arm: whether it rests at each sample, the handle slower than [`STICK_SPEED`] or a
+    /// joint slower than [`STICK_RATE`]. A joint at rest holds any torque within its static
+    /// friction, which no smooth friction column follows: these samples are scored only for
+    /// what lies beyond the resting joints' friction ([`beyond_resting_joints`]; nothing while
+    /// the handle rests).
+    arm_rest: Vec<bool>,
 }
 
 /// Weights over k = −m..m for the smoothed value, first and second derivative (per sample and
@@ -152,6 +159,7 @@ impl Signals {
             arm: false,
             arm_design: Vec::new(),
             arm_gram: None,
+            arm_rest: Vec::new(),
         };
         // The joints of every logged position (a reading out of reach keeps the last ones).
         let joints: Option<Vec<Vector3<f64>>> = arm.map(|arm| {
@@ -232,6 +240,14 @@ impl Signals {
                 }
             }
             signals.arm_design = design;
+            signals.arm_rest = signals
+                .samples
+                .iter()
+                .map(|s| {
+                    s.velocity.norm() < STICK_SPEED
+                        || s.joint.is_some_and(|j| j.rate.amin() < STICK_RATE)
+                })
+                .collect();
             let mut gram = DMatrix::<f64>::zeros(ARM_COLUMNS, ARM_COLUMNS);
             for k in signals.split().0 {
                 if let (Some(row), true) = (
@@ -255,6 +271,11 @@ impl Signals {
 
     pub fn len(&self) -> usize {
         self.samples.len()
+    }
+
+    /// Whether the arm rests at sample `k` (false for a point mass).
+    pub(super) fn arm_at_rest(&self, k: usize) -> bool {
+        self.arm_rest.get(k).copied().unwrap_or(false)
     }
 
     /// The arm's nominal columns at sample `k` ([`arm_columns`]); None for a point mass.
@@ -432,7 +453,7 @@ impl Fit {
         let mut columns = [Vector3::zeros(); 4];
         let mut f = s.gravity;
         match arm {
-            Some(base) if self.base.len() == ARM_COLUMNS => {
+            Some(base) if self.is_arm() => {
                 for (c, t) in base.iter().zip(&self.base) {
                     f += c * *t;
                 }
@@ -464,12 +485,27 @@ impl Fit {
         f
     }
 
-    /// Command `f` minus what the model needs at `s`, N. A handle stuck in Coulomb friction
-    /// (slower than [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual.
-    fn residual(&self, s: &Sample, arm: Option<&[Vector3<f64>]>, f: &Vector3<f64>) -> Vector3<f64> {
-        // An arm's joint friction holds any force up to its level at rest: not scored there.
-        if self.base.len() == ARM_COLUMNS && s.velocity.norm() < STICK_SPEED {
-            return Vector3::zeros();
+    /// Command `f` minus what the model needs at `s` (`rest`: an arm at rest there,
+    /// [`Signals::arm_at_rest`]), N. A handle stuck in Coulomb friction (slower than
+    /// [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual. An arm's resting
+    /// joints hold any torque up to their friction: only what lies beyond is residual, and
+    /// nothing while its handle rests.
+    fn residual(
+        &self,
+        s: &Sample,
+        arm: Option<&[Vector3<f64>]>,
+        rest: bool,
+        f: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        if self.is_arm() && rest {
+            if s.velocity.norm() < STICK_SPEED {
+                return Vector3::zeros();
+            }
+            let Some(joint) = &s.joint else {
+                return Vector3::zeros();
+            };
+            let friction = [0, 1, 2].map(|j| self.base[ARM_FRICTION + 2 * j]);
+            return beyond_resting_joints(joint, &friction, f - self.model_force(s, arm));
         }
         if let [f_c] = self.theta_of(Effect::CoulombFriction) {
             if s.velocity.norm() < STICK_SPEED {
@@ -501,8 +537,13 @@ impl Fit {
             .iter()
             .zip(force)
             .enumerate()
-            .map(|(k, (s, f))| self.residual(s, signals.arm_row(k), f))
+            .map(|(k, (s, f))| self.residual(s, signals.arm_row(k), signals.arm_at_rest(k), f))
             .collect()
+    }
+
+    /// Whether this is an arm's model (its nominal part the arm's columns).
+    fn is_arm(&self) -> bool {
+        self.base.len() == ARM_COLUMNS
     }
 
     /// The rotation of gravity this fit found, rad (zero without [`Effect::GravityTilt`]),
@@ -529,6 +570,27 @@ impl Fit {
             .copied()
             .unwrap_or(0.0)
     }
+}
+
+/// An arm's handle-force residual `r` at a sample where a joint rests (slower than
+/// [`STICK_RATE`]): a joint at rest holds any torque within its static friction (`friction`,
+/// each joint's fitted Coulomb level, N m), so of the torque `r` asks of it only what lies
+/// beyond that is residual; the moving joints' torques count whole.
+fn beyond_resting_joints(
+    joint: &JointSample,
+    friction: &[f64; 3],
+    r: Vector3<f64>,
+) -> Vector3<f64> {
+    let Some(to_joints) = joint.to_handle.try_inverse() else {
+        return Vector3::zeros();
+    };
+    let mut torque = to_joints * r;
+    for (j, t) in torque.iter_mut().enumerate() {
+        if joint.rate[j].abs() < STICK_RATE {
+            *t = t.signum() * (t.abs() - friction[j].max(0.0)).max(0.0);
+        }
+    }
+    joint.to_handle * torque
 }
 
 /// RMS of |r| over `range`.
@@ -1314,4 +1376,42 @@ pub fn simulate(
         }
     }
     Some(positions)
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Matrix3;
+
+    use super::*;
+
+    /// A resting joint forgives the torque within its friction band and no more; a moving
+    /// joint's torque counts whole, through a J⁻ᵀ that mixes the joints.
+    #[test]
+    fn a_resting_joint_holds_the_torque_within_its_friction_and_no_more() {
+        let to_handle = Matrix3::new(3.0, 1.0, -2.0, 0.5, 4.0, 1.5, -1.0, 2.5, 5.0);
+        let joint = JointSample {
+            offset: Vector3::zeros(),
+            rate: Vector3::new(0.0, 0.5, -0.2 * STICK_RATE),
+            acceleration: Vector3::zeros(),
+            to_handle,
+            sliding: Vector3::zeros(),
+        };
+        let friction = [0.01, 0.02, 0.03];
+        let residual_of = |torque: Vector3<f64>| {
+            let r = beyond_resting_joints(&joint, &friction, to_handle * torque);
+            to_handle.try_inverse().unwrap() * r
+        };
+        // Joint 0 and 2 rest: inside their bands nothing is left; joint 1 moves: all of it.
+        let left = residual_of(Vector3::new(0.008, 0.05, -0.029));
+        assert!(
+            (left - Vector3::new(0.0, 0.05, 0.0)).norm() < 1e-12,
+            "{left}"
+        );
+        // Beyond the band, the excess, with its sign.
+        let left = residual_of(Vector3::new(-0.015, 0.0, 0.04));
+        assert!(
+            (left - Vector3::new(-0.005, 0.0, 0.01)).norm() < 1e-12,
+            "{left}"
+        );
+    }
 }
