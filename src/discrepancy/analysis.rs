@@ -56,8 +56,8 @@ pub struct Signals {
     /// For an arm: ΦᵀΦ of those columns over the training samples in motion.
     arm_gram: Option<DMatrix<f64>>,
     /// For an arm: whether it rests at each sample, the handle slower than [`STICK_SPEED`] or a
-    /// joint slower than [`STICK_RATE`]. A joint at rest holds any torque within its static
-    /// friction, which no smooth friction column follows: these samples are scored only for
+    /// joint slower than [`STICK_RATE`]. A joint at rest holds any torque within its friction
+    /// (it sticks), which no smooth friction column follows: these samples are scored only for
     /// what lies beyond the resting joints' friction ([`beyond_resting_joints`]; nothing while
     /// the handle rests).
     arm_rest: Vec<bool>,
@@ -393,6 +393,10 @@ pub struct Fit {
     /// RMS of |residual| on the samples fitted on, and on those held out, N.
     pub train_error: f64,
     pub heldout_error: f64,
+    /// The least-squares objective: the sum of squared residuals over the `fitted` training
+    /// samples, N² (what the fit minimised, before any scoring rule).
+    pub train_sse: f64,
+    pub fitted: usize,
     /// The tilt is a linear term of its own (an arm's, [`Sample::tilt`]): θ is the whole
     /// rotation, and `rotation` turns only a payload's weight; otherwise the field turns whole
     /// by `rotation` and θ is the last increment.
@@ -474,7 +478,7 @@ impl Fit {
 
     /// The force the model says the device needs for the motion at sample `s` (`arm` its
     /// arm's columns, [`Signals::arm_row`]), N.
-    pub fn model_force(&self, s: &Sample, arm: Option<&[Vector3<f64>]>) -> Vector3<f64> {
+    fn model_force(&self, s: &Sample, arm: Option<&[Vector3<f64>]>) -> Vector3<f64> {
         let s = self.turned(s);
         let mut f = self.smooth_force(&s, arm);
         if let [f_c] = self.theta_of(Effect::CoulombFriction) {
@@ -573,9 +577,10 @@ impl Fit {
 }
 
 /// An arm's handle-force residual `r` at a sample where a joint rests (slower than
-/// [`STICK_RATE`]): a joint at rest holds any torque within its static friction (`friction`,
-/// each joint's fitted Coulomb level, N m), so of the torque `r` asks of it only what lies
-/// beyond that is residual; the moving joints' torques count whole.
+/// [`STICK_RATE`]): a joint at rest holds any torque within its friction (`friction`, each
+/// joint's fitted Coulomb level f_c,j, N m), so of the torque the joint holds there (the
+/// residual's, Jᵀ r, plus the model's own friction term f_c,j s_j, which `r` took out) only what
+/// lies beyond ±f_c,j is residual; the moving joints' torques count whole.
 fn beyond_resting_joints(
     joint: &JointSample,
     friction: &[f64; 3],
@@ -587,7 +592,8 @@ fn beyond_resting_joints(
     let mut torque = to_joints * r;
     for (j, t) in torque.iter_mut().enumerate() {
         if joint.rate[j].abs() < STICK_RATE {
-            *t = t.signum() * (t.abs() - friction[j].max(0.0)).max(0.0);
+            let held = *t + friction[j] * joint.sliding[j];
+            *t = held.signum() * (held.abs() - friction[j].max(0.0)).max(0.0);
         }
     }
     joint.to_handle * torque
@@ -640,7 +646,7 @@ impl Fit {
 /// Column `i` of one sample's design ([`design_row`]): the arm's cached columns `arm` first,
 /// then `phi`'s.
 fn column<'a>(arm: &'a [Vector3<f64>], phi: &'a [Vector3<f64>], i: usize) -> &'a Vector3<f64> {
-    arm.get(i).unwrap_or(&phi[i])
+    arm.get(i).unwrap_or_else(|| &phi[i])
 }
 
 /// Adds the upper triangle of φᵀφ for one sample's columns (`arm`'s, then `phi`'s; as many as
@@ -757,6 +763,8 @@ fn fit_on(
     let theta = cholesky.solve(&rhs);
     // Residual sum of squares on the fitted samples, σ² per component, and the covariance.
     let rss = (yy - 2.0 * theta.dot(&rhs) + (&normal * &theta).dot(&theta)).max(0.0);
+    fit.train_sse = rss;
+    fit.fitted = fitted;
     let dof = (3 * fitted).saturating_sub(p).max(1) as f64;
     let variance = rss / dof * signals.window as f64;
     let covariance = cholesky.inverse() * variance;
@@ -825,6 +833,9 @@ fn search_delay(
         .map(|k| range.0 + k as f64 * step)
         .filter(|delay| *delay > 0.0 && *delay <= MAX_DELAY + 1e-12)
         .collect();
+    if delays.is_empty() {
+        return None;
+    }
     // Each delay's Φᵀy (row i of `rhs`: column i's product with each delay's y, delays
     // contiguous so the products vectorise) and yᵀy; y at one sample, a component per array.
     let count = delays.len();
@@ -878,46 +889,59 @@ fn search_delay(
 
 /// An unfitted fit of `effects`: the frame [`Fit::turned`] needs.
 fn nominal_frame(effects: &[Effect], signals: &Signals) -> Fit {
-    let b = signals.base_count();
-    Fit {
-        effects: effects.to_vec(),
-        moving_mass: Vector3::zeros(),
-        moving_mass_sd: Vector3::zeros(),
-        base: vec![0.0; b],
-        base_sd: vec![0.0; b],
-        theta: effects
-            .iter()
-            .map(|e| vec![0.0; e.linear_parameters()])
-            .collect(),
-        theta_sd: effects
-            .iter()
-            .map(|e| vec![0.0; e.linear_parameters()])
-            .collect(),
-        delay: 0.0,
-        delay_sd: 0.0,
-        rotation: Vector3::zeros(),
-        train_error: 0.0,
-        heldout_error: 0.0,
-        linear_tilt: signals.samples.first().is_some_and(|s| s.tilt.is_some()),
-        payload_hint: 0.0,
+    Fit::unfitted(
+        effects,
+        signals.base_count(),
+        signals.samples.first().is_some_and(|s| s.tilt.is_some()),
+    )
+}
+
+impl Fit {
+    /// `effects` on a nominal model of `base` parameters, every parameter zero.
+    fn unfitted(effects: &[Effect], base: usize, linear_tilt: bool) -> Self {
+        Fit {
+            effects: effects.to_vec(),
+            moving_mass: Vector3::zeros(),
+            moving_mass_sd: Vector3::zeros(),
+            base: vec![0.0; base],
+            base_sd: vec![0.0; base],
+            theta: effects
+                .iter()
+                .map(|e| vec![0.0; e.linear_parameters()])
+                .collect(),
+            theta_sd: effects
+                .iter()
+                .map(|e| vec![0.0; e.linear_parameters()])
+                .collect(),
+            delay: 0.0,
+            delay_sd: 0.0,
+            rotation: Vector3::zeros(),
+            train_error: 0.0,
+            heldout_error: 0.0,
+            train_sse: 0.0,
+            fitted: 0,
+            linear_tilt,
+            payload_hint: 0.0,
+        }
     }
 }
 
-/// The delay's standard error from the curvature of the training error around the best delay,
-/// inflated as the linear parameters' are.
+/// The delay's standard error from the curvature of the least-squares objective (the mean
+/// squared residual on the samples fitted) around the best delay, inflated as the linear
+/// parameters' are.
 fn delay_sd(effects: &[Effect], signals: &Signals, best: &Fit) -> f64 {
     let h = DELAY_STEP;
+    let n = best.fitted.max(1) as f64;
     let sse = |delay: f64| -> Option<f64> {
         let force = signals.delayed_force(delay);
         let f = fit_linear(effects, signals, &force, delay, best.turn())?;
-        Some(f.train_error.powi(2))
+        Some(f.train_sse / n)
     };
     let (Some(lo), Some(hi)) = (sse(best.delay - h), sse(best.delay + h)) else {
         return DELAY_STEP;
     };
-    let mid = best.train_error.powi(2);
+    let mid = best.train_sse / n;
     let curvature = (lo - 2.0 * mid + hi) / (h * h);
-    let n = signals.split().0.len() as f64;
     if curvature > 0.0 {
         (2.0 * mid * signals.window as f64 / (n * curvature))
             .sqrt()
@@ -1384,34 +1408,97 @@ mod tests {
 
     use super::*;
 
-    /// A resting joint forgives the torque within its friction band and no more; a moving
-    /// joint's torque counts whole, through a J⁻ᵀ that mixes the joints.
-    #[test]
-    fn a_resting_joint_holds_the_torque_within_its_friction_and_no_more() {
-        let to_handle = Matrix3::new(3.0, 1.0, -2.0, 0.5, 4.0, 1.5, -1.0, 2.5, 5.0);
-        let joint = JointSample {
+    /// A non-symmetric J⁻ᵀ, so that rows and columns cannot be mixed up.
+    fn to_handle() -> Matrix3<f64> {
+        Matrix3::new(3.0, 1.0, -2.0, 0.5, 4.0, 1.5, -1.0, 2.5, 5.0)
+    }
+
+    /// Joints 0 and 2 rest, joint 1 moves; the model's smoothed directions of sliding are not
+    /// zero at rest.
+    fn resting() -> JointSample {
+        JointSample {
             offset: Vector3::zeros(),
             rate: Vector3::new(0.0, 0.5, -0.2 * STICK_RATE),
             acceleration: Vector3::zeros(),
-            to_handle,
-            sliding: Vector3::zeros(),
-        };
+            to_handle: to_handle(),
+            sliding: Vector3::new(0.5, 0.9, -0.2),
+        }
+    }
+
+    /// A resting joint forgives the torque it holds (what the residual asks of it plus the
+    /// model's own friction term) within its friction band, and no more; a moving joint's
+    /// torque counts whole.
+    #[test]
+    fn a_resting_joint_holds_the_torque_within_its_friction_and_no_more() {
+        let joint = resting();
         let friction = [0.01, 0.02, 0.03];
+        // The model's friction torques at the resting joints: 0.005 and −0.006 N m.
         let residual_of = |torque: Vector3<f64>| {
-            let r = beyond_resting_joints(&joint, &friction, to_handle * torque);
-            to_handle.try_inverse().unwrap() * r
+            let r = beyond_resting_joints(&joint, &friction, to_handle() * torque);
+            to_handle().try_inverse().unwrap() * r
         };
-        // Joint 0 and 2 rest: inside their bands nothing is left; joint 1 moves: all of it.
-        let left = residual_of(Vector3::new(0.008, 0.05, -0.029));
+        // Held 0.009 and −0.026 N m: inside the bands, nothing left; joint 1: all of it.
+        let left = residual_of(Vector3::new(0.004, 0.05, -0.02));
         assert!(
             (left - Vector3::new(0.0, 0.05, 0.0)).norm() < 1e-12,
             "{left}"
         );
-        // Beyond the band, the excess, with its sign.
-        let left = residual_of(Vector3::new(-0.015, 0.0, 0.04));
+        // Held −0.009 N m (the residual alone, −0.014, would be beyond the band).
+        let left = residual_of(Vector3::new(-0.014, 0.0, 0.0));
+        assert!(left.norm() < 1e-12, "{left}");
+        // Held 0.013 and 0.034 N m: beyond the bands, the excess, with its sign.
+        let left = residual_of(Vector3::new(0.008, 0.0, 0.04));
         assert!(
-            (left - Vector3::new(-0.005, 0.0, 0.01)).norm() < 1e-12,
+            (left - Vector3::new(0.003, 0.0, 0.004)).norm() < 1e-12,
             "{left}"
+        );
+    }
+
+    /// An arm's fit scores a sample where joints rest through their fitted Coulomb levels (its
+    /// parameters [`ARM_FRICTION`] + 2j): a command that holds the resting joints within them
+    /// leaves only the moving joint's torque; with the handle at rest, nothing.
+    #[test]
+    fn an_arm_fit_forgives_its_resting_joints_their_fitted_friction() {
+        let joint = resting();
+        let friction = [0.01, 0.02, 0.03];
+        let mut fit = Fit::unfitted(&[], ARM_COLUMNS, false);
+        for (j, f_c) in friction.iter().enumerate() {
+            fit.base[ARM_FRICTION + 2 * j] = *f_c;
+        }
+        let gravity = Vector3::new(0.0, 0.0, 0.8);
+        let mut sample = Sample {
+            position: Vector3::zeros(),
+            velocity: Vector3::new(0.02, 0.0, 0.0),
+            acceleration: Vector3::zeros(),
+            sliding: Vector3::x(),
+            gravity,
+            up: Vector3::z(),
+            g: 9.81,
+            joint: Some(joint),
+            tilt: None,
+        };
+        let mut columns = [Vector3::zeros(); ARM_COLUMNS];
+        arm_columns(&joint, &mut columns);
+        // The joints hold 0.009, (moving) 0.02 + 0.018 and −0.026 N m.
+        let command = gravity + to_handle() * Vector3::new(0.009, 0.038, -0.026);
+        let r = fit.residual(&sample, Some(&columns), true, &command);
+        let torque = to_handle().try_inverse().unwrap() * r;
+        assert!(
+            (torque - Vector3::new(0.0, 0.02, 0.0)).norm() < 1e-12,
+            "{torque}"
+        );
+        // Not at rest: the whole residual.
+        let r = fit.residual(&sample, Some(&columns), false, &command);
+        let torque = to_handle().try_inverse().unwrap() * r;
+        assert!(
+            (torque - Vector3::new(0.004, 0.02, -0.02)).norm() < 1e-12,
+            "{torque}"
+        );
+        // The handle at rest: nothing.
+        sample.velocity = Vector3::zeros();
+        assert_eq!(
+            fit.residual(&sample, Some(&columns), true, &command),
+            Vector3::zeros()
         );
     }
 }
