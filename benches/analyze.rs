@@ -102,7 +102,7 @@ fn record(config: &Config, device: &str, grid: &Path, dir: &Path) -> PathBuf {
     log
 }
 
-/// Five analyses of `log`, each naming `expected`; their median and worst wall time.
+/// Five analyses of `log`, each naming `expected` (sorted); their median and worst wall time.
 fn time_analysis(what: &str, grid: &Path, log: &Path, expected: &[&str], dir: &Path) {
     let mut times = Vec::new();
     for run in 0..5 {
@@ -117,7 +117,8 @@ fn time_analysis(what: &str, grid: &Path, log: &Path, expected: &[&str], dir: &P
         )
         .expect("the analysis runs");
         times.push(started.elapsed().as_secs_f64());
-        let named: Vec<&str> = analysis.effects.iter().map(|e| e.name()).collect();
+        let mut named: Vec<&str> = analysis.effects.iter().map(|e| e.name()).collect();
+        named.sort_unstable();
         assert_eq!(named, expected, "{what}");
     }
     times.sort_by(f64::total_cmp);

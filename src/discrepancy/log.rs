@@ -18,7 +18,8 @@ pub const MAX_STIFFNESS: f64 = 1e5;
 pub const MAX_DAMPING: f64 = 1e3;
 
 /// The most rows a log may hold: 1000 s at 1 kHz. Analysing a log takes about 600 bytes a row
-/// (620 MB at the limit, docs/discrepancy.md); a longer one is refused, not read without bound.
+/// (620 MB at the limit), 1.3 kB for a grid with an arm (1.3 GB; docs/discrepancy.md); a longer
+/// one is refused, not read without bound.
 pub const MAX_ROWS: usize = 1_000_000;
 
 /// The shortest log analysed, s: its held-out part must still hold several slow cycles.
