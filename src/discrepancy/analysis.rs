@@ -55,12 +55,6 @@ pub struct Signals {
     arm_design: Vec<Vector3<f64>>,
     /// For an arm: ΦᵀΦ of those columns over the training samples in motion.
     arm_gram: Option<DMatrix<f64>>,
-    /// For an arm: whether it rests at each sample, the handle slower than [`STICK_SPEED`] or a
-    /// joint slower than [`STICK_RATE`]. A joint at rest holds any torque within its friction
-    /// (it sticks), which no smooth friction column follows: these samples are scored only for
-    /// what lies beyond the resting joints' friction ([`beyond_resting_joints`]; nothing while
-    /// the handle rests).
-    arm_rest: Vec<bool>,
 }
 
 /// Weights over k = −m..m for the smoothed value, first and second derivative (per sample and
@@ -159,7 +153,6 @@ impl Signals {
             arm: false,
             arm_design: Vec::new(),
             arm_gram: None,
-            arm_rest: Vec::new(),
         };
         // The joints of every logged position (a reading out of reach keeps the last ones).
         let joints: Option<Vec<Vector3<f64>>> = arm.map(|arm| {
@@ -240,14 +233,6 @@ impl Signals {
                 }
             }
             signals.arm_design = design;
-            signals.arm_rest = signals
-                .samples
-                .iter()
-                .map(|s| {
-                    s.velocity.norm() < STICK_SPEED
-                        || s.joint.is_some_and(|j| j.rate.amin() < STICK_RATE)
-                })
-                .collect();
             let mut gram = DMatrix::<f64>::zeros(ARM_COLUMNS, ARM_COLUMNS);
             for k in signals.split().0 {
                 if let (Some(row), true) = (
@@ -271,11 +256,6 @@ impl Signals {
 
     pub fn len(&self) -> usize {
         self.samples.len()
-    }
-
-    /// Whether the arm rests at sample `k` (false for a point mass).
-    pub(super) fn arm_at_rest(&self, k: usize) -> bool {
-        self.arm_rest.get(k).copied().unwrap_or(false)
     }
 
     /// The arm's nominal columns at sample `k` ([`arm_columns`]); None for a point mass.
@@ -489,27 +469,20 @@ impl Fit {
         f
     }
 
-    /// Command `f` minus what the model needs at `s` (`rest`: an arm at rest there,
-    /// [`Signals::arm_at_rest`]), N. A handle stuck in Coulomb friction (slower than
-    /// [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual. An arm's resting
-    /// joints hold any torque up to their friction: only what lies beyond is residual, and
-    /// nothing while its handle rests.
-    fn residual(
-        &self,
-        s: &Sample,
-        arm: Option<&[Vector3<f64>]>,
-        rest: bool,
-        f: &Vector3<f64>,
-    ) -> Vector3<f64> {
-        if self.is_arm() && rest {
+    /// Command `f` minus what the model needs at `s`, N. A handle stuck in Coulomb friction
+    /// (slower than [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual. An
+    /// arm's joint at rest (slower than [`STICK_RATE`]) holds any torque up to its friction
+    /// (it sticks, which no smooth friction column follows): only what lies beyond is residual
+    /// ([`beyond_resting_joints`]), and nothing while the handle rests.
+    fn residual(&self, s: &Sample, arm: Option<&[Vector3<f64>]>, f: &Vector3<f64>) -> Vector3<f64> {
+        if self.is_arm() {
             if s.velocity.norm() < STICK_SPEED {
                 return Vector3::zeros();
             }
-            let Some(joint) = &s.joint else {
-                return Vector3::zeros();
-            };
-            let friction = [0, 1, 2].map(|j| self.base[ARM_FRICTION + 2 * j]);
-            return beyond_resting_joints(joint, &friction, f - self.model_force(s, arm));
+            if let Some(joint) = s.joint.filter(|j| j.rate.amin() < STICK_RATE) {
+                let friction = [0, 1, 2].map(|j| self.base[ARM_FRICTION + 2 * j]);
+                return beyond_resting_joints(&joint, &friction, f - self.model_force(s, arm));
+            }
         }
         if let [f_c] = self.theta_of(Effect::CoulombFriction) {
             if s.velocity.norm() < STICK_SPEED {
@@ -541,7 +514,7 @@ impl Fit {
             .iter()
             .zip(force)
             .enumerate()
-            .map(|(k, (s, f))| self.residual(s, signals.arm_row(k), signals.arm_at_rest(k), f))
+            .map(|(k, (s, f))| self.residual(s, signals.arm_row(k), f))
             .collect()
     }
 
@@ -1481,14 +1454,20 @@ mod tests {
         arm_columns(&joint, &mut columns);
         // The joints hold 0.009, (moving) 0.02 + 0.018 and −0.026 N m.
         let command = gravity + to_handle() * Vector3::new(0.009, 0.038, -0.026);
-        let r = fit.residual(&sample, Some(&columns), true, &command);
+        let r = fit.residual(&sample, Some(&columns), &command);
         let torque = to_handle().try_inverse().unwrap() * r;
         assert!(
             (torque - Vector3::new(0.0, 0.02, 0.0)).norm() < 1e-12,
             "{torque}"
         );
-        // Not at rest: the whole residual.
-        let r = fit.residual(&sample, Some(&columns), false, &command);
+        // No joint at rest (the same model force: only the friction columns carry weight): the
+        // whole residual.
+        let mut moving = sample;
+        moving.joint = Some(JointSample {
+            rate: Vector3::new(0.3, 0.5, -0.4),
+            ..joint
+        });
+        let r = fit.residual(&moving, Some(&columns), &command);
         let torque = to_handle().try_inverse().unwrap() * r;
         assert!(
             (torque - Vector3::new(0.004, 0.02, -0.02)).norm() < 1e-12,
@@ -1497,7 +1476,7 @@ mod tests {
         // The handle at rest: nothing.
         sample.velocity = Vector3::zeros();
         assert_eq!(
-            fit.residual(&sample, Some(&columns), true, &command),
+            fit.residual(&sample, Some(&columns), &command),
             Vector3::zeros()
         );
     }
