@@ -18,9 +18,62 @@ use crate::protocol::{
     INPUT_REPORT_LEN, MAX_REPORT_LEN, MODEL_LEN,
 };
 
-/// The longest actuator delay simulated, report periods (`sim.force_delay_ms` at 1 kHz is at
-/// most 100).
+/// The longest delay simulated, report periods (`sim.force_delay_ms` and
+/// `sim.position_delay_ms` at 1 kHz are at most 100).
 const MAX_DELAY_PERIODS: usize = 128;
+
+/// A delay of `delay` seconds in whole report periods of `period` seconds.
+pub(crate) fn delay_periods(delay: f64, period: f64) -> usize {
+    ((delay / period).round() as usize).min(MAX_DELAY_PERIODS)
+}
+
+/// A delay of whole report periods: each value pushed comes out `periods` pushes later (at
+/// once for none). Allocation-free, as the firmware it sits in.
+#[derive(Clone, Debug)]
+pub(crate) struct DelayLine<T: Copy> {
+    slots: [T; MAX_DELAY_PERIODS],
+    periods: usize,
+    next: usize,
+    /// Whether the slots hold values yet; until then the first value pushed fills them.
+    filled: bool,
+}
+
+impl<T: Copy + Default> DelayLine<T> {
+    /// A line whose first `periods` outputs are `T::default()` (an actuator given nothing
+    /// yet renders nothing). `periods` is capped at [`MAX_DELAY_PERIODS`].
+    pub(crate) fn idle(periods: usize) -> Self {
+        Self {
+            slots: [T::default(); MAX_DELAY_PERIODS],
+            periods: periods.min(MAX_DELAY_PERIODS),
+            next: 0,
+            filled: true,
+        }
+    }
+
+    /// A line whose first `periods` outputs repeat the first value pushed (a sensor reads
+    /// where the handle already was when it powered on).
+    pub(crate) fn primed(periods: usize) -> Self {
+        Self {
+            filled: false,
+            ..Self::idle(periods)
+        }
+    }
+
+    /// Push this period's value; the value of `periods` pushes ago.
+    pub(crate) fn push(&mut self, value: T) -> T {
+        if self.periods == 0 {
+            return value;
+        }
+        if !self.filled {
+            self.slots[..self.periods].fill(value);
+            self.filled = true;
+        }
+        // The slot about to be overwritten holds the value of `periods` pushes ago.
+        let out = std::mem::replace(&mut self.slots[self.next], value);
+        self.next = (self.next + 1) % self.periods;
+        out
+    }
+}
 
 /// What the firmware drives and how it speaks.
 // One per simulated device, never moved once built.
@@ -54,16 +107,10 @@ pub struct SimDevice {
     clock_us: u64,
     sequence: u16,
     command: Vector3<f64>,
-    /// The actuators' delay line: the commands of the last `delay` periods, oldest first out.
-    delayed: [Vector3<f64>; MAX_DELAY_PERIODS],
-    delay: usize,
-    delay_slot: usize,
-    /// The position sensing's delay line: the positions of the last `sensing_delay` reports,
-    /// oldest first out (filled with the first reading at the first report).
-    sensed: [Vector3<f64>; MAX_DELAY_PERIODS],
-    sensing_delay: usize,
-    sensed_slot: usize,
-    sensed_filled: bool,
+    /// The actuators' delay line (`sim.force_delay_ms`), protocol v1.
+    delayed: DelayLine<Vector3<f64>>,
+    /// The position sensing's delay line (`sim.position_delay_ms`), protocol v1.
+    sensed: DelayLine<Vector3<f64>>,
     /// What the actuators render of each axis's command (protocol v1).
     force_scale: Vector3<f64>,
     /// Motor cogging: amplitude, N, and pitch, m (protocol v1).
@@ -115,13 +162,8 @@ impl SimDevice {
             clock_us: 0,
             sequence: 0,
             command: Vector3::zeros(),
-            delayed: [Vector3::zeros(); MAX_DELAY_PERIODS],
-            delay: 0,
-            delay_slot: 0,
-            sensed: [Vector3::zeros(); MAX_DELAY_PERIODS],
-            sensing_delay: 0,
-            sensed_slot: 0,
-            sensed_filled: false,
+            delayed: DelayLine::idle(0),
+            sensed: DelayLine::primed(0),
             force_scale: Vector3::repeat(1.0),
             cogging: (0.0, 1.0),
             vibration: (0.0, 1.0),
@@ -174,10 +216,8 @@ impl SimDevice {
             sim.device_watchdog(),
         );
         device.stop_reporting_after = sim.stop_reporting_after_s;
-        device.delay =
-            ((sim.force_delay() / device.period).round() as usize).min(MAX_DELAY_PERIODS);
-        device.sensing_delay =
-            ((sim.position_delay() / device.period).round() as usize).min(MAX_DELAY_PERIODS);
+        device.delayed = DelayLine::idle(delay_periods(sim.force_delay(), device.period));
+        device.sensed = DelayLine::primed(delay_periods(sim.position_delay(), device.period));
         device.force_scale = Vector3::from(sim.force_scale);
         device.cogging = (sim.cogging_n, sim.cogging_pitch_mm * 1e-3);
         device.vibration = (sim.vibration_n, sim.vibration_hz);
@@ -190,6 +230,15 @@ impl SimDevice {
     /// (`woodenhaptics_v2015` unless `device.profile` names another) behind its firmware.
     fn joint_from_config(config: &Config) -> Result<Self, SimError> {
         let sim = &config.sim;
+        // Forces along the device's axes, which a joint-space firmware never sees.
+        let cartesian_only = [
+            ("sim.force_scale", sim.force_scale != [1.0; 3]),
+            ("sim.cogging_n", sim.cogging_n != 0.0),
+            ("sim.vibration_n", sim.vibration_n != 0.0),
+        ];
+        if let Some((key, _)) = cartesian_only.into_iter().find(|(_, set)| *set) {
+            return Err(SimError::CartesianOnly { key });
+        }
         let spec = DeviceSpec::Sim {
             model: crate::config::SIM_WOODENHAPTICS.into(),
         };
@@ -203,7 +252,10 @@ impl SimDevice {
                 position_mm: sim.start_position_mm,
             })?;
         let period = config.servo_period();
-        let firmware = JointFirmware::new(arm, Encoder::from_config(sim));
+        let firmware = JointFirmware::new(arm, Encoder::from_config(sim)).delayed(
+            delay_periods(sim.force_delay(), period),
+            delay_periods(sim.position_delay(), period),
+        );
         // The firmware limits currents, not forces: its force limit is the profile's.
         let mut device = Self::around(
             Body::Joints(Box::new(firmware)),
@@ -343,12 +395,7 @@ impl SimDevice {
             self.watchdog_tripped = true;
             self.command = Vector3::zeros();
         }
-        let mut force = self.command;
-        if self.delay > 0 {
-            // The slot about to be overwritten holds the command of `delay` periods ago.
-            force = std::mem::replace(&mut self.delayed[self.delay_slot], self.command);
-            self.delay_slot = (self.delay_slot + 1) % self.delay;
-        }
+        let mut force = self.delayed.push(self.command);
         self.saturated = false;
         for axis in 0..3 {
             if force[axis].abs() > self.max_force {
@@ -402,16 +449,7 @@ impl SimDevice {
             .with(Status::FORCE_SATURATED, self.saturated)
             .with(Status::DEVICE_WATCHDOG, self.watchdog_tripped);
         let (lo, hi) = plant.workspace();
-        let mut measured = encoder.measure(plant.as_ref());
-        if self.sensing_delay > 0 {
-            if !self.sensed_filled {
-                self.sensed[..self.sensing_delay].fill(measured);
-                self.sensed_filled = true;
-            }
-            // The slot about to be overwritten holds the reading of `sensing_delay` reports ago.
-            measured = std::mem::replace(&mut self.sensed[self.sensed_slot], measured);
-            self.sensed_slot = (self.sensed_slot + 1) % self.sensing_delay;
-        }
+        let measured = self.sensed.push(encoder.measure(plant.as_ref()));
         let report = InputReport {
             sequence: self.sequence,
             timestamp_us: self.clock_us as u32,
@@ -462,6 +500,27 @@ mod tests {
             assert_eq!(info.max_force, config.sim.max_force_n);
             assert_eq!(info.rate_hz, config.servo.rate_hz);
             assert!(info.lockstep);
+        }
+    }
+
+    /// Forces along the device's axes are protocol v1's: the joint-space firmware refuses each
+    /// with its key rather than leave it silently out.
+    #[test]
+    fn a_force_along_the_axes_is_refused_on_the_joint_space_firmware() {
+        let model = crate::config::SIM_WOODENHAPTICS;
+        assert!(SimDevice::from_config(model, &Config::default()).is_ok());
+        for key in ["sim.force_scale", "sim.cogging_n", "sim.vibration_n"] {
+            let mut config = Config::default();
+            match key {
+                "sim.force_scale" => config.sim.force_scale = [0.9, 1.0, 1.0],
+                "sim.cogging_n" => config.sim.cogging_n = 0.05,
+                _ => config.sim.vibration_n = 0.05,
+            }
+            match SimDevice::from_config(model, &config) {
+                Err(SimError::CartesianOnly { key: refused }) => assert_eq!(refused, key),
+                other => panic!("{key}: {:?}", other.err()),
+            }
+            assert!(SimDevice::from_config("phantom", &config).is_ok(), "{key}");
         }
     }
 }

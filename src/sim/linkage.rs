@@ -490,11 +490,20 @@ fn reachable_box<M: Mechanism>(
 
 impl<M: Mechanism> Linkage<M> {
     /// Integrate for `dt` seconds under the motor torques `torque` at the joints (N m, limited
-    /// here to the motors' peak): a joint-space device's firmware drives its arm this way.
+    /// here to the motors' peak): a joint-space device's firmware drives its arm this way. The
+    /// environment's spring and damping act at the handle as under [`Plant::step`].
     pub fn step_joint_torque(&mut self, torque: &Vector3<f64>, dt: f64) {
         let joints = self.joint_state();
         let handle = self.mechanism.handle(&joints);
-        self.step_with(&joints, &handle, torque, dt);
+        let external = handle.jacobian.transpose() * self.external_force(&handle);
+        self.step_with(&joints, &handle, &(torque + external), dt);
+    }
+
+    /// The environment's force on the handle at `handle`: the spring toward its anchor and the
+    /// viscous damping of the handle's velocity, N.
+    fn external_force(&self, handle: &Point) -> Vector3<f64> {
+        let (k, anchor) = self.env.spring;
+        -(handle.position - anchor) * k - handle.jacobian * self.qd * self.env.handle_damping
     }
 
     /// The joint angles the encoders see with the handle displaced by `noise` (m) from where it
@@ -715,9 +724,7 @@ impl<M: Mechanism> Plant for Linkage<M> {
     fn step(&mut self, force: &Vector3<f64>, dt: f64) {
         let joints = self.joint_state();
         let handle = self.mechanism.handle(&joints);
-        let (k, anchor) = self.env.spring;
-        let external =
-            -(handle.position - anchor) * k - handle.jacobian * self.qd * self.env.handle_damping;
+        let external = self.external_force(&handle);
         self.step_with(
             &joints,
             &handle,
@@ -832,6 +839,24 @@ pub(crate) mod checks {
             spring: (0.0, Vector3::zeros()),
             handle_damping: 0.0,
         }
+    }
+
+    /// A spring and damping in `plant`'s environment act alike whether the arm is driven by a
+    /// handle force or by the joint torques Jᵀ F a joint-space firmware sends: the same motion
+    /// under `force` (N) for 0.2 s.
+    pub(crate) fn assert_the_environment_acts_under_joint_torques<M: Mechanism + Clone>(
+        plant: Linkage<M>,
+        force: &Vector3<f64>,
+    ) {
+        let (mut by_force, mut by_torque) = (plant.clone(), plant);
+        let dt = 1e-4;
+        for _ in 0..2000 {
+            by_force.step(force, dt);
+            let handle = by_torque.mechanism.handle(&by_torque.joint_state());
+            by_torque.step_joint_torque(&(handle.jacobian.transpose() * force), dt);
+        }
+        let apart = (by_force.position() - by_torque.position()).norm();
+        assert!(apart < 1e-9, "{apart} m apart");
     }
 
     /// Handle positions over the ±40 mm calibration cube, `steps` intervals an edge, mm.

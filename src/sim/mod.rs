@@ -206,6 +206,11 @@ pub enum SimError {
          device profile `{profile}` has none (set device.profile, e.g. woodenhaptics_v2015)"
     )]
     NoArm { profile: String },
+    #[error(
+        "{key} acts along the device's axes, in protocol v1's firmware: sim:woodenhaptics speaks \
+         joint currents and has none (docs/simulated-devices.md, Config keys); leave it unset"
+    )]
+    CartesianOnly { key: &'static str },
     #[error("unknown simulated model `{model}`; known: {}", crate::config::SIM_MODELS.join(", "))]
     UnknownModel { model: String },
     #[error(

@@ -8,6 +8,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+use super::firmware::DelayLine;
 use super::linkage::{Drives, JointState, Linkage, Mechanism, Point, UnitVariation, Unreachable};
 use super::{Encoder, Plant};
 use crate::config::SimConfig;
@@ -139,6 +140,12 @@ pub struct JointFirmware {
     enabled: bool,
     /// Device time since the last output report, s.
     since_output: f64,
+    /// The amplifiers render each latched current this many report periods late
+    /// (`sim.force_delay_ms`).
+    delayed: DelayLine<Vector3<f64>>,
+    /// The counters report the joints as read this many reports earlier
+    /// (`sim.position_delay_ms`).
+    sensed: DelayLine<[i32; 3]>,
 }
 
 impl JointFirmware {
@@ -159,6 +166,18 @@ impl JointFirmware {
             switch: false,
             enabled: false,
             since_output: 0.0,
+            delayed: DelayLine::idle(0),
+            sensed: DelayLine::primed(0),
+        }
+    }
+
+    /// The same firmware with its currents rendered `actuation` report periods late and its
+    /// counters read `sensing` reports late.
+    pub fn delayed(self, actuation: usize, sensing: usize) -> Self {
+        Self {
+            delayed: DelayLine::idle(actuation),
+            sensed: DelayLine::primed(sensing),
+            ..self
         }
     }
 
@@ -183,7 +202,8 @@ impl JointFirmware {
 
     /// The input report for the arm as it is now.
     pub fn input_report(&mut self, out: &mut [u8; REPORT_LEN]) {
-        let absolute = self.absolute_counts();
+        let read = self.absolute_counts();
+        let absolute = self.sensed.push(read);
         let mut counts = [0i16; 6];
         for j in 0..3 {
             // The firmware's counters are `int`s sent as `short`s: they wrap.
@@ -230,7 +250,7 @@ impl JointFirmware {
             self.enabled = false;
             self.currents = Vector3::zeros();
         }
-        let torque = self.model.joint_torques(&self.currents);
+        let torque = self.model.joint_torques(&self.delayed.push(self.currents));
         let dt = period / f64::from(substeps);
         for _ in 0..substeps {
             self.arm.step_joint_torque(&torque, dt);
@@ -285,6 +305,27 @@ mod tests {
         });
     }
 
+    /// The firmware drives the arm by joint torques: a spring (a cable) and damping at the
+    /// handle act on it all the same (they were left out on that path until 2026-12-07, and
+    /// `sim.spring_n_per_m` and `sim.damping_n_s_per_m` did nothing on `sim:woodenhaptics`).
+    #[test]
+    fn a_spring_and_damping_at_the_handle_act_on_the_arm_driven_by_joint_torques() {
+        let mut sprung = env(0.0, 0.0);
+        sprung.spring = (40.0, Vector3::new(0.03, -0.02, 0.05));
+        sprung.handle_damping = 2.0;
+        let force = Vector3::new(0.1, -0.2, 0.5);
+        checks::assert_the_environment_acts_under_joint_torques(arm_at([0.0; 3], sprung), &force);
+        // And it is felt: the spring pulls the handle millimetres off its free path.
+        let (mut with, mut without) = (arm_at([0.0; 3], sprung), arm_at([0.0; 3], env(0.0, 0.0)));
+        for plant in [&mut with, &mut without] {
+            for _ in 0..2000 {
+                plant.step(&force, 1e-4);
+            }
+        }
+        let apart = (with.position() - without.position()).norm();
+        assert!(apart > 1e-3, "{apart} m apart");
+    }
+
     #[test]
     fn the_firmware_renders_currents_homes_its_counters_and_stops_when_the_host_does() {
         let arm = arm_at([0.0; 3], env(1.0, 0.0));
@@ -327,6 +368,39 @@ mod tests {
         assert_eq!(fw.currents, Vector3::zeros());
         // A report of another length is refused.
         assert!(fw.receive_output(&out[..13]).is_err());
+    }
+
+    /// `sim.force_delay_ms` and `sim.position_delay_ms` on the joint-space firmware: currents
+    /// latched now turn the arm three periods later, exactly as currents sent three periods
+    /// later do; the counters report what they read two reports ago (the first reading until
+    /// then).
+    #[test]
+    fn the_firmware_renders_currents_and_reports_counts_as_late_as_it_is_told() {
+        let firmware = || JointFirmware::new(arm_at([0.0; 3], env(1.0, 0.0)), Encoder::new(0.0, 1));
+        let (mut late, mut prompt) = (firmware().delayed(3, 2), firmware());
+        let (mut on, mut off) = ([0; REPORT_LEN], [0; REPORT_LEN]);
+        CurrentReport::currents([400, -300, 250]).encode(&mut on);
+        CurrentReport::currents([0, 0, 0]).encode(&mut off);
+        let counts = |fw: &mut JointFirmware| {
+            let mut bytes = [0; REPORT_LEN];
+            fw.input_report(&mut bytes);
+            EncoderReport::decode(&bytes).unwrap().counts
+        };
+        let (mut read_late, mut read_prompt) = (Vec::new(), Vec::new());
+        for period in 0..40 {
+            late.receive_output(&on).unwrap();
+            prompt
+                .receive_output(if period < 3 { &off } else { &on })
+                .unwrap();
+            read_late.push(counts(&mut late));
+            read_prompt.push(counts(&mut prompt));
+            late.advance(1e-3, 4);
+            prompt.advance(1e-3, 4);
+        }
+        assert_eq!(late.arm.joints(), prompt.arm.joints());
+        assert_ne!(read_prompt[0], read_prompt[39], "the arm moved");
+        assert_eq!(read_late[..3], [read_prompt[0]; 3]);
+        assert_eq!(read_late[2..], read_prompt[..38]);
     }
 
     #[test]
