@@ -638,6 +638,40 @@ fn accumulate(normal: &mut DMatrix<f64>, arm: &[Vector3<f64>], phi: &[Vector3<f6
     }
 }
 
+/// The normal matrix ΦᵀΦ of a fit of `frame`'s effects (`p` columns, the arm's nominal model's
+/// first where `arm`) over the training samples, the arm's cached block filled in. A handle at
+/// rest is left out where friction or an arm is fitted (its friction is no column's). `each` is
+/// handed every sample taken, turned by `frame`, with its design row (the arm's columns, then
+/// `phi`'s: [`column`] reads them), for the right-hand sides.
+fn normal_matrix(
+    signals: &Signals,
+    arm: bool,
+    frame: &Fit,
+    p: usize,
+    mut each: impl FnMut(usize, &Sample, &[Vector3<f64>], &[Vector3<f64>]),
+) -> DMatrix<f64> {
+    let moving_only = frame.effects.contains(&Effect::CoulombFriction) || arm;
+    let mut normal = DMatrix::<f64>::zeros(p, p);
+    let mut phi = vec![Vector3::zeros(); p];
+    let known = cached(signals, arm);
+    for k in signals.split().0 {
+        let s = frame.turned(&signals.samples[k]);
+        if moving_only && s.velocity.norm() < STICK_SPEED {
+            continue;
+        }
+        let arm_row = design_row(
+            arm.then(|| signals.arm_row(k)).flatten(),
+            frame,
+            &s,
+            &mut phi,
+        );
+        accumulate(&mut normal, arm_row, &phi, known);
+        each(k, &s, arm_row, &phi);
+    }
+    complete(signals, arm, &mut normal);
+    normal
+}
+
 /// `normal` with the arm's cached block (upper triangle, when `arm`) and mirrored.
 fn complete(signals: &Signals, arm: bool, normal: &mut DMatrix<f64>) {
     let known = match (&signals.arm_gram, arm) {
@@ -710,28 +744,16 @@ fn fit_on(
         payload_hint: turn.payload,
         ..nominal_frame(effects, signals)
     };
-    let moving_only = effects.contains(&Effect::CoulombFriction) || arm;
-    let (train, heldout) = signals.split();
-    let mut normal = DMatrix::<f64>::zeros(p, p);
     let mut rhs = DVector::<f64>::zeros(p);
-    let mut phi = vec![Vector3::zeros(); p];
     let (mut fitted, mut yy) = (0usize, 0.0);
-    let known = cached(signals, arm);
-    for k in train.clone() {
-        let s = &fit.turned(&signals.samples[k]);
-        if moving_only && s.velocity.norm() < STICK_SPEED {
-            continue;
-        }
+    let normal = normal_matrix(signals, arm, &fit, p, |k, s, arm_row, phi| {
         fitted += 1;
         let y = force[k] - s.gravity;
         yy += y.norm_squared();
-        let arm_row = design_row(arm.then(|| signals.arm_row(k)).flatten(), &fit, s, &mut phi);
         for i in 0..p {
-            rhs[i] += column(arm_row, &phi, i).dot(&y);
+            rhs[i] += column(arm_row, phi, i).dot(&y);
         }
-        accumulate(&mut normal, arm_row, &phi, known);
-    }
-    complete(signals, arm, &mut normal);
+    });
     let cholesky = normal.clone().cholesky()?;
     let theta = cholesky.solve(&rhs);
     // Residual sum of squares on the fitted samples, σ² per component, and the covariance.
@@ -759,6 +781,7 @@ fn fit_on(
         }
     }
     let residuals = fit.residuals_to(signals, force);
+    let (train, heldout) = signals.split();
     fit.train_error = rms(&residuals, train);
     fit.heldout_error = rms(&residuals, heldout);
     Some(fit)
@@ -800,7 +823,6 @@ fn search_delay(
         payload_hint: turn.payload,
         ..nominal_frame(effects, signals)
     };
-    let moving_only = effects.contains(&Effect::CoulombFriction) || arm;
     let steps = ((range.1 - range.0) / step).round() as usize;
     let delays: Vec<f64> = (0..=steps)
         .map(|k| range.0 + k as f64 * step)
@@ -815,21 +837,7 @@ fn search_delay(
     let mut rhs = vec![0.0; p * count];
     let mut yy = vec![0.0; count];
     let mut y = [vec![0.0; count], vec![0.0; count], vec![0.0; count]];
-    let mut phi = vec![Vector3::zeros(); p];
-    let mut normal = DMatrix::<f64>::zeros(p, p);
-    let known = cached(signals, arm);
-    for k in signals.split().0 {
-        let s = frame.turned(&signals.samples[k]);
-        if moving_only && s.velocity.norm() < STICK_SPEED {
-            continue;
-        }
-        let arm_row = design_row(
-            arm.then(|| signals.arm_row(k)).flatten(),
-            &frame,
-            &s,
-            &mut phi,
-        );
-        accumulate(&mut normal, arm_row, &phi, known);
+    let normal = normal_matrix(signals, arm, &frame, p, |k, s, arm_row, phi| {
         for (d, delay) in delays.iter().enumerate() {
             let y_d = signals.delayed_at(k, *delay) - s.gravity;
             yy[d] += y_d.norm_squared();
@@ -838,13 +846,12 @@ fn search_delay(
             }
         }
         for (i, row) in rhs.chunks_exact_mut(count).enumerate() {
-            let c = column(arm_row, &phi, i);
+            let c = column(arm_row, phi, i);
             for (d, r) in row.iter_mut().enumerate() {
                 *r += c.x * y[0][d] + c.y * y[1][d] + c.z * y[2][d];
             }
         }
-    }
-    complete(signals, arm, &mut normal);
+    });
     let cholesky = normal.cholesky()?;
     let best = delays
         .iter()
