@@ -2,7 +2,7 @@
 //! selection's fits, diagnostics, closed-loop simulations, report and figures), median and worst
 //! of five runs, on two logs recorded in virtual time: the simulated point mass with Coulomb
 //! friction hidden (the quick case), and `sim:phantom` with a 60 N/m spring beside a 6 ms force
-//! delay (the slowest kind of log in the discrepancy sweep: the arm's 30-parameter nominal model,
+//! delay (the slowest kind of log in the discrepancy sweep: the arm's 31-parameter nominal model,
 //! a delay searched at every step, pairs tried because the residual stays above the floor).
 //! `cargo bench --bench analyze`; the target is under 5 s on the project's 2-core VM
 //! (docs/performance.md).

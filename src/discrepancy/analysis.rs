@@ -229,7 +229,7 @@ impl Signals {
                 .zip(design.chunks_exact_mut(ARM_COLUMNS))
             {
                 if let Some(j) = &s.joint {
-                    arm_columns(j, row);
+                    arm_columns(j, &s.acceleration, row);
                 }
             }
             signals.arm_design = design;
@@ -1458,7 +1458,7 @@ mod tests {
             tilt: None,
         };
         let mut columns = [Vector3::zeros(); ARM_COLUMNS];
-        arm_columns(&joint, &mut columns);
+        arm_columns(&joint, &sample.acceleration, &mut columns);
         // The joints hold 0.009, (moving) 0.02 + 0.018 and −0.026 N m.
         let command = gravity + to_handle() * Vector3::new(0.009, 0.038, -0.026);
         let r = fit.residual(&sample, Some(&columns), &command);

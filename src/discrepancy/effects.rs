@@ -136,10 +136,17 @@ pub const STICK_RATE: f64 = 1e-2;
 /// with M(q) = M₀ + Σ_k δq_k M_k to first order in the joints' offsets δq_k from the log's mean
 /// (each M symmetric: 6 entries, 4 matrices), whose Coriolis and centrifugal torque,
 /// Ṁ q̇ − ½ ∂(q̇ᵀ M q̇)/∂q = Σ_k (q̇_k M_k q̇ − ½ (q̇ᵀ M_k q̇) e_k), is linear in the same entries;
-/// then each joint's Coulomb and viscous friction; as handle forces J⁻ᵀ τ. How many
-/// ([`ARM_COLUMNS`]). (Products of the offsets, second order, were tried: the fit then followed
-/// its training samples, and a clean PHANToM log's held-out residual grew fivefold.)
-pub fn arm_columns(j: &JointSample, out: &mut [Vector3<f64>]) -> usize {
+/// then each joint's Coulomb and viscous friction; as handle forces J⁻ᵀ τ; last, a point mass
+/// at the handle, m Ẍ (`handle_acceleration`), which no inertia first order in the pose holds
+/// (its joint-space inertia m JᵀJ is far from linear in q): the handle itself, a delta's
+/// platform. How many ([`ARM_COLUMNS`]). (Products of the offsets, second order, were tried:
+/// the fit then followed its training samples, and a clean PHANToM log's held-out residual grew
+/// fivefold.)
+pub fn arm_columns(
+    j: &JointSample,
+    handle_acceleration: &Vector3<f64>,
+    out: &mut [Vector3<f64>],
+) -> usize {
     const PAIRS: [(usize, usize); 6] = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)];
     // J⁻ᵀ E v, for the symmetric unit matrix E with ones at (a, b) and (b, a): J⁻ᵀ's columns
     // weighted by v.
@@ -172,14 +179,17 @@ pub fn arm_columns(j: &JointSample, out: &mut [Vector3<f64>]) -> usize {
         out[n + 1] = column(joint) * j.rate[joint];
         n += 2;
     }
-    n
+    out[ARM_HANDLE_MASS] = *handle_acceleration;
+    n + 1
 }
 
 /// How many columns [`arm_columns`] writes.
-pub const ARM_COLUMNS: usize = 30;
+pub const ARM_COLUMNS: usize = 31;
 /// Where [`arm_columns`]' friction starts: joint j's Coulomb friction at this + 2j, its viscous
 /// friction after it.
 pub const ARM_FRICTION: usize = 24;
+/// [`arm_columns`]' point mass at the handle.
+pub const ARM_HANDLE_MASS: usize = 30;
 
 /// What the model sees at one sample (smoothed alike, SI).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -217,9 +227,10 @@ mod tests {
 
     /// The arm's columns, weighted by M(q)'s entries and the joints' friction, give J⁻ᵀ times
     /// the Euler–Lagrange torque d/dt(M(q) q̇) − ½ ∂(q̇ᵀ M(q) q̇)/∂q of M(q) = M₀ + Σ_k δq_k M_k
-    /// (worked out here by finite differences along q(t) = q + q̇ t + q̈ t²/2) plus the friction.
+    /// (worked out here by finite differences along q(t) = q + q̇ t + q̈ t²/2) plus the friction,
+    /// and a point mass at the handle its m Ẍ.
     #[test]
-    fn the_arm_columns_are_the_lagrangian_dynamics_of_an_inertia_first_order_in_the_pose() {
+    fn the_arm_columns_are_the_dynamics_of_a_first_order_inertia_and_a_handle_mass() {
         let entries: [[f64; 6]; 4] = [
             [4e-3, 3e-3, 2e-3, 1e-4, -2e-4, 5e-5],
             [3e-4, -1e-4, 2e-4, 4e-4, 1e-4, -3e-4],
@@ -260,7 +271,9 @@ mod tests {
         let sliding = Vector3::new(0.9, -1.0, 0.5);
         let to_handle = Matrix3::new(3.0, 1.0, -2.0, 0.5, 4.0, 1.5, -1.0, 2.5, 5.0);
         let friction = Vector3::from_fn(|j, _| coulomb[j] * sliding[j] + viscous[j] * rate[j]);
-        let truth = to_handle * (lagrange + friction);
+        // A point mass at the handle, accelerated along its own Ẍ.
+        let (handle_mass, handle_acceleration) = (0.05, Vector3::new(0.4, -1.2, 0.9));
+        let truth = to_handle * (lagrange + friction) + handle_acceleration * handle_mass;
 
         let sample = JointSample {
             offset: q,
@@ -270,12 +283,16 @@ mod tests {
             sliding,
         };
         let mut columns = [Vector3::zeros(); ARM_COLUMNS];
-        assert_eq!(arm_columns(&sample, &mut columns), ARM_COLUMNS);
+        assert_eq!(
+            arm_columns(&sample, &handle_acceleration, &mut columns),
+            ARM_COLUMNS
+        );
         let parameters = entries
             .iter()
             .flatten()
             .copied()
-            .chain((0..3).flat_map(|j| [coulomb[j], viscous[j]]));
+            .chain((0..3).flat_map(|j| [coulomb[j], viscous[j]]))
+            .chain([handle_mass]);
         let modelled: Vector3<f64> = parameters
             .zip(&columns)
             .map(|(theta, column)| column * theta)

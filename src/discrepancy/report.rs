@@ -11,7 +11,7 @@ use plotters::prelude::*;
 use serde_json::json;
 
 use super::analysis::{self, Fit, Signals};
-use super::effects::{Effect, ARM_COLUMNS, ARM_FRICTION};
+use super::effects::{Effect, ARM_COLUMNS, ARM_FRICTION, ARM_HANDLE_MASS};
 use super::{evidence, Analysis, AnalyzeError, AnalyzeRequest};
 use crate::control::compensation::GravityModel;
 use crate::figure::{self, Figure, OutError};
@@ -253,14 +253,15 @@ fn effect_parameters(
 fn parameters(fit: &Fit, up: &Vector3<f64>) -> serde_json::Value {
     let m = fit.moving_mass;
     let mut p = if fit.base.len() == ARM_COLUMNS {
-        // The arm's nominal model: M₀ (xx, yy, zz, xy, xz, yz), then each joint's Coulomb and
-        // viscous friction (docs/discrepancy.md §2).
+        // The arm's nominal model: M₀ (xx, yy, zz, xy, xz, yz), each joint's Coulomb and
+        // viscous friction, and the handle's point mass (docs/discrepancy.md §2).
         let b = &fit.base;
         let friction = |first: usize| [0, 2, 4].map(|j| b[ARM_FRICTION + first + j]);
         json!({
             "joint_inertia_kg_m2": &b[..6],
             "joint_coulomb_friction_n_m": friction(0),
             "joint_viscous_friction_n_m_s": friction(1),
+            "handle_mass_kg": b[ARM_HANDLE_MASS],
         })
     } else {
         json!({ "moving_mass_kg": [m.x, m.y, m.z] })
@@ -586,6 +587,7 @@ fn report_md(request: &AnalyzeRequest, a: &Analysis) -> String {
                 "joint_inertia_kg_m2",
                 "joint_coulomb_friction_n_m",
                 "joint_viscous_friction_n_m_s",
+                "handle_mass_kg",
             ] {
                 map.remove(key);
             }
