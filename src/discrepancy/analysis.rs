@@ -368,7 +368,7 @@ pub struct Fit {
     pub delay: f64,
     pub delay_sd: f64,
     /// The rotation of gravity, rad (zero unless [`Effect::GravityTilt`] is in the set; see
-    /// `linear_tilt`).
+    /// `linear_tilt` and [`Fit::turned`]).
     pub rotation: Vector3<f64>,
     /// RMS of |residual| on the samples fitted on, and on those held out, N.
     pub train_error: f64,
@@ -378,8 +378,8 @@ pub struct Fit {
     pub train_sse: f64,
     pub fitted: usize,
     /// The tilt is a linear term of its own (an arm's, [`Sample::tilt`]): θ is the whole
-    /// rotation, and `rotation` turns only a payload's weight; otherwise the field turns whole
-    /// by `rotation` and θ is the last increment.
+    /// rotation, and `rotation` the last step's, which sets the scales of [`Fit::turned`];
+    /// otherwise the field turns whole by `rotation` and θ is the last increment.
     pub linear_tilt: bool,
     /// With a linear tilt: the payload (kg) whose weight turns with it, from the previous
     /// Gauss–Newton step (the term m_p g (δ × v_G) is linearised about it).
@@ -400,22 +400,43 @@ impl Fit {
             .map_or(&[], |i| &self.theta[i])
     }
 
-    /// `s` with gravity (and v_G) turned by the fit's rotation.
+    /// `s` with gravity (and v_G) turned by the fit's rotation. An arm's tilt is a linear term
+    /// of its own (`linear_tilt`), and the rotation is then the last Gauss–Newton step's δ: the
+    /// arm's gravity force is linear in the gravity vector γ, so turned by δ = Σ θ_i e_i across
+    /// v_G it is cos|δ| F_G + (sin|δ|/|δ|) Σ θ_i T_i (T_i its tilt columns, [`Sample::tilt`]),
+    /// and a payload's weight turns alike ([`Fit::effect_columns`]): F_G and g scaled by
+    /// cos|δ|, the tilt's columns by sin|δ|/|δ|, linear in θ about the last step's |δ|. (First
+    /// order alone leaves −(δ²/2) F_G, which a payload under a gram took up beside a 5° tilt
+    /// on the simulated delta.)
     fn turned<'a>(&self, s: &'a Sample) -> Cow<'a, Sample> {
         if self.rotation == Vector3::zeros() {
             return Cow::Borrowed(s);
         }
+        if self.linear_tilt {
+            let (cos, sinc) = self.tilt_scales();
+            return Cow::Owned(Sample {
+                gravity: s.gravity * cos,
+                g: s.g * cos,
+                tilt: s.tilt.map(|columns| columns.map(|c| c * sinc)),
+                ..*s
+            });
+        }
         let r = Rotation3::new(self.rotation);
         Cow::Owned(Sample {
-            // An arm's tilt is its own linear term; only a payload's weight turns with it.
-            gravity: if self.linear_tilt {
-                s.gravity
-            } else {
-                r * s.gravity
-            },
+            gravity: r * s.gravity,
             up: r * s.up,
             ..*s
         })
+    }
+
+    /// For an arm's linear tilt: cos|δ| and sin|δ|/|δ| of the last step's rotation δ.
+    fn tilt_scales(&self) -> (f64, f64) {
+        let angle = self.rotation.norm();
+        if angle == 0.0 {
+            (1.0, 1.0)
+        } else {
+            (angle.cos(), angle.sin() / angle)
+        }
     }
 
     /// `effect`'s columns at `s` in this fit ([`Effect::columns`]; a linear tilt's with the
@@ -424,7 +445,9 @@ impl Fit {
         let n = effect.columns(s, out);
         if effect == Effect::GravityTilt && self.linear_tilt && self.payload_hint != 0.0 {
             let (e1, e2) = across(&s.up);
-            let weight = s.up * (self.payload_hint * s.g);
+            // s.g is g cos|δ| ([`Fit::turned`]); the weight turns by g sin|δ|/|δ| per θ.
+            let (cos, sinc) = self.tilt_scales();
+            let weight = s.up * (self.payload_hint * s.g * sinc / cos);
             out[0] += e1.cross(&weight);
             out[1] += e2.cross(&weight);
         }
@@ -941,10 +964,10 @@ pub fn fit(effects: &[Effect], signals: &Signals) -> Option<Fit> {
         for _ in 0..TILT_STEPS {
             let force = signals.delayed_force(fit.delay);
             // A field that turns whole turns by the tilt found; a linear tilt takes the
-            // payload found into its columns.
+            // payload found into its columns and the angle found into its scales.
             let turn = if fit.linear_tilt {
                 Turn {
-                    rotation: Vector3::zeros(),
+                    rotation: fit.tilt(&up).0,
                     payload: fit.payload(),
                 }
             } else {
