@@ -623,18 +623,21 @@ pub struct SimConfig {
     /// The actuators render each force command this much later, ms (whole report periods): a
     /// slow amplifier or a buffered driver.
     pub force_delay_ms: f64,
-    /// Protocol v1 devices: each input report carries the position measured this much earlier,
-    /// ms (whole report periods): a slow encoder interface or a filtering sensor.
+    /// Each input report carries the position (`sim:woodenhaptics`: the joint counts) measured
+    /// this much earlier, ms (whole report periods): a slow encoder interface or a filtering
+    /// sensor.
     pub position_delay_ms: f64,
-    /// Protocol v1 devices: each axis's actuators render this share of the commanded force (an
-    /// amplifier's gain or a motor constant off).
+    /// Protocol v1 devices (refused by `sim:woodenhaptics`): each axis's actuators render this
+    /// share of the commanded force (an amplifier's gain or a motor constant off).
     pub force_scale: [f64; 3],
-    /// Protocol v1 devices: motor cogging, a force `cogging_n` sin(2π x_i / pitch) along each axis
-    /// i, of the position alone and in no candidate of `hgcd analyze`, N.
+    /// Protocol v1 devices (refused by `sim:woodenhaptics`): motor cogging, a force `cogging_n`
+    /// sin(2π x_i / pitch) along each axis i, of the position alone and in no candidate of
+    /// `hgcd analyze`, N.
     pub cogging_n: f64,
     pub cogging_pitch_mm: f64,
-    /// Protocol v1 devices: the table vibrates (a pump, a fan): a force `vibration_n` along
-    /// (1, 1, 1)/√3 at `vibration_hz`, of time alone and in no candidate of `hgcd analyze`, N.
+    /// Protocol v1 devices (refused by `sim:woodenhaptics`): the table vibrates (a pump, a fan):
+    /// a force `vibration_n` along (1, 1, 1)/√3 at `vibration_hz`, of time alone and in no
+    /// candidate of `hgcd analyze`, N.
     pub vibration_n: f64,
     pub vibration_hz: f64,
     /// Probe mass attached to the end effector, kg (the paper's validation uses 30 g).
