@@ -189,7 +189,9 @@ impl SimDevice {
     /// # Errors
     /// [`SimError::UnknownModel`] for a model not in [`crate::config::SIM_MODELS`],
     /// [`SimError::Grid`] for a mass grid that does not load, [`SimError::Unreachable`] for a start
-    /// position a linkage cannot reach.
+    /// position a linkage cannot reach; for `sim:woodenhaptics`, [`SimError::NoArm`] for a
+    /// profile without an arm and bodies and [`SimError::CartesianOnly`] for a force along the
+    /// axes it does not simulate.
     pub fn from_config(model: &str, config: &Config) -> Result<Self, SimError> {
         let sim = &config.sim;
         let unreachable = |model| SimError::Unreachable {
@@ -501,6 +503,51 @@ mod tests {
             assert_eq!(info.rate_hz, config.servo.rate_hz);
             assert!(info.lockstep);
         }
+    }
+
+    /// `[sim]`'s spring and actuation delay reach the joint-space firmware's arm from a config:
+    /// the spring pulls it off the path it falls on without one, and currents sent at once turn
+    /// the arm of a 3 ms delay exactly as the same currents sent 3 periods later turn the
+    /// undelayed one.
+    #[test]
+    fn a_woodenhaptics_config_gives_its_spring_and_delay_to_the_arm() {
+        use crate::profile::woodenhaptics::{CurrentReport, REPORT_LEN};
+        let model = crate::config::SIM_WOODENHAPTICS;
+        let device = |set: &dyn Fn(&mut Config)| {
+            let mut config = Config::default();
+            set(&mut config);
+            SimDevice::from_config(model, &config).unwrap()
+        };
+        let run = |device: &mut SimDevice, currents: &dyn Fn(usize) -> [i16; 3]| {
+            let mut out = [0; REPORT_LEN];
+            for period in 0..20 {
+                CurrentReport::currents(currents(period)).encode(&mut out);
+                device.receive_output(&out).unwrap();
+                device.advance();
+            }
+            device.plant().position()
+        };
+        let none = |_: usize| [0; 3];
+        let free = run(&mut device(&|_| {}), &none);
+        let sprung = run(
+            &mut device(&|c| {
+                c.sim.spring_n_per_m = 200.0;
+                c.sim.spring_anchor_mm = [50.0, 0.0, 0.0];
+            }),
+            &none,
+        );
+        assert!((sprung - free).norm() > 1e-3, "{sprung} against {free}");
+        let push = [300, -200, 250];
+        let late = run(&mut device(&|c| c.sim.force_delay_ms = 3.0), &|_| push);
+        let sent_late = run(&mut device(&|_| {}), &|period| {
+            if period < 3 {
+                [0; 3]
+            } else {
+                push
+            }
+        });
+        assert_eq!(late, sent_late);
+        assert!((late - free).norm() > 1e-3, "the currents moved it");
     }
 
     /// Forces along the device's axes are protocol v1's: the joint-space firmware refuses each

@@ -1,8 +1,9 @@
 //! Linkage plants: a mechanism simulated in the space of its three actuated joints q,
 //!
-//!   M(q) q̈ + h(q, q̇) + τ_g(q) + τ_f = sat(Jᵀ F),
+//!   M(q) q̈ + h(q, q̇) + τ_g(q) + τ_f = sat(Jᵀ F) + Jᵀ F_env,
 //!
-//! with the handle where forward kinematics puts it. A [`Mechanism`] supplies the geometry and the
+//! F_env the environment's spring and damping at the handle (no motor limits them), with the
+//! handle where forward kinematics puts it. A [`Mechanism`] supplies the geometry and the
 //! masses (handle kinematics, lumped masses, the links' rotational inertia); [`Linkage`] does the
 //! rest the same
 //! way for every mechanism: inertia and velocity-product terms from those bodies, gravity from
@@ -496,7 +497,7 @@ impl<M: Mechanism> Linkage<M> {
         let joints = self.joint_state();
         let handle = self.mechanism.handle(&joints);
         let external = handle.jacobian.transpose() * self.external_force(&handle);
-        self.step_with(&joints, &handle, &(torque + external), dt);
+        self.step_with(&joints, &handle, torque, &external, dt);
     }
 
     /// The environment's force on the handle at `handle`: the spring toward its anchor and the
@@ -610,8 +611,17 @@ impl<M: Mechanism> Linkage<M> {
         self.qd += through(&(slide * (-limit / slide.norm())));
     }
 
-    fn step_with(&mut self, joints: &JointState, handle: &Point, torque: &Vector3<f64>, dt: f64) {
-        let actuator = torque.zip_map(&self.peak, |t, peak| t.clamp(-peak, peak));
+    /// One step under the motors' joint torques `torque` (limited here to their peak) and the
+    /// environment's `external` (a spring, damping at the handle: no motor's to limit), N m.
+    fn step_with(
+        &mut self,
+        joints: &JointState,
+        handle: &Point,
+        torque: &Vector3<f64>,
+        external: &Vector3<f64>,
+        dt: f64,
+    ) {
+        let actuator = torque.zip_map(&self.peak, |t, peak| t.clamp(-peak, peak)) + external;
         let d = self.dynamics(joints, handle);
         let scale = self.env.friction_scale;
         // Every torque but the holding reaction of held joints; sliding joints feel Coulomb
@@ -724,13 +734,9 @@ impl<M: Mechanism> Plant for Linkage<M> {
     fn step(&mut self, force: &Vector3<f64>, dt: f64) {
         let joints = self.joint_state();
         let handle = self.mechanism.handle(&joints);
-        let external = self.external_force(&handle);
-        self.step_with(
-            &joints,
-            &handle,
-            &(handle.jacobian.transpose() * (force + external)),
-            dt,
-        );
+        let jt = handle.jacobian.transpose();
+        let external = jt * self.external_force(&handle);
+        self.step_with(&joints, &handle, &(jt * force), &external, dt);
     }
 
     fn position(&self) -> Vector3<f64> {

@@ -172,7 +172,9 @@ impl JointFirmware {
     }
 
     /// The same firmware with its currents rendered `actuation` report periods late and its
-    /// counters read `sensing` reports late.
+    /// counters read `sensing` reports late. (The set-encoders command and the switch act at
+    /// once: for `sensing` reports after a set, the new offset rides on counts read before it.
+    /// A host sets the counters with the arm at rest, where that changes nothing.)
     pub fn delayed(self, actuation: usize, sensing: usize) -> Self {
         Self {
             delayed: DelayLine::idle(actuation),
