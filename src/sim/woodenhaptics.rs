@@ -372,6 +372,27 @@ mod tests {
         assert!(fw.receive_output(&out[..13]).is_err());
     }
 
+    /// The spring at the handle is no motor's: a stiff one pulls the handle far faster than the
+    /// same pull through the motors, which their peak torque limits.
+    #[test]
+    fn a_spring_at_the_handle_is_not_limited_to_the_motors_peak() {
+        let mut stiff = env(0.0, 0.0);
+        stiff.spring = (10_000.0, Vector3::new(0.05, 0.0, 0.0));
+        let (mut sprung, mut pushed) = (arm_at([0.0; 3], stiff), arm_at([0.0; 3], env(0.0, 0.0)));
+        let start = sprung.position();
+        // What the spring pulls with at the start, k × 50 mm, sent to the motors instead.
+        let pull = Vector3::new(500.0, 0.0, 0.0);
+        for _ in 0..10 {
+            sprung.step(&Vector3::zeros(), 1e-4);
+            pushed.step(&pull, 1e-4);
+        }
+        let (by_spring, by_motors) = ((sprung.position() - start).x, (pushed.position() - start).x);
+        assert!(
+            by_spring > 5.0 * by_motors,
+            "{by_spring} m against {by_motors} m"
+        );
+    }
+
     /// `sim.force_delay_ms` and `sim.position_delay_ms` on the joint-space firmware: currents
     /// latched now turn the arm three periods later, exactly as currents sent three periods
     /// later do; the counters report what they read two reports ago (the first reading until
