@@ -309,8 +309,8 @@ impl Signals {
         Weights::gaussian(Signals::sigma(self.period))
     }
 
-    /// How many parameters the nominal model has: a moving mass per axis, or the arm's inertia
-    /// and joint friction.
+    /// How many parameters the nominal model has: a moving mass per axis, or the arm's inertia,
+    /// joint friction and handle mass.
     pub fn base_count(&self) -> usize {
         if self.arm {
             ARM_COLUMNS
@@ -356,7 +356,7 @@ pub struct Fit {
     pub moving_mass: Vector3<f64>,
     pub moving_mass_sd: Vector3<f64>,
     /// The nominal model's parameters and their standard errors: the moving mass, or the
-    /// arm's inertia and joint friction ([`arm_columns`]).
+    /// arm's inertia, joint friction and handle mass ([`arm_columns`]).
     pub base: Vec<f64>,
     pub base_sd: Vec<f64>,
     /// Each effect's linear parameters θ (see [`Effect`]) and their standard errors, in
@@ -400,7 +400,7 @@ impl Fit {
             .map_or(&[], |i| &self.theta[i])
     }
 
-    /// `s` with gravity (and v_G) turned by the fit's rotation. An arm's tilt is a linear term
+    /// `s` with gravity and v_G turned by the fit's rotation. An arm's tilt is a linear term
     /// of its own (`linear_tilt`), and the rotation is then the last Gauss–Newton step's δ: the
     /// arm's gravity force is linear in the gravity vector γ, so turned by δ = Σ θ_i e_i across
     /// v_G it is cos|δ| F_G + (sin|δ|/|δ|) Σ θ_i T_i (T_i its tilt columns, [`Sample::tilt`]),
@@ -817,7 +817,7 @@ pub fn moving_mass(signals: &Signals) -> Option<Vector3<f64>> {
 }
 
 /// The nominal model: the grid's gravity force and a moving mass per axis, or for an arm its
-/// inertia and joint friction.
+/// inertia, joint friction and handle mass.
 pub fn nominal(signals: &Signals) -> Option<Fit> {
     fit_linear(&[], signals, &signals.force, 0.0, Turn::default())
 }

@@ -25,7 +25,9 @@ pub enum Effect {
     ViscousDamping,
     /// Gravity turned by a rotation δ ⊥ v_G (the device tilted after calibration): the gravity
     /// force R(δ) F_G. δ (rad, two components across v_G) is found by Gauss–Newton steps, each
-    /// linear in the increment ε: R(δ + ε) F_G ≈ R(δ) F_G + ε × R(δ) F_G.
+    /// linear in the increment ε: R(δ + ε) F_G ≈ R(δ) F_G + ε × R(δ) F_G. For an arm, whose
+    /// links' weights turn and not the handle force, δ is the linear term of [`Sample::tilt`]
+    /// scaled as `Fit::turned` (analysis.rs) says: cos|δ| F_G + (sin|δ|/|δ|) Σ δ_i T_i.
     GravityTilt,
     /// A spring k (X − X_0) (a cable, a hose). θ = (k, −k X_0) (N/m, N).
     Spring,
