@@ -25,8 +25,8 @@
 use nalgebra::Vector3;
 
 use crate::config::Config;
-use crate::control::calibration::steady::SteadyState;
 use crate::control::DeviceState;
+use crate::estimate::steady::SteadyState;
 
 /// The dither's frequencies across the surface, relative to the one along its normal: the
 /// highest is [`DITHER_ACROSS`].

@@ -22,11 +22,11 @@
 //!    grid from them (v_G, each vertex's mass along it, unreachable vertices filled from their
 //!    neighbours) and `calibrate::persist` builds the grid file with the model chosen.
 //!
-//! The parts: `plan.rs` (which vertices, in which order), `steady.rs` (when the handle is at
-//! rest), `probe.rs` (the stick band, the moving mass and the strokes), `machine/` (the controller, one
+//! The parts: `plan.rs` (which vertices, in which order), `probe.rs` (the stick band, the moving mass and the strokes), `machine/` (the controller, one
 //! method per phase: its state and dispatch in `mod.rs`, the phases in `initialise.rs`,
 //! `visit.rs` and `hold.rs`) and `outcome.rs` (result or failure). The PD law is
-//! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force).
+//! [`AxisGains::pd_force`](crate::control::pd::AxisGains::pd_force); when the handle is at
+//! rest, `estimate::steady`.
 //! docs/calibration.md describes the method for users, beside the paper's.
 
 pub mod explore;
@@ -34,7 +34,6 @@ mod machine;
 mod outcome;
 mod plan;
 mod probe;
-pub(crate) mod steady;
 
 use machine::STROKES_AGAIN_SHARE;
 pub use machine::{Calibration, CalibrationEvent};

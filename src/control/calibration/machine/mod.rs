@@ -26,11 +26,11 @@ use super::outcome::{
 };
 use super::plan::{GridPlan, PlanError, Vertex};
 use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Stroked, Strokes};
-use super::steady::{NoiseMeter, SteadyState};
 use super::CalibrationParams;
 use crate::config::WorkspaceMode;
 use crate::control::pd::{AxisGains, PointHold};
 use crate::control::{ControlOutput, Controller, DeviceState};
+use crate::estimate::steady::{NoiseMeter, SteadyState};
 use crate::estimate::Foaw;
 use crate::fit::lattice;
 use crate::fit::predict::ArmPrediction;

@@ -29,7 +29,7 @@ impl SteadyState {
     }
 
     /// As [`SteadyState::new`], with the window means agreeing within `creep` rather than ε/10.
-    pub(super) fn with_creep(n: usize, eps: f64, creep: f64) -> Self {
+    pub(crate) fn with_creep(n: usize, eps: f64, creep: f64) -> Self {
         Self {
             n,
             eps,
@@ -86,7 +86,7 @@ const MIN_STEP: f64 = 1e-6;
 /// readings seen (the largest axis's change of each; a change of less than a micrometre counts as
 /// none), which a handle at rest need not show, but one coming to rest does.
 #[derive(Clone, Debug)]
-pub(super) struct NoiseMeter {
+pub(crate) struct NoiseMeter {
     window: usize,
     previous: [Vector3<f64>; 2],
     count: usize,
@@ -96,7 +96,7 @@ pub(super) struct NoiseMeter {
 }
 
 impl NoiseMeter {
-    pub(super) fn new(window: usize) -> Self {
+    pub(crate) fn new(window: usize) -> Self {
         Self {
             window: window.max(1),
             previous: [Vector3::zeros(); 2],
@@ -106,7 +106,7 @@ impl NoiseMeter {
         }
     }
 
-    pub(super) fn push(&mut self, x: &Vector3<f64>) {
+    pub(crate) fn push(&mut self, x: &Vector3<f64>) {
         if self.count >= 2 {
             let d = x - self.previous[1] * 2.0 + self.previous[0];
             let weight = 1.0 / (self.count - 1).min(self.window) as f64;
@@ -123,13 +123,13 @@ impl NoiseMeter {
     }
 
     /// The largest per-axis standard deviation, m.
-    pub(super) fn sigma(&self) -> f64 {
+    pub(crate) fn sigma(&self) -> f64 {
         (self.mean_square.max() / 6.0).sqrt()
     }
 
     /// The encoder's step, m: the smallest change between consecutive readings seen; 0 if the
     /// readings never changed by a micrometre or more.
-    pub(super) fn step(&self) -> f64 {
+    pub(crate) fn step(&self) -> f64 {
         if self.step.is_finite() {
             self.step
         } else {
