@@ -9,6 +9,17 @@ use nalgebra::Vector3;
 
 use crate::protocol::Status;
 
+/// The minimum-jerk profile at progress τ (clamped to [0, 1]): the share of the move covered,
+/// τ³ (10 − 15τ + 6τ²), and its rate d/dτ, 30 τ² (1 − τ)². The calibration's moves and
+/// strokes, the validation's probe and the excitation's moves to its holds all follow it.
+pub fn minimum_jerk(tau: f64) -> (f64, f64) {
+    let t = tau.clamp(0.0, 1.0);
+    (
+        t * t * t * (10.0 - 15.0 * t + 6.0 * t * t),
+        30.0 * t * t * (1.0 - t) * (1.0 - t),
+    )
+}
+
 /// What the servo loop knows about the device at one tick. SI units throughout.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DeviceState {

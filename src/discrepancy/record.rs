@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use super::log::{Excitation, Log};
 use crate::control::compensation::GravityModel;
-use crate::control::{ControlOutput, Controller, DeviceState};
+use crate::control::{minimum_jerk, ControlOutput, Controller, DeviceState};
 
 /// One excitation cycle, s: a move to a new hold point, a hold, slow then fast multisines around
 /// it, a hold.
@@ -263,7 +263,7 @@ impl Recorder {
         let hold = self.hold(k);
         if c < MOVE_END {
             let previous = if k == 0 { *from } else { self.hold(k - 1) };
-            return previous + (hold - previous) * min_jerk(c / MOVE_END);
+            return previous + (hold - previous) * minimum_jerk(c / MOVE_END).0;
         }
         let taper = |(a, b): (f64, f64)| {
             let edge = ((c - a) / TAPER).min((b - c) / TAPER).clamp(0.0, 1.0);
@@ -285,11 +285,6 @@ impl Recorder {
         hold + multisine(&SLOW_HZ, SLOW_SHARE) * taper(SLOW)
             + multisine(&FAST_HZ, FAST_SHARE) * taper(FAST)
     }
-}
-
-fn min_jerk(u: f64) -> f64 {
-    let u = u.clamp(0.0, 1.0);
-    u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
 }
 
 impl Controller for Recorder {

@@ -25,7 +25,7 @@
 use nalgebra::Vector3;
 
 use crate::config::Config;
-use crate::control::DeviceState;
+use crate::control::{minimum_jerk, DeviceState};
 use crate::estimate::steady::SteadyState;
 
 /// The dither's frequencies across the surface, relative to the one along its normal: the
@@ -385,7 +385,7 @@ impl Probe {
                 surface_from,
             } => {
                 let u = t - self.since;
-                self.reference = from + (to - from) * min_jerk(u / duration);
+                self.reference = from + (to - from) * minimum_jerk(u / duration).0;
                 let surface = surface_from * (1.0 - u / GRIP_TIME).max(0.0);
                 if u >= duration {
                     self.enter(Phase::Lower, t);
@@ -395,8 +395,8 @@ impl Probe {
             Phase::Lower => {
                 let u = t - self.since;
                 let p = self.point();
-                self.reference =
-                    p + self.plan.normal * (self.params.lift * (1.0 - min_jerk(u / LOWER_TIME)));
+                self.reference = p + self.plan.normal
+                    * (self.params.lift * (1.0 - minimum_jerk(u / LOWER_TIME).0));
                 if u >= LOWER_TIME {
                     self.enter(Phase::Release, t);
                 }
@@ -451,7 +451,7 @@ impl Probe {
             }
             Phase::Drop => {
                 let u = (t - self.since) / DROP_TIME;
-                self.surface_drop = self.params.drop * min_jerk(u);
+                self.surface_drop = self.params.drop * minimum_jerk(u).0;
                 if u >= 1.0 {
                     self.enter(Phase::Raise, t);
                 }
@@ -459,7 +459,7 @@ impl Probe {
             }
             Phase::Raise => {
                 let u = (t - self.since) / DROP_TIME;
-                self.surface_drop = self.params.drop * (1.0 - min_jerk(u));
+                self.surface_drop = self.params.drop * (1.0 - minimum_jerk(u).0);
                 if u >= 1.0 {
                     self.settle(Reading::Below, t);
                 }
@@ -481,7 +481,7 @@ impl Probe {
                 let u = t - self.since;
                 let p = self.point();
                 let raise = ((u - GRIP_TIME) / RAISE_TIME).max(0.0);
-                self.reference = p + self.plan.normal * (self.params.lift * min_jerk(raise));
+                self.reference = p + self.plan.normal * (self.params.lift * minimum_jerk(raise).0);
                 if raise >= 1.0 {
                     self.next(t);
                 }
@@ -592,12 +592,6 @@ impl Probe {
         let limit = self.params.max_force;
         (f + dither).map(|c| c.clamp(-limit, limit))
     }
-}
-
-/// Minimum-jerk profile from 0 to 1 over u ∈ [0, 1] (clamped outside).
-fn min_jerk(u: f64) -> f64 {
-    let u = u.clamp(0.0, 1.0);
-    u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
 }
 
 #[cfg(test)]

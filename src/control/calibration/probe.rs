@@ -23,7 +23,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 use crate::arm::Arm;
-use crate::control::DeviceState;
+use crate::control::{minimum_jerk, DeviceState};
 
 /// Samples averaged to tell a slip from position noise, and to read the force at the slip.
 const SLIP_WINDOW: usize = 8;
@@ -623,15 +623,6 @@ const DIAGONALS: [Vector3<f64>; 3] = [
 
 /// A window counts only with at least this many samples in it (a blocked handle gets none).
 const STROKE_MIN_SAMPLES: u32 = 50;
-
-/// Share of a minimum-jerk move covered at progress τ ∈ [0, 1], and its rate d/dτ.
-fn minimum_jerk(tau: f64) -> (f64, f64) {
-    let t = tau.clamp(0.0, 1.0);
-    (
-        t * t * t * (10.0 - 15.0 * t + 6.0 * t * t),
-        30.0 * t * t * (1.0 - t) * (1.0 - t),
-    )
-}
 
 /// Distance covered from rest at progress τ of a speed ramp whose speed follows a minimum-jerk
 /// profile from 0 to 1 (∫ s(τ) dτ; 1/2 at τ = 1).

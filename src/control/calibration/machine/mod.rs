@@ -29,7 +29,7 @@ use super::probe::{BandProbe, Pulse, Push, Ramp, Smoother, Step, Stroke, Stroked
 use super::CalibrationParams;
 use crate::config::WorkspaceMode;
 use crate::control::pd::{AxisGains, PointHold};
-use crate::control::{ControlOutput, Controller, DeviceState};
+use crate::control::{minimum_jerk, ControlOutput, Controller, DeviceState};
 use crate::estimate::steady::{NoiseMeter, SteadyState};
 use crate::estimate::Foaw;
 use crate::fit::lattice;
@@ -294,13 +294,6 @@ const STEADY_STEPS: f64 = 3.0;
 /// The gains are halved at most three times (1, ½, ¼, ⅛).
 const MIN_GAIN_SCALE: f64 = 0.2;
 
-/// Share of the way covered at progress τ ∈ [0, 1] of a minimum-jerk path:
-/// s(τ) = 10τ³ − 15τ⁴ + 6τ⁵.
-fn minimum_jerk(tau: f64) -> f64 {
-    let t = tau.clamp(0.0, 1.0);
-    t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
-}
-
 /// A minimum-jerk path from `from` to `to`, `duration` s long from time `start`. The paper steps
 /// the set point to the next vertex; a 40 mm step pulls a 120 g handle with 5.4 N at once, and
 /// longer moves saturate.
@@ -324,7 +317,7 @@ impl Glide {
 
     /// The point at time `t`.
     pub(super) fn at(&self, t: f64) -> Vector3<f64> {
-        self.from + (self.to - self.from) * minimum_jerk(self.progress(t))
+        self.from + (self.to - self.from) * minimum_jerk(self.progress(t)).0
     }
 }
 
