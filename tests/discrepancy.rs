@@ -1224,15 +1224,20 @@ fn on_the_phantom_hgcd_run_compensates_a_named_payload_on_a_tilted_table() {
     }
 }
 
+/// [`sweep`] of [`linkage_library`] on `sim:MODEL`, calibrated clean first: the failures.
+fn sweep_calibrated(model: &str) -> Vec<String> {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = calibrated(model, dir.path());
+    sweep(model, dir.path(), &grid, linkage_library)
+}
+
 /// Every pair on the PHANToM at two magnitudes and two seeds, as on the point mass
 /// (docs/discrepancy.md §6). `cargo test --release --test discrepancy -- --ignored --nocapture
 /// every_pair_on_the_phantom`
 #[test]
 #[ignore]
 fn every_pair_on_the_phantom() {
-    let dir = tempfile::tempdir().unwrap();
-    let grid = calibrated("phantom", dir.path());
-    let failures = sweep("phantom", dir.path(), &grid, linkage_library);
+    let failures = sweep_calibrated("phantom");
     // A 6 ms delay beside a 60 N/m spring (the loop rings): 4 cases name the hidden set right
     // but leave their residual over twice the floor (docs/discrepancy.md §6). No more may, and
     // none may name a wrong set.
@@ -1248,9 +1253,7 @@ fn every_pair_on_the_phantom() {
 #[test]
 #[ignore]
 fn every_pair_on_the_delta() {
-    let dir = tempfile::tempdir().unwrap();
-    let grid = calibrated("delta", dir.path());
-    let failures = sweep("delta", dir.path(), &grid, linkage_library);
+    let failures = sweep_calibrated("delta");
     // Two cases name a wrong set (docs/discrepancy.md §6): 0.06 N of friction at the handle
     // beside a 30 N/m spring, both seeds, left to the joints' own Coulomb friction. No other
     // may fail.
@@ -1266,8 +1269,6 @@ fn every_pair_on_the_delta() {
 #[test]
 #[ignore]
 fn every_pair_on_woodenhaptics() {
-    let dir = tempfile::tempdir().unwrap();
-    let grid = calibrated("woodenhaptics", dir.path());
-    let failures = sweep("woodenhaptics", dir.path(), &grid, linkage_library);
+    let failures = sweep_calibrated("woodenhaptics");
     assert!(failures.is_empty(), "{failures:#?}");
 }

@@ -496,8 +496,7 @@ impl<M: Mechanism> Linkage<M> {
     pub fn step_joint_torque(&mut self, torque: &Vector3<f64>, dt: f64) {
         let joints = self.joint_state();
         let handle = self.mechanism.handle(&joints);
-        let external = handle.jacobian.transpose() * self.external_force(&handle);
-        self.step_with(&joints, &handle, torque, &external, dt);
+        self.step_with(&joints, &handle, torque, dt);
     }
 
     /// The environment's force on the handle at `handle`: the spring toward its anchor and the
@@ -612,15 +611,10 @@ impl<M: Mechanism> Linkage<M> {
     }
 
     /// One step under the motors' joint torques `torque` (limited here to their peak) and the
-    /// environment's `external` (a spring, damping at the handle: no motor's to limit), N m.
-    fn step_with(
-        &mut self,
-        joints: &JointState,
-        handle: &Point,
-        torque: &Vector3<f64>,
-        external: &Vector3<f64>,
-        dt: f64,
-    ) {
+    /// environment's spring and damping at the handle ([`Linkage::external_force`]: no motor's
+    /// to limit), N m.
+    fn step_with(&mut self, joints: &JointState, handle: &Point, torque: &Vector3<f64>, dt: f64) {
+        let external = handle.jacobian.transpose() * self.external_force(handle);
         let actuator = torque.zip_map(&self.peak, |t, peak| t.clamp(-peak, peak)) + external;
         let d = self.dynamics(joints, handle);
         let scale = self.env.friction_scale;
@@ -734,9 +728,7 @@ impl<M: Mechanism> Plant for Linkage<M> {
     fn step(&mut self, force: &Vector3<f64>, dt: f64) {
         let joints = self.joint_state();
         let handle = self.mechanism.handle(&joints);
-        let jt = handle.jacobian.transpose();
-        let external = jt * self.external_force(&handle);
-        self.step_with(&joints, &handle, &(jt * force), &external, dt);
+        self.step_with(&joints, &handle, &(handle.jacobian.transpose() * force), dt);
     }
 
     fn position(&self) -> Vector3<f64> {
