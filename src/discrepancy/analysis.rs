@@ -7,8 +7,8 @@ use std::borrow::Cow;
 use nalgebra::{DMatrix, DVector, Rotation3, Vector3};
 
 use super::effects::{
-    across, arm_columns, Effect, JointSample, Sample, ARM_COLUMNS, ARM_FRICTION, STICK_RATE,
-    STICK_SPEED,
+    across, arm_columns, ArmInertia, Effect, JointSample, Sample, ARM_COLUMNS, ARM_FRICTION,
+    STICK_RATE, STICK_SPEED,
 };
 use super::log::{Excitation, Log};
 use crate::arm::Arm;
@@ -16,6 +16,8 @@ use crate::control::compensation::GravityModel;
 
 /// Share of the log the models are fitted on; the rest is held out to score them.
 pub const TRAIN_SHARE: f64 = 0.6;
+/// A point mass's nominal model: a moving mass per axis.
+const POINT_MASS_COLUMNS: usize = 3;
 /// Standard deviation of the Gaussian smoothing kernel, s: 7.5 ms passes the excitation (its
 /// fastest line, 6 Hz, keeps 95 %) and averages the encoder's steps out of the second
 /// derivative.
@@ -49,11 +51,14 @@ pub struct Signals {
     pub window: usize,
     /// The nominal model is the arm's (its samples carry their joints), not a point mass's.
     pub arm: bool,
+    /// For an arm: how its nominal model's inertia varies with the pose (the first
+    /// [`ArmInertia::columns`] of the design are fitted), chosen by [`nominal`].
+    pub arm_inertia: ArmInertia,
     /// For an arm: its nominal model's columns ([`arm_columns`]) at every sample,
     /// [`ARM_COLUMNS`] per sample, worked out once (the same in every fit: they neither turn
     /// nor move with a delay).
     arm_design: Vec<Vector3<f64>>,
-    /// For an arm: ΦᵀΦ of those columns over the training samples in motion.
+    /// For an arm: ΦᵀΦ of all those columns over the training samples in motion.
     arm_gram: Option<DMatrix<f64>>,
 }
 
@@ -152,6 +157,7 @@ impl Signals {
             window: ((4.0 * std::f64::consts::PI).sqrt() * Signals::sigma(period)).ceil() as usize,
             arm: false,
             arm_design: Vec::new(),
+            arm_inertia: ArmInertia::FirstOrder,
             arm_gram: None,
         };
         // The joints of every logged position (a reading out of reach keeps the last ones).
@@ -258,9 +264,11 @@ impl Signals {
         self.samples.len()
     }
 
-    /// The arm's nominal columns at sample `k` ([`arm_columns`]); None for a point mass.
+    /// The arm's nominal columns fitted at sample `k` ([`arm_columns`], the first
+    /// [`ArmInertia::columns`]); None for a point mass.
     pub(super) fn arm_row(&self, k: usize) -> Option<&[Vector3<f64>]> {
-        self.arm_design.get(k * ARM_COLUMNS..(k + 1) * ARM_COLUMNS)
+        let from = k * ARM_COLUMNS;
+        self.arm_design.get(from..from + self.arm_inertia.columns())
     }
 
     /// Each sample's direction of sliding (and each joint's), smoothed by `kernel` (the ends
@@ -313,9 +321,9 @@ impl Signals {
     /// joint friction and handle mass.
     pub fn base_count(&self) -> usize {
         if self.arm {
-            ARM_COLUMNS
+            self.arm_inertia.columns()
         } else {
-            3
+            POINT_MASS_COLUMNS
         }
     }
 
@@ -542,8 +550,8 @@ impl Fit {
     }
 
     /// Whether this is an arm's model (its nominal part the arm's columns).
-    fn is_arm(&self) -> bool {
-        self.base.len() == ARM_COLUMNS
+    pub fn is_arm(&self) -> bool {
+        self.base.len() != POINT_MASS_COLUMNS
     }
 
     /// The rotation of gravity this fit found, rad (zero without [`Effect::GravityTilt`]),
@@ -697,12 +705,12 @@ fn normal_matrix(
 
 /// `normal` with the arm's cached block (upper triangle, when `arm`) and mirrored.
 fn complete(signals: &Signals, arm: bool, normal: &mut DMatrix<f64>) {
-    let known = match (&signals.arm_gram, arm) {
-        (Some(gram), true) => gram,
-        _ => &DMatrix::zeros(0, 0),
-    };
-    let b = known.nrows();
-    normal.view_mut((0, 0), (b, b)).copy_from(known);
+    if let (Some(gram), true) = (&signals.arm_gram, arm) {
+        let b = signals.arm_inertia.columns();
+        normal
+            .view_mut((0, 0), (b, b))
+            .copy_from(&gram.view((0, 0), (b, b)));
+    }
     let p = normal.nrows();
     for i in 0..p {
         for j in 0..i {
@@ -714,7 +722,7 @@ fn complete(signals: &Signals, arm: bool, normal: &mut DMatrix<f64>) {
 /// How many leading columns of a fit's design the cached arm block covers.
 fn cached(signals: &Signals, arm: bool) -> usize {
     match (&signals.arm_gram, arm) {
-        (Some(gram), true) => gram.nrows(),
+        (Some(_), true) => signals.arm_inertia.columns(),
         _ => 0,
     }
 }
@@ -757,7 +765,11 @@ fn fit_on(
     delay: f64,
     turn: Turn,
 ) -> Option<Fit> {
-    let b = if arm { ARM_COLUMNS } else { 3 };
+    let b = if arm {
+        signals.arm_inertia.columns()
+    } else {
+        POINT_MASS_COLUMNS
+    };
     let p = b + effects.iter().map(|e| e.linear_parameters()).sum::<usize>();
     let mut fit = Fit {
         base: vec![0.0; b],
@@ -817,9 +829,29 @@ pub fn moving_mass(signals: &Signals) -> Option<Vector3<f64>> {
 }
 
 /// The nominal model: the grid's gravity force and a moving mass per axis, or for an arm its
-/// inertia, joint friction and handle mass.
-pub fn nominal(signals: &Signals) -> Option<Fit> {
-    fit_linear(&[], signals, &signals.force, 0.0, Turn::default())
+/// inertia, joint friction and handle mass. An arm's inertia is held constant unless letting it
+/// vary to first order in the pose cuts the held-out error to [`COMPLEXITY_MARGIN`] of that
+/// (the rule every added parameter meets); `signals` keeps the choice for every later fit.
+/// First order in the pose is what a serial arm needs; on a delta, whose arms turn about fixed
+/// axes with only the platform's mass (the handle's column) moving, its 18 parameters follow
+/// the training poses and left twice the held-out error of a constant inertia on a clean log.
+pub fn nominal(signals: &mut Signals) -> Option<Fit> {
+    let fit = |signals: &Signals| fit_linear(&[], signals, &signals.force, 0.0, Turn::default());
+    if !signals.arm {
+        return fit(signals);
+    }
+    signals.arm_inertia = ArmInertia::Constant;
+    let constant = fit(signals)?;
+    signals.arm_inertia = ArmInertia::FirstOrder;
+    match fit(signals) {
+        Some(first) if first.heldout_error <= COMPLEXITY_MARGIN * constant.heldout_error => {
+            Some(first)
+        }
+        _ => {
+            signals.arm_inertia = ArmInertia::Constant;
+            Some(constant)
+        }
+    }
 }
 
 /// Gauss–Newton steps for the gravity tilt.

@@ -134,16 +134,16 @@ pub struct JointSample {
 /// [`STICK_SPEED`] at the handle of a 0.1 m link).
 pub const STICK_RATE: f64 = 1e-2;
 
-/// The nominal model's own columns for an arm: the joint-space dynamics M(q) q̈ + C(q, q̇) q̇
-/// with M(q) = M₀ + Σ_k δq_k M_k to first order in the joints' offsets δq_k from the log's mean
-/// (each M symmetric: 6 entries, 4 matrices), whose Coriolis and centrifugal torque,
-/// Ṁ q̇ − ½ ∂(q̇ᵀ M q̇)/∂q = Σ_k (q̇_k M_k q̇ − ½ (q̇ᵀ M_k q̇) e_k), is linear in the same entries;
-/// then each joint's Coulomb and viscous friction; as handle forces J⁻ᵀ τ; last, a point mass
-/// at the handle, m Ẍ (`handle_acceleration`), which no inertia first order in the pose holds
-/// (its joint-space inertia m JᵀJ is far from linear in q): the handle itself, a delta's
-/// platform. How many ([`ARM_COLUMNS`]). (Products of the offsets, second order, were tried:
-/// the fit then followed its training samples, and a clean PHANToM log's held-out residual grew
-/// fivefold.)
+/// The nominal model's own columns for an arm, as handle forces J⁻ᵀ τ: first the joint-space
+/// inertia M₀ q̈ (M₀ symmetric: 6 entries); then each joint's Coulomb and viscous friction; then
+/// a point mass at the handle, m Ẍ (`handle_acceleration`), whose joint-space inertia m JᵀJ is
+/// far from constant or linear in q (the handle itself, a delta's platform); last, the inertia's
+/// first order in the joints' offsets δq_k from the log's mean, M(q) = M₀ + Σ_k δq_k M_k (three
+/// more symmetric matrices), with the Coriolis and centrifugal torque it implies,
+/// Ṁ q̇ − ½ ∂(q̇ᵀ M q̇)/∂q = Σ_k (δq_k M_k q̈ + q̇_k M_k q̇ − ½ (q̇ᵀ M_k q̇) e_k), linear in the same
+/// entries. A fit takes the first [`ArmInertia::columns`] of them. Writes [`ARM_COLUMNS`].
+/// (Products of the offsets, second order, were tried: the fit then followed its training
+/// samples, and a clean PHANToM log's held-out residual grew fivefold.)
 pub fn arm_columns(
     j: &JointSample,
     handle_acceleration: &Vector3<f64>,
@@ -171,27 +171,57 @@ pub fn arm_columns(
         };
         out[n] = inertial;
         for k in 0..3 {
-            out[6 * (k + 1) + n] =
+            out[ARM_FIRST_ORDER + 6 * k + n] =
                 inertial * offset[k] + momentum * rate[k] - column(k) * (0.5 * quadratic);
         }
     }
-    let mut n = ARM_FRICTION;
     for joint in 0..3 {
-        out[n] = column(joint) * j.sliding[joint];
-        out[n + 1] = column(joint) * j.rate[joint];
-        n += 2;
+        out[ARM_FRICTION + 2 * joint] = column(joint) * j.sliding[joint];
+        out[ARM_FRICTION + 2 * joint + 1] = column(joint) * j.rate[joint];
     }
     out[ARM_HANDLE_MASS] = *handle_acceleration;
-    n + 1
+    ARM_COLUMNS
 }
 
 /// How many columns [`arm_columns`] writes.
 pub const ARM_COLUMNS: usize = 31;
 /// Where [`arm_columns`]' friction starts: joint j's Coulomb friction at this + 2j, its viscous
 /// friction after it.
-pub const ARM_FRICTION: usize = 24;
+pub const ARM_FRICTION: usize = 6;
 /// [`arm_columns`]' point mass at the handle.
-pub const ARM_HANDLE_MASS: usize = 30;
+pub const ARM_HANDLE_MASS: usize = 12;
+/// Where [`arm_columns`]' inertia first order in the pose starts (M_k's entries at this + 6k).
+pub const ARM_FIRST_ORDER: usize = 13;
+
+/// How an arm's nominal model lets its joint-space inertia vary with the pose, beside the
+/// handle's point mass (whose m JᵀJ varies as the kinematics say). `hgcd analyze` chooses by
+/// the held-out error ([`crate::discrepancy::analysis::nominal`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ArmInertia {
+    /// M₀: a parallel linkage's arms turn about fixed axes, whatever the pose (a delta's), so
+    /// only the platform's mass moves its inertia.
+    Constant,
+    /// M₀ + Σ_k δq_k M_k: a serial arm's links swing about each other (a PHANToM's).
+    FirstOrder,
+}
+
+impl ArmInertia {
+    /// How many of [`arm_columns`]' columns a fit with this inertia takes (the first ones).
+    pub fn columns(self) -> usize {
+        match self {
+            ArmInertia::Constant => ARM_FIRST_ORDER,
+            ArmInertia::FirstOrder => ARM_COLUMNS,
+        }
+    }
+
+    /// Its name in summary.json.
+    pub fn name(self) -> &'static str {
+        match self {
+            ArmInertia::Constant => "constant",
+            ArmInertia::FirstOrder => "first_order",
+        }
+    }
+}
 
 /// What the model sees at one sample (smoothed alike, SI).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -289,12 +319,11 @@ mod tests {
             arm_columns(&sample, &handle_acceleration, &mut columns),
             ARM_COLUMNS
         );
-        let parameters = entries
-            .iter()
-            .flatten()
-            .copied()
+        let parameters = entries[0]
+            .into_iter()
             .chain((0..3).flat_map(|j| [coulomb[j], viscous[j]]))
-            .chain([handle_mass]);
+            .chain([handle_mass])
+            .chain(entries[1..].iter().flatten().copied());
         let modelled: Vector3<f64> = parameters
             .zip(&columns)
             .map(|(theta, column)| column * theta)

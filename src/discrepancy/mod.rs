@@ -354,7 +354,7 @@ pub fn analyze(
     progress("smoothing and differentiating the position");
     // A grid with an arm model gives the arm: the nominal model is then the arm's.
     let arm = file.arm.as_ref().and_then(|a| a.geometry.arm().ok());
-    let signals = Signals::new(&log, &model, arm.as_ref());
+    let mut signals = Signals::new(&log, &model, arm.as_ref());
     let speed = (signals
         .samples
         .iter()
@@ -366,7 +366,7 @@ pub fn analyze(
         return Err(AnalyzeError::NoExcitation(request.log.clone()));
     }
     progress("fitting the nominal model (grid and moving mass)");
-    let nominal = analysis::nominal(&signals)
+    let nominal = analysis::nominal(&mut signals)
         .ok_or_else(|| AnalyzeError::NoExcitation(request.log.clone()))?;
     let mut limits = evidence::excitation_limits(&signals);
     // An effect the excitation cannot show alone is not tried; one it cannot tell from another
