@@ -12,6 +12,8 @@ use std::sync::Arc;
 use nalgebra::Vector3;
 
 use hgcd::config::Config;
+use hgcd::control::compensation::GravityModel;
+use hgcd::discrepancy::analysis::{self, Signals};
 use hgcd::discrepancy::{self, AnalyzeRequest, Effect, RecordRequest};
 use hgcd::grid::{GridFile, MassGrid};
 use hgcd::transport::Pacing;
@@ -822,6 +824,35 @@ fn sweep(model: &str, dir: &Path, grid: &Path, library: fn(bool) -> [Hidden; 7])
         started.elapsed().as_secs_f64()
     );
     failures
+}
+
+/// A payload beside a spring has no least-squares answer: its weight is a constant force, which
+/// the spring's anchor takes, and its inertia is the handle's mass (an arm's) or the moving
+/// mass's. The fit refuses that set: on the delta, rounding left its pivot some 1e-14 of its
+/// norm and the fit answered with parameters of any size. The spring is named and the payload
+/// reported `confounded` with it.
+#[test]
+fn a_payload_beside_a_spring_is_never_fitted_together_and_is_reported_confounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = calibrated("delta", dir.path());
+    let hidden = [Hidden::Payload(0.03), Hidden::Spring(30.0, [0.0; 3])];
+    record_on("delta", dir.path(), &grid, &hidden, 1).unwrap();
+    let log_path = dir.path().join("log.csv");
+    let log = discrepancy::log::Log::load(&log_path).unwrap();
+    let file = GridFile::load(&grid).unwrap();
+    let arm = file.arm.as_ref().map(|a| a.geometry.arm().unwrap());
+    let outside = Config::default().compensation.outside_grid;
+    let model = GravityModel::configured(file, None, outside).unwrap();
+    let signals = Signals::new(&log, &model, arm.as_ref());
+    assert!(signals.arm);
+    assert!(analysis::fit(&[Effect::Spring], &signals).is_some());
+    assert!(analysis::fit(&[Effect::Spring, Effect::Payload], &signals).is_none());
+    let summary = analyze(dir.path(), &grid, &log_path);
+    assert_eq!(named(&summary), ["spring"], "{summary}");
+    let confounded = summary["limits"].as_array().unwrap().iter().any(|l| {
+        l["check"] == "confounded" && l["message"].as_str().unwrap().starts_with("payload")
+    });
+    assert!(confounded, "{}", summary["limits"]);
 }
 
 /// Effects in no candidate (motor cogging: a force of the position; a table's vibration: a

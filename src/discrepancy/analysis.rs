@@ -790,6 +790,14 @@ fn fit_on(
         }
     });
     let cholesky = normal.clone().cholesky()?;
+    // A set one of whose columns the others hold exactly has no least-squares answer: a
+    // payload beside a spring (its weight a constant force, which the anchor takes; its inertia
+    // the moving mass's or the handle's). Rounding leaves such a pivot some 1e-14 of its
+    // column's norm, where the least independent column of a sound fit keeps over 1e-4.
+    let l = cholesky.l_dirty();
+    if (0..p).any(|i| l[(i, i)] * l[(i, i)] < DEGENERATE * normal[(i, i)]) {
+        return None;
+    }
     let theta = cholesky.solve(&rhs);
     // Residual sum of squares on the fitted samples, σ² per component, and the covariance.
     let rss = (yy - 2.0 * theta.dot(&rhs) + (&normal * &theta).dot(&theta)).max(0.0);
@@ -853,6 +861,10 @@ pub fn nominal(signals: &mut Signals) -> Option<Fit> {
         }
     }
 }
+
+/// A column keeping less than this share of its squared norm beside the columns before it
+/// makes a fit degenerate ([`fit_on`]).
+const DEGENERATE: f64 = 1e-9;
 
 /// Gauss–Newton steps for the gravity tilt.
 const TILT_STEPS: usize = 4;
