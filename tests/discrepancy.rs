@@ -14,6 +14,7 @@ use nalgebra::Vector3;
 use hgcd::config::Config;
 use hgcd::control::compensation::GravityModel;
 use hgcd::discrepancy::analysis::{self, Signals};
+use hgcd::discrepancy::effects::ArmInertia;
 use hgcd::discrepancy::{self, AnalyzeRequest, Effect, RecordRequest};
 use hgcd::grid::{GridFile, MassGrid};
 use hgcd::transport::Pacing;
@@ -843,8 +844,12 @@ fn a_payload_beside_a_spring_is_never_fitted_together_and_is_reported_confounded
     let arm = file.arm.as_ref().map(|a| a.geometry.arm().unwrap());
     let outside = Config::default().compensation.outside_grid;
     let model = GravityModel::configured(file, None, outside).unwrap();
-    let signals = Signals::new(&log, &model, arm.as_ref());
+    let mut signals = Signals::new(&log, &model, arm.as_ref());
     assert!(signals.arm);
+    // As `hgcd analyze` fits it: the delta's arms' inertia constant (its platform the handle's
+    // mass).
+    analysis::nominal(&mut signals).unwrap();
+    assert_eq!(signals.arm_inertia(), ArmInertia::Constant);
     assert!(analysis::fit(&[Effect::Spring], &signals).is_some());
     assert!(analysis::fit(&[Effect::Spring, Effect::Payload], &signals).is_none());
     let summary = analyze(dir.path(), &grid, &log_path);

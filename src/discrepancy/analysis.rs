@@ -52,8 +52,9 @@ pub struct Signals {
     /// The nominal model is the arm's (its samples carry their joints), not a point mass's.
     pub arm: bool,
     /// For an arm: how its nominal model's inertia varies with the pose (the first
-    /// [`ArmInertia::columns`] of the design are fitted), chosen by [`nominal`].
-    pub arm_inertia: ArmInertia,
+    /// [`ArmInertia::columns`] of the design are fitted): first order until [`nominal`]
+    /// chooses, which every analysis does before any other fit.
+    arm_inertia: ArmInertia,
     /// For an arm: its nominal model's columns ([`arm_columns`]) at every sample,
     /// [`ARM_COLUMNS`] per sample, worked out once (the same in every fit: they neither turn
     /// nor move with a delay).
@@ -240,11 +241,13 @@ impl Signals {
             }
             signals.arm_design = design;
             let mut gram = DMatrix::<f64>::zeros(ARM_COLUMNS, ARM_COLUMNS);
-            for k in signals.split().0 {
-                if let (Some(row), true) = (
-                    signals.arm_row(k),
-                    signals.samples[k].velocity.norm() >= STICK_SPEED,
-                ) {
+            for (k, row) in signals
+                .arm_design
+                .chunks_exact(ARM_COLUMNS)
+                .enumerate()
+                .take(signals.split().0.end)
+            {
+                if signals.samples[k].velocity.norm() >= STICK_SPEED {
                     accumulate(&mut gram, &[], row, 0);
                 }
             }
@@ -262,6 +265,11 @@ impl Signals {
 
     pub fn len(&self) -> usize {
         self.samples.len()
+    }
+
+    /// How an arm's nominal model lets its inertia vary with the pose ([`nominal`] chooses).
+    pub fn arm_inertia(&self) -> ArmInertia {
+        self.arm_inertia
     }
 
     /// The arm's nominal columns fitted at sample `k` ([`arm_columns`], the first
@@ -793,7 +801,7 @@ fn fit_on(
     // A set one of whose columns the others hold exactly has no least-squares answer: a
     // payload beside a spring (its weight a constant force, which the anchor takes; its inertia
     // the moving mass's or the handle's). Rounding leaves such a pivot some 1e-14 of its
-    // column's norm, where the least independent column of a sound fit keeps over 1e-4.
+    // column's squared norm, where the least independent column of a sound fit keeps over 1e-4.
     let l = cholesky.l_dirty();
     if (0..p).any(|i| l[(i, i)] * l[(i, i)] < DEGENERATE * normal[(i, i)]) {
         return None;
@@ -1257,8 +1265,9 @@ pub fn confounded(
             out.push(force_rate[k]);
             return;
         }
+        // As the fit saw them: a named linear tilt's turns the payload's weight too.
         let mut c = [Vector3::zeros(); 4];
-        let n = effect.columns(s, &mut c);
+        let n = named.effect_columns(effect, s, &mut c);
         out.extend_from_slice(&c[..n]);
     };
     let limit = CONFOUNDED_INFLATION.powi(-2);

@@ -592,6 +592,7 @@ fn report_md(request: &AnalyzeRequest, a: &Analysis) -> String {
             for key in [
                 "moving_mass_kg",
                 "joint_inertia_kg_m2",
+                "joint_inertia_in_pose",
                 "joint_coulomb_friction_n_m",
                 "joint_viscous_friction_n_m_s",
                 "handle_mass_kg",
