@@ -510,17 +510,17 @@ impl Fit {
 
     /// Command `f` minus what the model needs at `s`, N. A handle stuck in Coulomb friction
     /// (slower than [`STICK_SPEED`]) takes any force up to f_c: only the excess is residual. An
-    /// arm's joint at rest (slower than [`STICK_RATE`]) holds any torque up to its friction
-    /// (it sticks, which no smooth friction column follows): only what lies beyond is residual
-    /// ([`beyond_resting_joints`]), and nothing while the handle rests.
+    /// arm's joint that sticks, for the whole kernel or part of it, holds any torque up to its
+    /// friction, which no smooth friction column follows: only what lies beyond is residual
+    /// ([`beyond_joint_friction`]), and nothing while the handle rests.
     fn residual(&self, s: &Sample, arm: Option<&[Vector3<f64>]>, f: &Vector3<f64>) -> Vector3<f64> {
         if self.is_arm() {
             if s.velocity.norm() < STICK_SPEED {
                 return Vector3::zeros();
             }
-            if let Some(joint) = s.joint.filter(|j| j.rate.amin() < STICK_RATE) {
+            if let Some(joint) = &s.joint {
                 let friction = [0, 1, 2].map(|j| self.base[ARM_FRICTION + 2 * j]);
-                return beyond_resting_joints(&joint, &friction, f - self.model_force(s, arm));
+                return beyond_joint_friction(joint, &friction, f - self.model_force(s, arm));
             }
         }
         if let [f_c] = self.theta_of(Effect::CoulombFriction) {
@@ -588,12 +588,16 @@ impl Fit {
     }
 }
 
-/// An arm's handle-force residual `r` at a sample where a joint rests (slower than
-/// [`STICK_RATE`]): a joint at rest holds any torque within its friction (`friction`, each
-/// joint's fitted Coulomb level f_c,j, N m), so of the torque the joint holds there (the
-/// residual's, Jᵀ r, plus the model's own friction term f_c,j s_j, which `r` took out) only what
-/// lies beyond ±f_c,j is residual; the moving joints' torques count whole.
-fn beyond_resting_joints(
+/// What of an arm's handle-force residual `r` its joints' friction cannot hold (`friction`,
+/// each joint's fitted Coulomb level f_c,j, N m). A joint at rest (slower than [`STICK_RATE`])
+/// holds any torque within ±f_c,j: of the torque it holds there (the residual's, Jᵀ r, plus the
+/// model's own friction term f_c,j s_j, which `r` took out) only what lies beyond is residual.
+/// A joint that stuck or turned within the kernel's span, its smoothed direction of sliding
+/// |s_j| < 1, slid for at most |s_j| of it one way: the rest of the span (a share of at most
+/// 1 − |s_j|) it held any torque within ±f_c,j, so the smoothed friction lies within
+/// f_c,j (1 − |s_j|) of the model's f_c,j s_j, and only the residual's torque beyond that band
+/// counts. A joint sliding throughout (|s_j| = 1) counts whole.
+fn beyond_joint_friction(
     joint: &JointSample,
     friction: &[f64; 3],
     r: Vector3<f64>,
@@ -603,9 +607,13 @@ fn beyond_resting_joints(
     };
     let mut torque = to_joints * r;
     for (j, t) in torque.iter_mut().enumerate() {
+        let f_c = friction[j].max(0.0);
         if joint.rate[j].abs() < STICK_RATE {
             let held = *t + friction[j] * joint.sliding[j];
-            *t = held.signum() * (held.abs() - friction[j].max(0.0)).max(0.0);
+            *t = held.signum() * (held.abs() - f_c).max(0.0);
+        } else {
+            let band = f_c * (1.0 - joint.sliding[j].abs()).max(0.0);
+            *t = t.signum() * (t.abs() - band).max(0.0);
         }
     }
     joint.to_handle * torque
@@ -1469,15 +1477,15 @@ mod tests {
         Matrix3::new(3.0, 1.0, -2.0, 0.5, 4.0, 1.5, -1.0, 2.5, 5.0)
     }
 
-    /// Joints 0 and 2 rest, joint 1 moves; the model's smoothed directions of sliding are not
-    /// zero at rest.
+    /// Joints 0 and 2 rest, joint 1 slides throughout the kernel; the model's smoothed
+    /// directions of sliding are not zero at rest.
     fn resting() -> JointSample {
         JointSample {
             offset: Vector3::zeros(),
             rate: Vector3::new(0.0, 0.5, -0.2 * STICK_RATE),
             acceleration: Vector3::zeros(),
             to_handle: to_handle(),
-            sliding: Vector3::new(0.5, 0.9, -0.2),
+            sliding: Vector3::new(0.5, 1.0, -0.2),
         }
     }
 
@@ -1490,7 +1498,7 @@ mod tests {
         let friction = [0.01, 0.02, 0.03];
         // The model's friction torques at the resting joints: 0.005 and −0.006 N m.
         let residual_of = |torque: Vector3<f64>| {
-            let r = beyond_resting_joints(&joint, &friction, to_handle() * torque);
+            let r = beyond_joint_friction(&joint, &friction, to_handle() * torque);
             to_handle().try_inverse().unwrap() * r
         };
         // Held 0.009 and −0.026 N m: inside the bands, nothing left; joint 1: all of it.
@@ -1512,7 +1520,9 @@ mod tests {
 
     /// An arm's fit scores a sample where joints rest through their fitted Coulomb levels (its
     /// parameters [`ARM_FRICTION`] + 2j): a command that holds the resting joints within them
-    /// leaves only the moving joint's torque; with the handle at rest, nothing.
+    /// leaves only the sliding joint's torque; joints that turned or stuck within the kernel's
+    /// span (|s_j| < 1) forgive within f_c,j (1 − |s_j|) of the model's friction; joints that
+    /// slide throughout count whole; with the handle at rest, nothing.
     #[test]
     fn an_arm_fit_forgives_its_resting_joints_their_fitted_friction() {
         let joint = resting();
@@ -1535,16 +1545,17 @@ mod tests {
         };
         let mut columns = [Vector3::zeros(); ARM_COLUMNS];
         arm_columns(&joint, &sample.acceleration, &mut columns);
-        // The joints hold 0.009, (moving) 0.02 + 0.018 and −0.026 N m.
-        let command = gravity + to_handle() * Vector3::new(0.009, 0.038, -0.026);
+        // The joints hold 0.009, (sliding) 0.02 + 0.02 and −0.026 N m.
+        let command = gravity + to_handle() * Vector3::new(0.009, 0.04, -0.026);
         let r = fit.residual(&sample, Some(&columns), &command);
         let torque = to_handle().try_inverse().unwrap() * r;
         assert!(
             (torque - Vector3::new(0.0, 0.02, 0.0)).norm() < 1e-12,
             "{torque}"
         );
-        // No joint at rest (the same model force: only the friction columns carry weight): the
-        // whole residual.
+        // No joint at rest, but joints 0 and 2 turned within the kernel's span (they slid a half
+        // and a fifth of it net one way): their residual torques, 0.004 and −0.02 N m, lie
+        // within 0.005 and 0.024 N m of the model's friction.
         let mut moving = sample;
         moving.joint = Some(JointSample {
             rate: Vector3::new(0.3, 0.5, -0.4),
@@ -1553,7 +1564,22 @@ mod tests {
         let r = fit.residual(&moving, Some(&columns), &command);
         let torque = to_handle().try_inverse().unwrap() * r;
         assert!(
-            (torque - Vector3::new(0.004, 0.02, -0.02)).norm() < 1e-12,
+            (torque - Vector3::new(0.0, 0.02, 0.0)).norm() < 1e-12,
+            "{torque}"
+        );
+        // Every joint sliding throughout (the model's friction 0.01, 0.02 and −0.03 N m): the
+        // whole residual.
+        let sliding = JointSample {
+            rate: Vector3::new(0.3, 0.5, -0.4),
+            sliding: Vector3::new(1.0, 1.0, -1.0),
+            ..joint
+        };
+        moving.joint = Some(sliding);
+        arm_columns(&sliding, &moving.acceleration, &mut columns);
+        let r = fit.residual(&moving, Some(&columns), &command);
+        let torque = to_handle().try_inverse().unwrap() * r;
+        assert!(
+            (torque - Vector3::new(-0.001, 0.02, 0.004)).norm() < 1e-12,
             "{torque}"
         );
         // The handle at rest: nothing.
