@@ -214,12 +214,13 @@ fn named(summary: &serde_json::Value) -> Vec<String> {
 /// One line for a case's summary.
 fn line(hidden: &[Hidden], seed: u64, summary: &serde_json::Value) -> String {
     format!(
-        "{hidden:?}, seed {seed}: named {:?}, {:.4} → {:.4} N, floor {:.4} N, unexplained \
-         {} (by {}), limits {}; {}",
+        "{hidden:?}, seed {seed}: named {:?}, {:.4} → {:.4} N, floor {:.4} N (position part \
+         {:.4} N), unexplained {} (by {}), limits {}; {}",
         named(summary),
         summary["error_before"].as_f64().unwrap(),
         summary["error_after"].as_f64().unwrap(),
         summary["noise_floor_n"].as_f64().unwrap(),
+        summary["noise_floor"]["from_position_n"].as_f64().unwrap(),
         summary["unexplained"],
         summary["unexplained_where"]["by"],
         summary["limits"]
