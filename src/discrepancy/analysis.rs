@@ -4,11 +4,11 @@
 
 use std::borrow::Cow;
 
-use nalgebra::{DMatrix, DVector, Rotation3, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, Vector3};
 
 use super::effects::{
-    across, arm_columns, ArmInertia, Effect, JointSample, Sample, ARM_COLUMNS, ARM_FRICTION,
-    STICK_RATE, STICK_SPEED,
+    across, arm_columns, ArmInertia, Effect, JointSample, Sample, ARM_COLUMNS, ARM_FIRST_ORDER,
+    ARM_FRICTION, ARM_HANDLE_MASS, STICK_RATE, STICK_SPEED,
 };
 use super::log::{Excitation, Log};
 use crate::arm::Arm;
@@ -557,6 +557,28 @@ impl Fit {
             .collect()
     }
 
+    /// The force this model asks per unit of the handle's acceleration at `s`, kg: its
+    /// Cartesian inertia, diag(m) for a point mass, J⁻ᵀ M(q) J⁻¹ + m_h I for an arm (its
+    /// velocity-product terms left out).
+    pub fn handle_inertia(&self, s: &Sample) -> Matrix3<f64> {
+        let joint = match (&s.joint, self.is_arm()) {
+            (Some(joint), true) => joint,
+            _ => return Matrix3::from_diagonal(&self.moving_mass),
+        };
+        let b = &self.base;
+        let symmetric =
+            |e: &[f64]| Matrix3::new(e[0], e[3], e[4], e[3], e[1], e[5], e[4], e[5], e[2]);
+        let mut inertia = symmetric(&b[..6]);
+        if b.len() > ARM_FIRST_ORDER {
+            for k in 0..3 {
+                let at = ARM_FIRST_ORDER + 6 * k;
+                inertia += symmetric(&b[at..at + 6]) * joint.offset[k];
+            }
+        }
+        joint.to_handle * inertia * joint.to_handle.transpose()
+            + Matrix3::from_diagonal_element(b[ARM_HANDLE_MASS])
+    }
+
     /// Whether this is an arm's model (its nominal part the arm's columns).
     pub fn is_arm(&self) -> bool {
         self.base.len() != POINT_MASS_COLUMNS
@@ -844,12 +866,6 @@ fn fit_on(
     fit.train_error = rms(&residuals, train);
     fit.heldout_error = rms(&residuals, heldout);
     Some(fit)
-}
-
-/// The moving mass per axis a point mass's nominal model finds, kg (the handle's effective mass
-/// for the noise floor, arm or not).
-pub fn moving_mass(signals: &Signals) -> Option<Vector3<f64>> {
-    fit_on(false, &[], signals, &signals.force, 0.0, Turn::default()).map(|f| f.moving_mass)
 }
 
 /// The nominal model: the grid's gravity force and a moving mass per axis, or for an arm its

@@ -1,9 +1,9 @@
 //! What the log itself can tell (docs/discrepancy.md §2): its noise floor, what its excitation
 //! cannot reveal, and where a residual the named effects leave lives.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
-use super::analysis::{Signals, Weights};
+use super::analysis::{Fit, Signals, Weights};
 use super::effects::Effect;
 use super::log::Log;
 
@@ -70,17 +70,25 @@ fn white_noise(x: &[Vector3<f64>]) -> Vector3<f64> {
     (sum / (n * (1.0 - w.value[h]))).map(f64::sqrt)
 }
 
-/// The noise floor of a model with moving mass `moving_mass` on `log` as `signals` smoothed it:
-/// the position's white noise through the smoother's second derivative times the mass, and the
-/// command's through its value, added as independent.
-pub fn noise_floor(log: &Log, signals: &Signals, moving_mass: &Vector3<f64>) -> NoiseFloor {
+/// The noise floor of `model` on `log` as `signals` smoothed it: the position's white noise
+/// through the smoother's second derivative times the model's inertia at the handle
+/// ([`Fit::handle_inertia`]: a point mass's moving mass, an arm's J⁻ᵀ M J⁻¹ and handle mass,
+/// as a mean square over the samples), and the command's through its value, added as
+/// independent.
+pub fn noise_floor(log: &Log, signals: &Signals, model: &Fit) -> NoiseFloor {
     let w = signals.kernel();
     let norm = |weights: &[f64]| weights.iter().map(|c| c * c).sum::<f64>().sqrt();
     let position_noise = white_noise(&log.position);
     let command_noise = white_noise(&log.force);
-    let from_position = (position_noise.component_mul(&moving_mass.abs())
-        * (norm(&w.curvature) / signals.period.powi(2)))
-    .norm();
+    let acceleration_noise = position_noise * (norm(&w.curvature) / signals.period.powi(2));
+    let square: f64 = signals
+        .samples
+        .iter()
+        .map(|s| {
+            (model.handle_inertia(s) * Matrix3::from_diagonal(&acceleration_noise)).norm_squared()
+        })
+        .sum();
+    let from_position = (square / signals.len().max(1) as f64).sqrt();
     let from_command = (command_noise * norm(&w.value)).norm();
     NoiseFloor {
         force: from_position.hypot(from_command),

@@ -387,10 +387,9 @@ pub fn analyze(
             .collect::<Vec<_>>()
             .join(", ")
     ));
-    // The floor with the nominal moving mass guides the selection; the augmented model's is
+    // The floor with the nominal model's inertia guides the selection; the augmented model's is
     // reported.
-    let handle_mass = analysis::moving_mass(&signals).unwrap_or(nominal.moving_mass);
-    let floor = evidence::noise_floor(&log, &signals, &handle_mass).force;
+    let floor = evidence::noise_floor(&log, &signals, &nominal).force;
     let (augmented, steps, first) = analysis::select(&nominal, &signals, &candidates, floor);
     let effects = augmented.effects.clone();
     if augmented.has(Effect::TimeDelay) {
@@ -402,15 +401,7 @@ pub fn analyze(
     }
     progress("estimating the noise floor");
     let residual = augmented.residuals(&signals);
-    let noise_floor = evidence::noise_floor(
-        &log,
-        &signals,
-        &if signals.arm {
-            handle_mass
-        } else {
-            augmented.moving_mass
-        },
-    );
+    let noise_floor = evidence::noise_floor(&log, &signals, &augmented);
     let unexplained = augmented.heldout_error > evidence::UNEXPLAINED_FACTOR * noise_floor.force;
     let ordering = evidence::ordering(&signals, &residual, signals.split().1);
     progress("locating the disagreement and simulating");
