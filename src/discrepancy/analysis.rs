@@ -1534,6 +1534,45 @@ mod tests {
         );
     }
 
+    /// An arm's inertia at the handle is the force its columns ask per unit of the handle's
+    /// acceleration: with the joints still (no velocity products), the columns' force for
+    /// q̈ = J⁻¹ Ẍ is Λ Ẍ, first-order terms and the handle's mass included.
+    #[test]
+    fn an_arms_inertia_at_the_handle_is_what_its_columns_ask_of_an_acceleration() {
+        let mut fit = Fit::unfitted(&[], ARM_COLUMNS, false);
+        for (i, b) in fit.base.iter_mut().enumerate() {
+            *b = 1e-3 * (1.0 + (i as f64 * 0.37).sin());
+        }
+        let to_handle = to_handle();
+        let handle_acceleration = Vector3::new(0.4, -1.2, 0.9);
+        let joint = JointSample {
+            offset: Vector3::new(0.1, -0.2, 0.05),
+            rate: Vector3::zeros(),
+            acceleration: to_handle.transpose() * handle_acceleration,
+            to_handle,
+            sliding: Vector3::zeros(),
+        };
+        let mut columns = [Vector3::zeros(); ARM_COLUMNS];
+        arm_columns(&joint, &handle_acceleration, &mut columns);
+        let asked: Vector3<f64> = columns.iter().zip(&fit.base).map(|(c, b)| c * *b).sum();
+        let sample = Sample {
+            position: Vector3::zeros(),
+            velocity: Vector3::zeros(),
+            acceleration: handle_acceleration,
+            sliding: Vector3::zeros(),
+            gravity: Vector3::zeros(),
+            up: Vector3::z(),
+            g: 9.81,
+            joint: Some(joint),
+            tilt: None,
+        };
+        let lambda = fit.handle_inertia(&sample) * handle_acceleration;
+        assert!(
+            (lambda - asked).norm() < 1e-12 * asked.norm(),
+            "{lambda} {asked}"
+        );
+    }
+
     /// An arm's fit scores a sample where joints rest through their fitted Coulomb levels (its
     /// parameters [`ARM_FRICTION`] + 2j): a command that holds the resting joints within them
     /// leaves only the sliding joint's torque; joints that turned or stuck within the kernel's
