@@ -569,7 +569,7 @@ impl Fit {
         let symmetric =
             |e: &[f64]| Matrix3::new(e[0], e[3], e[4], e[3], e[1], e[5], e[4], e[5], e[2]);
         let mut inertia = symmetric(&b[..6]);
-        if b.len() > ARM_FIRST_ORDER {
+        if self.arm_inertia() == Some(ArmInertia::FirstOrder) {
             for k in 0..3 {
                 let at = ARM_FIRST_ORDER + 6 * k;
                 inertia += symmetric(&b[at..at + 6]) * joint.offset[k];
@@ -582,6 +582,15 @@ impl Fit {
     /// Whether this is an arm's model (its nominal part the arm's columns).
     pub fn is_arm(&self) -> bool {
         self.base.len() != POINT_MASS_COLUMNS
+    }
+
+    /// How an arm's model lets its inertia vary with the pose (None for a point mass).
+    pub fn arm_inertia(&self) -> Option<ArmInertia> {
+        match self.base.len() {
+            POINT_MASS_COLUMNS => None,
+            n if n > ARM_FIRST_ORDER => Some(ArmInertia::FirstOrder),
+            _ => Some(ArmInertia::Constant),
+        }
     }
 
     /// The rotation of gravity this fit found, rad (zero without [`Effect::GravityTilt`]),

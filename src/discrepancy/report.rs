@@ -11,7 +11,7 @@ use plotters::prelude::*;
 use serde_json::json;
 
 use super::analysis::{self, Fit, Signals};
-use super::effects::{ArmInertia, Effect, ARM_FIRST_ORDER, ARM_FRICTION, ARM_HANDLE_MASS};
+use super::effects::{Effect, ARM_FRICTION, ARM_HANDLE_MASS};
 use super::{evidence, Analysis, AnalyzeError, AnalyzeRequest};
 use crate::control::compensation::GravityModel;
 use crate::figure::{self, Figure, OutError};
@@ -252,17 +252,12 @@ fn effect_parameters(
 /// effect's.
 fn parameters(fit: &Fit, up: &Vector3<f64>) -> serde_json::Value {
     let m = fit.moving_mass;
-    let mut p = if fit.is_arm() {
+    let mut p = if let Some(inertia) = fit.arm_inertia() {
         // The arm's nominal model: M₀ (xx, yy, zz, xy, xz, yz), whether it varies to first
         // order in the pose, each joint's Coulomb and viscous friction, and the handle's point
         // mass (docs/discrepancy.md §2.4).
         let b = &fit.base;
         let friction = |first: usize| [0, 2, 4].map(|j| b[ARM_FRICTION + first + j]);
-        let inertia = if b.len() > ARM_FIRST_ORDER {
-            ArmInertia::FirstOrder
-        } else {
-            ArmInertia::Constant
-        };
         json!({
             "joint_inertia_kg_m2": &b[..6],
             "joint_inertia_in_pose": inertia.name(),
