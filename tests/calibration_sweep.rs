@@ -9,7 +9,8 @@
 //! ```
 //!
 //! and narrow it with `SWEEP_DEVICES=phantom,delta`, `SWEEP_FRICTION=0.04`, `SWEEP_UNITS=1,2`,
-//! `SWEEP_SEEDS=5` (seeds 1 to 5).
+//! `SWEEP_SEEDS=5` (seeds 1 to 5) or `SWEEP_SEED=8` (seed 8 alone); `SWEEP_VERBOSE=1` prints
+//! every vertex's error.
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
@@ -112,6 +113,7 @@ fn every_device_unit_friction_and_seed_calibrates_first_time_within_half_a_perce
     let units: Vec<u64> = env_list("SWEEP_UNITS", &[1, 2, 3]);
     let frictions: Vec<f64> = env_list("SWEEP_FRICTION", &[0.02, 0.04, 0.08]);
     let seeds: u64 = env_list("SWEEP_SEEDS", &[20])[0];
+    let seeds: Vec<u64> = env_list("SWEEP_SEED", &(1..=seeds).collect::<Vec<_>>());
     let mut cases = Vec::new();
     for model in &models {
         let model: &'static str = Box::leak(model.clone().into_boxed_str());
@@ -123,7 +125,7 @@ fn every_device_unit_friction_and_seed_calibrates_first_time_within_half_a_perce
         };
         for &unit in units {
             for &friction in &frictions {
-                for seed in 1..=seeds {
+                for &seed in &seeds {
                     cases.push(Case {
                         model,
                         unit,
