@@ -670,8 +670,10 @@ fn phantom_and_woodenhaptics_calibrate_within_2_percent_with_handle_side_frictio
 /// by one stroke along (1, 1, 1) a vertex, where three along the diagonals took three times as
 /// long: the 27-vertex cube at 0.04 N and 0.08 N in under 120 s of device time (284 s with
 /// three strokes), every vertex within 0.05 % of the plant's force: 2.75 s of strokes a vertex.
-/// A linkage without an arm profile shows joint friction at its first bands and keeps the
-/// three (9 s a vertex): `sim:phantom` as a Cartesian device.
+/// A linkage without an arm profile whose first bands show joint friction keeps the three (9 s
+/// a vertex): `sim:delta` as a Cartesian device. (The PHANToM near its home pose, whose joints
+/// move the handle nearly along the axes, may not show it: its bands' slips came within 20° of
+/// their push in a run that then took one stroke a vertex, 112 s, every vertex within 0.10 %.)
 #[test]
 fn a_handle_whose_friction_follows_the_push_is_read_by_one_stroke_a_vertex() {
     for friction in [0.04, 0.08] {
@@ -690,7 +692,7 @@ fn a_handle_whose_friction_follows_the_push_is_read_by_one_stroke_a_vertex() {
             "{friction} N: {per_vertex} s of strokes a vertex"
         );
     }
-    let mut cartesian = Device::linkage("phantom", 1);
+    let mut cartesian = Device::linkage("delta", 1);
     cartesian.config.device.profile = "cartesian-v1".into();
     cartesian.config.sim.coulomb_friction_n = 0.04;
     let (result, _) = cartesian.calibrate();
@@ -829,12 +831,14 @@ fn a_linkage_with_its_arm_calibrates_every_vertex_within_two_minutes() {
 /// yields to is now measured again from beside the vertex. Every vertex within 2 %. Run as on a
 /// delta without a profile (`cartesian-v1`: no arm, strokes along the axes' diagonals) and with
 /// the strokes' second look as it was, where this happened; with its profile's arm, or the
-/// second look as it is, the run goes another way.
+/// second look as it is, the run goes another way. Since the strokes take out the handle's
+/// momentum and the field's curvature (`Strokes` in `control/calibration/probe.rs`) that run
+/// goes another way too, and unit 2, seed 2 meets the case (the one of units 1–3, seeds 1–20).
 #[test]
 fn a_force_estimate_that_holds_the_handle_far_off_is_measured_again_not_kept() {
-    let mut device = Device::linkage("delta", 1);
+    let mut device = Device::linkage("delta", 2);
     device.config.device.profile = "cartesian-v1".into();
-    device.config.sim.seed = 3;
+    device.config.sim.seed = 2;
     device.config.sim.coulomb_friction_n = 0.02;
     // Strokes measured again after any 30 mN move of F̂, as when this was found: since, a move
     // of a tenth of the force is needed, and this run no longer meets the case.

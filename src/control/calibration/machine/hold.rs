@@ -357,6 +357,8 @@ impl Calibration {
                 ControlOutput::force(force)
             }
             Step::Done(stroked) => {
+                let arm_fit = self.arm_fit.as_ref();
+                let stroked = stroked.less_curvature(|x| arm_fit.and_then(|fit| fit.predict(x)));
                 let change = (stroked.force - self.estimate).norm();
                 self.estimate = stroked.force;
                 self.measured_at = stroked.at;
