@@ -770,8 +770,9 @@ enum Leg {
 /// momentum as it enters and leaves the window, which a plain mean divides by the window's time,
 /// weighs nothing: on the simulated delta at 0.08 N at the handle the worst vertex of 120
 /// calibrations went from 0.44 % to 0.42 % and their mean worst vertex from 0.27 % to 0.22 %
-/// (at 0.02 N, 60 calibrations: 0.34 % against 0.36 %, the taper's fewer effective ticks
-/// showing more of the passes' slower swings). What momentum the handle gains inside the
+/// (at 0.02 N, 60 calibrations: 0.34 % against 0.36 %; with no friction at the handle its
+/// bottom corners read 2–3 mN off, where a plain mean reads them within 2 mN, for a reason not
+/// known: docs/calibration.md §4.6). What momentum the handle gains inside the
 /// window is taken out as well ([`Strokes::pass_means`]). With F̄₊ and F̄₋ the two passes'
 /// means, d·F_G = d·(F̄₊ + F̄₋)/2: sliding friction flips between them, the handle's and a
 /// sliding joint's alike.
