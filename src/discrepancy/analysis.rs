@@ -7,8 +7,8 @@ use std::borrow::Cow;
 use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, Vector3};
 
 use super::effects::{
-    across, arm_columns, ArmInertia, Effect, JointSample, Sample, ARM_COLUMNS, ARM_FIRST_ORDER,
-    ARM_FRICTION, ARM_HANDLE_MASS, STICK_RATE, STICK_SPEED,
+    across, arm_columns, symmetric, ArmInertia, Effect, JointSample, Sample, ARM_COLUMNS,
+    ARM_FIRST_ORDER, ARM_FRICTION, ARM_HANDLE_MASS, STICK_RATE, STICK_SPEED,
 };
 use super::log::{Excitation, Log};
 use crate::arm::Arm;
@@ -566,8 +566,6 @@ impl Fit {
             _ => return Matrix3::from_diagonal(&self.moving_mass),
         };
         let b = &self.base;
-        let symmetric =
-            |e: &[f64]| Matrix3::new(e[0], e[3], e[4], e[3], e[1], e[5], e[4], e[5], e[2]);
         let mut inertia = symmetric(&b[..6]);
         if self.arm_inertia() == Some(ArmInertia::FirstOrder) {
             for k in 0..3 {

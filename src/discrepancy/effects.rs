@@ -248,14 +248,15 @@ pub struct Sample {
 
 pub use crate::fit::across;
 
+/// The symmetric matrix with entries (xx, yy, zz, xy, xz, yz), the order of the arm's inertia
+/// columns.
+pub fn symmetric(e: &[f64]) -> Matrix3<f64> {
+    Matrix3::new(e[0], e[3], e[4], e[3], e[1], e[5], e[4], e[5], e[2])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The symmetric matrix with entries (xx, yy, zz, xy, xz, yz).
-    fn symmetric(e: [f64; 6]) -> Matrix3<f64> {
-        Matrix3::new(e[0], e[3], e[4], e[3], e[1], e[5], e[4], e[5], e[2])
-    }
 
     /// The arm's columns, weighted by M(q)'s entries and the joints' friction, give J⁻ᵀ times
     /// the Euler–Lagrange torque d/dt(M(q) q̇) − ½ ∂(q̇ᵀ M(q) q̇)/∂q of M(q) = M₀ + Σ_k δq_k M_k
@@ -270,8 +271,8 @@ mod tests {
             [1e-4, 2e-4, -4e-4, 2e-4, -1e-4, 1e-4],
         ];
         let inertia = |q: &Vector3<f64>| {
-            (0..3).fold(symmetric(entries[0]), |m, k| {
-                m + symmetric(entries[k + 1]) * q[k]
+            (0..3).fold(symmetric(&entries[0]), |m, k| {
+                m + symmetric(&entries[k + 1]) * q[k]
             })
         };
         let (q, rate, acceleration) = (

@@ -20,7 +20,7 @@
 //!
 //! All are allocation-free sub-machines the calibration controller ticks.
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 
 use crate::arm::Arm;
 use crate::control::{minimum_jerk, DeviceState};
@@ -722,19 +722,17 @@ impl PassWindow {
     /// The sums of a² and of F a left once α + β s is fitted out of both (the acceleration's
     /// variation the offset along the stroke does not explain, and the force's along it).
     fn residual_products(&self) -> (f64, Vector3<f64>) {
-        let n = self.n();
-        let det = n * self.ss - self.s * self.s;
-        if det <= 0.0 {
-            return (0.0, Vector3::zeros());
-        }
         // [Σa, Σsa] G⁻¹ [Σa, Σsa]ᵀ and [ΣF, ΣFs] G⁻¹ [Σa, Σsa]ᵀ, with G = [[n, Σs], [Σs, Σss]].
-        let (ga, gsa) = (
-            (self.ss * self.a - self.s * self.sa) / det,
-            (n * self.sa - self.s * self.a) / det,
-        );
+        let gram = Matrix2::new(self.n(), self.s, self.s, self.ss);
+        let Some(g) = gram
+            .try_inverse()
+            .map(|inverse| inverse * Vector2::new(self.a, self.sa))
+        else {
+            return (0.0, Vector3::zeros());
+        };
         (
-            self.aa - (self.a * ga + self.sa * gsa),
-            self.force_a - (self.force * ga + self.force_s * gsa),
+            self.aa - (self.a * g.x + self.sa * g.y),
+            self.force_a - (self.force * g.x + self.force_s * g.y),
         )
     }
 }
