@@ -55,10 +55,14 @@ fn start(auto_update: bool) -> Rig {
     start_with_file(auto_update, None)
 }
 
-/// [`start`], the daemon told its config came from `file` (read again on SIGHUP).
+/// [`start`], the daemon told its config came from `file` (read again on SIGHUP). The point
+/// mass's stops are 250 mm from where it starts: a handle that sinks until it is noticed and
+/// coasts on stops well short of them when the payload is taken in.
 fn start_with_file(auto_update: bool, file: Option<&std::path::Path>) -> Rig {
     let mut config = Config::default();
     config.compensation.auto_update = auto_update;
+    config.sim.workspace_min_mm = [-250.0; 3];
+    config.sim.workspace_max_mm = [250.0; 3];
     let grid = GridFile::from(field());
     let mut daemon = TestDaemon::new(config);
     if let Some(file) = file {
@@ -282,9 +286,11 @@ fn with_auto_update_the_payload_is_taken_in_and_the_sinking_stops() {
     );
     assert_estimate(&stale, event);
     assert!(stale.auto_updated);
-    // Taken in, the sinking stops short of the stop the handle fell to without (more than
-    // 70 mm down): what the estimate leaves (a fraction of a gram here; 20 % would be 6 g) sinks
-    // it at that weight over the plant's damping, 1 N·s/m, against 294 mm/s uncompensated.
+    // Taken in, the sinking stops, far short of the stop the handle falls to without (250 mm
+    // down, at 294 mm/s): it sank while the watch read it (about 35 mm in 240 ms), coasts on
+    // for the 0.15 s the plant's damping (1 N·s/m) takes to stop 0.15 kg (as far again), and
+    // what the estimate leaves (a fraction of a gram here; 20 % would be 6 g) sinks it at that
+    // weight over the damping.
     let settled = rig.run(&mut client, 2000);
     let after = rig.run(&mut client, 1000);
     let sunk = (Vector3::from(before.position) - Vector3::from(after.position)).dot(&tilted_v_g());
@@ -301,7 +307,7 @@ fn with_auto_update_the_payload_is_taken_in_and_the_sinking_stops() {
         "drifted {:.3} mm in a second",
         drift * 1e3
     );
-    assert!(sunk < 0.06, "sank {:.1} mm", sunk * 1e3);
+    assert!(sunk < 0.1, "sank {:.1} mm", sunk * 1e3);
 }
 
 /// `hgcd run` on SIGHUP: a simulated device takes the payload and gravity of its config file
@@ -495,15 +501,45 @@ fn a_delta_left_alone_raises_no_alarm() {
     }
 }
 
+/// What a released handle of `model` (`unit`, noise `seed`, 0.04 N at the handle) says once
+/// calibrated, left alone for 3 s, then given 30 g more: the reading (g) and the ticks it took,
+/// with the moving mass its calibration timed along z (kg), or what went wrong.
+fn released_reading(model: &'static str, unit: u64, seed: u64) -> Result<(f64, u64, f64), String> {
+    let (rig, inertia) = start_unit(model, false, &format!("unit_seed = {unit}\nseed = {seed}"));
+    let mut client = rig.client();
+    rig.run(&mut client, 3000);
+    if let Some(stale) = client.status().unwrap().model_stale {
+        return Err(format!("a false alarm ({:+.1} g)", stale.payload_g));
+    }
+    rig.world.set(PAYLOAD, Vector3::z());
+    let (ticks, stale, _) =
+        noticed_within(&rig, &mut client, TEN_SECONDS).ok_or("not noticed in 10 s")?;
+    Ok((stale.payload_g, ticks, inertia[2]))
+}
+
+/// The released handles that the windows' own velocity slopes misread: the delta unit 2,
+/// seed 2 (+44.5 g, a damping of 0.9 N·s/m taken from their scatter) and WoodenHaptics unit 1,
+/// seed 1 (+36.0 g, its arc's velocity product taken for a damping), now within 20 %.
+#[test]
+fn released_handles_once_misread_are_read_within_a_fifth() {
+    for (model, unit, seed) in [("delta", 2, 2), ("woodenhaptics", 1, 1)] {
+        let (grams, ticks, _) = released_reading(model, unit, seed).unwrap();
+        println!("{model} unit {unit} seed {seed}: {grams:+.1} g after {ticks} ticks");
+        assert!(
+            (grams - 30.0).abs() <= 0.2 * 30.0,
+            "{model} unit {unit} seed {seed}: {grams:+.1} g"
+        );
+    }
+}
+
 /// The released handle's reading over units and noise seeds (issue 36's Must show asks within
 /// 20 % and no false alarm): each linkage (`RELEASED_MODELS`, default all three), units 1–3
-/// (`RELEASED_UNITS`), noise seeds 1–5 (`RELEASED_SEEDS`), 0.04 N at the handle, calibrated,
-/// left alone for 3 s (an alarm there is a false one), then 30 g more. Prints each run with
-/// the moving mass its calibration timed along z, and a summary; fails while any run misses.
-/// About two minutes: `cargo test --release --test in_use -- --ignored --nocapture
+/// (`RELEASED_UNITS`), noise seeds 1–5 (`RELEASED_SEEDS`), [`released_reading`]. Prints each
+/// run with the moving mass its calibration timed along z, and a summary; fails while any run
+/// misses. About 30 s: `cargo test --release --test in_use -- --ignored --nocapture
 /// released_payload_over_units_and_seeds` (docs/calibration.md §2.3).
 #[test]
-#[ignore = "about two minutes: 45 calibrations and runs"]
+#[ignore = "about 30 s: 45 calibrations and runs"]
 fn released_payload_over_units_and_seeds() {
     let models: Vec<String> = env_list(
         "RELEASED_MODELS",
@@ -518,36 +554,27 @@ fn released_payload_over_units_and_seeds() {
         let (mut low, mut high) = (f64::INFINITY, f64::NEG_INFINITY);
         for unit in &units {
             for seed in 1..=seeds {
-                let (rig, inertia) =
-                    start_unit(model, false, &format!("unit_seed = {unit}\nseed = {seed}"));
-                let mut client = rig.client();
-                rig.run(&mut client, 3000);
                 runs += 1;
                 let case = format!("{model} unit {unit} seed {seed}");
-                if let Some(stale) = client.status().unwrap().model_stale {
-                    alarms += 1;
-                    println!("{case}: FALSE ALARM {:+.1} g", stale.payload_g);
-                    misses.push(format!("{case}: a false alarm ({:+.1} g)", stale.payload_g));
-                    continue;
-                }
-                rig.world.set(PAYLOAD, Vector3::z());
-                let Some((ticks, stale, _)) = noticed_within(&rig, &mut client, TEN_SECONDS) else {
-                    println!("{case}: not noticed in 10 s");
-                    misses.push(format!("{case}: not noticed"));
-                    continue;
+                let (grams, ticks, mass) = match released_reading(model, *unit, seed) {
+                    Ok(reading) => reading,
+                    Err(e) => {
+                        alarms += usize::from(e.starts_with("a false alarm"));
+                        println!("{case}: {e}");
+                        misses.push(format!("{case}: {e}"));
+                        continue;
+                    }
                 };
-                low = low.min(stale.payload_g);
-                high = high.max(stale.payload_g);
-                let ok = (stale.payload_g - 30.0).abs() <= 0.2 * 30.0;
+                low = low.min(grams);
+                high = high.max(grams);
+                let ok = (grams - 30.0).abs() <= 0.2 * 30.0;
                 within += usize::from(ok);
                 println!(
-                    "{case}: {:+.1} g after {ticks} ticks (moving mass along z {:.3} kg){}",
-                    stale.payload_g,
-                    inertia[2],
+                    "{case}: {grams:+.1} g after {ticks} ticks (moving mass along z {mass:.3} kg){}",
                     if ok { "" } else { "  MISSED" }
                 );
                 if !ok {
-                    misses.push(format!("{case}: {:+.1} g", stale.payload_g));
+                    misses.push(format!("{case}: {grams:+.1} g"));
                 }
             }
         }
