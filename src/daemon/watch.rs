@@ -495,7 +495,7 @@ impl ModelWatch {
                 *v
             }
         };
-        let windows: Vec<(Vector3<f64>, Vector3<f64>)> = steps
+        let readings: Vec<(Vector3<f64>, Vector3<f64>)> = steps
             .iter()
             .map(|(a, v)| {
                 let l = -self.moving_mass.component_mul(a)
@@ -503,10 +503,10 @@ impl ModelWatch {
                 (read(l), speed_term(v))
             })
             .collect();
-        let l_mean = windows.iter().map(|(l, _)| l).sum::<Vector3<f64>>() / n;
-        let r_mean = windows.iter().map(|(_, r)| r).sum::<Vector3<f64>>() / n;
+        let l_mean = readings.iter().map(|(l, _)| l).sum::<Vector3<f64>>() / n;
+        let r_mean = readings.iter().map(|(_, r)| r).sum::<Vector3<f64>>() / n;
         let (mut covariance, mut variance) = (0.0, 0.0);
-        for (l, r) in &windows {
+        for (l, r) in &readings {
             covariance += (l - l_mean).dot(&(r - r_mean));
             variance += (r - r_mean).norm_squared();
         }
@@ -516,7 +516,7 @@ impl ModelWatch {
             (true, false) => (covariance / variance).max(0.0),
         };
         let missed = l_mean - r_mean * sigma;
-        let steady = windows
+        let steady = readings
             .iter()
             .all(|(l, r)| (l - missed - r * sigma).norm() <= AGREEMENT * missed.norm());
         if !steady || missed.norm() < MIN_FORCE.max(MIN_SHARE * self.model_force.norm()) {
