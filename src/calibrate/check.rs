@@ -178,7 +178,7 @@ pub struct Planned {
 /// The check of `file` (read from `path`) on `device`.
 ///
 /// # Errors
-/// [`CheckError::Calibrate`] where the grid's model cannot be built.
+/// [`CheckError::Grid`] where the grid's model cannot be built.
 pub fn plan(
     config: &Config,
     device: &DeviceSpec,

@@ -136,7 +136,7 @@ fn duration_for_people(seconds: f64) -> String {
 }
 
 /// The device time a calibration has left, from its events, for the progress display and the
-/// daemon's replies alike: the pace of the last [`RECENT_VERTICES`] vertices for each still to
+/// daemon's replies alike: the pace of the last `RECENT_VERTICES` vertices for each still to
 /// come. Its base is the first vertex's start (after the initialisation and any exploring,
 /// which say nothing about the vertices' pace). The recent pace, not the whole run's: the first
 /// vertices, measured with rests and bands, take two to three times as long as those predicted

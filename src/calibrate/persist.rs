@@ -37,7 +37,7 @@ pub fn check_room(path: &Path, plan: &GridPlan, device: &DeviceSpec) -> Result<(
 
 /// The grid file a finished calibration produced on `device` with `config`: the lattice, the
 /// device, the parameters used, what was measured at each vertex and, for a device whose profile
-/// has an arm, the arm model and the model chosen by held-out score (format 2, [`with_model`]).
+/// has an arm, the arm model and the model chosen by held-out score (format 2, `with_model`).
 pub fn grid_file(result: &CalibrationResult, config: &Config, device: &DeviceSpec) -> GridFile {
     let c = &config.calibration;
     let i = &result.initial;

@@ -384,7 +384,7 @@ pub struct Fit {
     pub delay: f64,
     pub delay_sd: f64,
     /// The rotation of gravity, rad (zero unless [`Effect::GravityTilt`] is in the set; see
-    /// `linear_tilt` and [`Fit::turned`]).
+    /// `linear_tilt` and `Fit::turned`).
     pub rotation: Vector3<f64>,
     /// RMS of |residual| on the samples fitted on, and on those held out, N.
     pub train_error: f64,
@@ -394,7 +394,7 @@ pub struct Fit {
     pub train_sse: f64,
     pub fitted: usize,
     /// The tilt is a linear term of its own (an arm's, [`Sample::tilt`]): θ is the whole
-    /// rotation, and `rotation` the last step's, which sets the scales of [`Fit::turned`];
+    /// rotation, and `rotation` the last step's, which sets the scales of `Fit::turned`;
     /// otherwise the field turns whole by `rotation` and θ is the last increment.
     pub linear_tilt: bool,
     /// With a linear tilt: the payload (kg) whose weight turns with it, from the previous
@@ -718,7 +718,7 @@ fn accumulate(normal: &mut DMatrix<f64>, arm: &[Vector3<f64>], phi: &[Vector3<f6
 /// first where `arm`) over the training samples, the arm's cached block filled in. A handle at
 /// rest is left out where friction or an arm is fitted (its friction is no column's). `each` is
 /// handed every sample taken, turned by `frame`, with its design row (the arm's columns, then
-/// `phi`'s: [`column`] reads them), for the right-hand sides.
+/// `phi`'s: [`column()`] reads them), for the right-hand sides.
 fn normal_matrix(
     signals: &Signals,
     arm: bool,
@@ -774,7 +774,7 @@ fn cached(signals: &Signals, arm: bool) -> usize {
 
 /// The columns of the model at sample `s` (already turned): the nominal model's (the arm's
 /// columns `arm`, returned and not copied, or a moving mass per axis into `phi`), then each
-/// effect's into `phi` after them. [`column`] reads them.
+/// effect's into `phi` after them. [`column()`] reads them.
 fn design_row<'a>(
     arm: Option<&'a [Vector3<f64>]>,
     frame: &Fit,

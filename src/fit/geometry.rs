@@ -10,7 +10,7 @@
 //! fit's own weighted residual, with a prior that holds each offset to its tolerance (a
 //! maximum a posteriori estimate, so a geometry the holds do not pin stays the profile's). The
 //! geometry found is kept only where it explains the holds better than the profile's
-//! ([`EVIDENCE_PER_OFFSET`]). docs/calibration.md §13.4 measures what it gains.
+//! (`EVIDENCE_PER_OFFSET`). docs/calibration.md §13.4 measures what it gains.
 
 use nalgebra::{DMatrix, DVector, Vector3};
 
@@ -126,7 +126,7 @@ fn residual(
 
 /// Fit `arm`'s base parameters, v_G and geometry to `holds` (tilt searched from each of
 /// `starts`, as [`fit_arm`]): the geometry within its `tolerances` of the profile's, the fit
-/// with it, and how far it moved; or, where no geometry within [`MAX_TOLERANCES`] of the
+/// with it, and how far it moved; or, where no geometry within `MAX_TOLERANCES` of the
 /// profile's explains the holds better (or the tolerances are all 0), [`fit_arm`]'s fit with
 /// the profile's geometry and None.
 ///

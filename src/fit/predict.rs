@@ -202,7 +202,7 @@ impl ArmPrediction {
     }
 
     /// The force that holds the handle at `x` by the fit to the holds so far; None where there
-    /// is no fit ([`Self::solve`]) or out of reach.
+    /// is no fit (`Self::solve`) or out of reach.
     pub fn predict(&self, x: &Vector3<f64>) -> Option<Vector3<f64>> {
         let (theta, v) = self.fit?;
         let r = self.arm.force_regressor(x, &v, self.g)?;

@@ -163,7 +163,7 @@ pub(super) fn replace_atomically(path: &Path, bytes: &[u8]) -> Result<(), GridEr
 
 /// Put the file kept as `<name>.bak` back at `path`, byte for byte, atomically, keeping the file
 /// it replaces as `<name>.bak` in its turn. Errors: those of reading the backup
-/// ([`GridError::Missing`] where none is kept) and of [`replace_atomically`].
+/// ([`GridError::Missing`] where none is kept) and of `replace_atomically`.
 pub fn restore_backup(path: &Path) -> Result<(), GridError> {
     let mut name = path.file_name().unwrap_or_default().to_os_string();
     name.push(".bak");

@@ -51,7 +51,7 @@ struct Args {
     /// The daemon of this device (a device id or spec; default: the only daemon running).
     #[arg(long, value_name = "SPEC")]
     device: Option<String>,
-    /// Namespace of the topics and services (default /hgcd/<device id>, its `-` made `_`).
+    /// Namespace of the topics and services (default: /hgcd/ and the device id, its `-` made `_`).
     #[arg(long, value_name = "NS")]
     namespace: Option<String>,
     /// Rate of measured_cp, measured_cv, measured_cf and gravity_cf, Hz (at most the servo

@@ -198,7 +198,7 @@ impl GridPlan {
     }
 
     /// Make room for an explored grid ([`GridPlan::explore`]) of up to
-    /// [`MAX_EXPLORED_SIDE`]³ vertices.
+    /// `MAX_EXPLORED_SIDE`³ vertices.
     pub fn reserve_explored(&mut self) {
         self.path.reserve(MAX_EXPLORED);
         self.grid_index.reserve(MAX_EXPLORED);
@@ -209,7 +209,7 @@ impl GridPlan {
     /// at least [`MARGIN`] inside the explored workspace are visited in serpentine order, the
     /// others extrapolated. Allocates nothing after [`GridPlan::reserve_explored`].
     ///
-    /// Errors: [`CalibrationFailure::ExploredTooLarge`] for more than [`MAX_EXPLORED_SIDE`]
+    /// Errors: [`CalibrationFailure::ExploredTooLarge`] for more than `MAX_EXPLORED_SIDE`
     /// vertices along an axis, [`CalibrationFailure::NothingExplored`] for none to visit.
     pub fn explore(&mut self, map: &WorkspaceMap, spacing: f64) -> Result<(), CalibrationFailure> {
         let centre = map.centre;
