@@ -768,9 +768,10 @@ enum Leg {
 /// momentum as it enters and leaves the window, which a plain mean divides by the window's time,
 /// weighs nothing: on the simulated delta at 0.08 N at the handle the worst vertex of 120
 /// calibrations went from 0.44 % to 0.42 % and their mean worst vertex from 0.27 % to 0.22 %
-/// (at 0.02 N, 60 calibrations: 0.34 % against 0.36 %; with no friction at the handle its
-/// bottom corners read 2–3 mN off, where a plain mean reads them within 2 mN, for a reason not
-/// known: docs/calibration.md §4.6). What momentum the handle gains inside the
+/// (at 0.02 N, 60 calibrations: 0.34 % against 0.36 %; the 2–3 mN its bottom corners read
+/// off with no friction at the handle, where a plain mean read them within 2 mN, was the
+/// joints' friction read where the two passes held the handle apart, which one stroke along an
+/// arm takes out: [`Strokes::joint_friction_apart`]). What momentum the handle gains inside the
 /// window is taken out as well ([`Strokes::pass_means`]). With F̄₊ and F̄₋ the two passes'
 /// means, d·F_G = d·(F̄₊ + F̄₋)/2: sliding friction flips between them, the handle's and a
 /// sliding joint's alike.
@@ -794,6 +795,9 @@ pub(super) struct Strokes {
     /// Whether the handle was seen before and beyond the window on each pass: only a pass that
     /// carried it through the whole window measured anything.
     through: [[(bool, bool); 2]; 3],
+    /// The arm one stroke turns every joint of ([`Strokes::along_the_arm`]): its joints'
+    /// friction is carried to where each pass was ([`Strokes::joint_friction_apart`]).
+    arm: Option<Arm>,
 }
 
 /// What strokes measured: the holding force, and the sliding friction (half the difference of
@@ -859,6 +863,7 @@ impl Strokes {
             windows: [[PassWindow::default(); 2]; 3],
             history: History::new(),
             through: [[(false, false); 2]; 3],
+            arm: None,
         }
     }
 
@@ -925,7 +930,45 @@ impl Strokes {
         .into_iter()
         .filter(|d| d.norm().is_finite() && d.norm() > 0.0)
         .min_by(|a, b| a.norm().total_cmp(&b.norm()))?;
-        Some(Self::along(stroke, centre, direction.normalize(), now))
+        Some(Self {
+            arm: Some(*arm),
+            ..Self::along(stroke, centre, direction.normalize(), now)
+        })
+    }
+
+    /// What the joints' friction adds to the passes' mean force because the two passes held
+    /// the handle at different places, x₊ and x₋: a joint's friction τ flips between the passes
+    /// but reaches the handle through J⁻ᵀ where each pass was, so the mean keeps
+    /// ½ (J⁻ᵀ(x₊) − J⁻ᵀ(x₋)) τ, with τ = Jᵀ f from the passes' half-difference f at their
+    /// middle. The handle trails its set point by the friction over the hold's stiffness, to
+    /// either side of the stroke's line as the friction flips: at the simulated delta's bottom
+    /// corners, where the joints' friction is 0.24 N at the handle, the passes were 0.6 mm apart
+    /// across the stroke and their mean read about (−2, ±2, +2) mN off. Zero without an arm or
+    /// where J is singular.
+    fn joint_friction_apart(
+        &self,
+        places: [Vector3<f64>; 2],
+        at: &Vector3<f64>,
+        friction: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        let Some(arm) = &self.arm else {
+            return Vector3::zeros();
+        };
+        let to_handle = |x: &Vector3<f64>| {
+            arm.jacobian(x)
+                .and_then(|j| j.try_inverse())
+                .map(|inverse| inverse.transpose())
+        };
+        match (
+            arm.jacobian(at),
+            to_handle(&places[0]),
+            to_handle(&places[1]),
+        ) {
+            (Some(j), Some(forward), Some(backward)) => {
+                0.5 * (forward - backward) * (j.transpose() * friction)
+            }
+            _ => Vector3::zeros(),
+        }
     }
 
     pub fn centre(&self) -> Vector3<f64> {
@@ -1054,6 +1097,9 @@ impl Strokes {
         let at = self.centre + at / self.count as f64;
         if self.count == 1 {
             let [forward, backward] = means[0];
+            let friction = 0.5 * (forward - backward);
+            let places = self.windows[0].map(|w| self.centre + w.position / w.n());
+            let apart = self.joint_friction_apart(places, &at, &friction);
             let d = self.directions[0];
             let mid = d.dot(&(at - self.centre));
             let spread = self.windows[0]
@@ -1062,8 +1108,8 @@ impl Strokes {
                 .sum::<f64>()
                 / 2.0;
             return Step::Done(Stroked {
-                force: 0.5 * (forward + backward),
-                friction: 0.5 * (forward - backward),
+                force: 0.5 * (forward + backward) - apart,
+                friction,
                 at,
                 spread: Some((d, spread)),
             });
