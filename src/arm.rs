@@ -225,6 +225,12 @@ impl Arm {
         Some(self.frame.axes * jacobian)
     }
 
+    /// J⁻ᵀ at `x`: the handle force (device frame) that joint torques τ need is J⁻ᵀ τ. None out
+    /// of reach or singular.
+    pub fn to_handle(&self, x: &Vector3<f64>) -> Option<Matrix3<f64>> {
+        Some(self.jacobian(x)?.try_inverse()?.transpose())
+    }
+
     /// ∂F/∂θ at `x` (device frame) for gravity `g` (m/s²) against the unit `up` (device frame):
     /// F = G θ is the force that holds the handle there. None out of reach.
     pub fn force_regressor(

@@ -199,14 +199,12 @@ impl Signals {
                     Some([column(e1)?, column(e2)?])
                 }),
                 joint: match (arm, &joints) {
-                    (Some(arm), Some(q)) => arm.jacobian(&position).and_then(|j| {
-                        Some(JointSample {
-                            offset: Weights::apply(&w.value, q, k),
-                            rate: Weights::apply(&w.slope, q, k) / period,
-                            acceleration: Weights::apply(&w.curvature, q, k) / (period * period),
-                            to_handle: j.try_inverse()?.transpose(),
-                            sliding: Vector3::zeros(),
-                        })
+                    (Some(arm), Some(q)) => arm.to_handle(&position).map(|to_handle| JointSample {
+                        offset: Weights::apply(&w.value, q, k),
+                        rate: Weights::apply(&w.slope, q, k) / period,
+                        acceleration: Weights::apply(&w.curvature, q, k) / (period * period),
+                        to_handle,
+                        sliding: Vector3::zeros(),
                     }),
                     _ => None,
                 },

@@ -960,15 +960,10 @@ impl Strokes {
         let Some(arm) = &self.arm else {
             return Vector3::zeros();
         };
-        let to_handle = |x: &Vector3<f64>| {
-            arm.jacobian(x)
-                .and_then(|j| j.try_inverse())
-                .map(|inverse| inverse.transpose())
-        };
         match (
             arm.jacobian(at),
-            to_handle(&places[0]),
-            to_handle(&places[1]),
+            arm.to_handle(&places[0]),
+            arm.to_handle(&places[1]),
         ) {
             (Some(j), Some(forward), Some(backward)) => {
                 let apart = 0.5 * (forward - backward) * (j.transpose() * friction);

@@ -438,10 +438,10 @@ impl Calibration {
     }
 
     /// F̂ from the round's bands: the force c with n·c = b for each band's constraint
-    /// ([`Band::constraint`](crate::control::calibration::probe::Band::constraint)) and, along axes without friction, c = F̂ there. A band without a
-    /// constraint (its chord left through the faces of two joints), or whose constraint repeats
-    /// an earlier band's pair of faces, keeps its pair's normal n and the middle its update put
-    /// into F̂ (n·c = n·F̂). Where every axis has friction, the constraints' normals become the
+    /// ([`Band::constraint`](crate::control::calibration::probe::Band::constraint)) and, along
+    /// axes without friction, c = F̂ there. A band without a constraint (its chord left through
+    /// the faces of two joints), or whose constraint repeats an earlier band's pair of faces,
+    /// keeps its pair's normal n and the middle its update put into F̂ (n·c = n·F̂). Where every axis has friction, the constraints' normals become the
     /// normals the next round's directions follow. Normals too close to coplanar change
     /// nothing. True when every band gave a constraint of its own.
     pub(super) fn solve_constraints(&mut self) -> bool {

@@ -171,8 +171,8 @@ impl Calibration {
         ControlOutput::force(force)
     }
 
-    /// The initialisation from an earlier calibration's ([`super::super::Prior`]), the handle caught
-    /// at X_C by the force `caught`: the load is the prior's, moved to within the prior
+    /// The initialisation from an earlier calibration's ([`super::super::Prior`]), the handle
+    /// caught at X_C by the force `caught`: the load is the prior's, moved to within the prior
     /// friction of `caught` (where the handle came to rest, the field held the load to within
     /// the friction); then the first vertex.
     pub(super) fn initialised_from(

@@ -525,12 +525,14 @@ pub struct Calibration {
     /// The forces the rounds before this one found, summed, and how many, when this round
     /// followed them directly.
     earlier_rounds: (Vector3<f64>, Vector3<f64>, u32),
-    /// Where each band of the round was measured ([`Band::at`](super::probe::Band::at)), and where the vertex's force
-    /// was measured (the mean over the bands, and over the rounds averaged), m.
+    /// Where each band of the round was measured ([`Band::at`](super::probe::Band::at)), and
+    /// where the vertex's force was measured (the mean over the bands, and over the rounds
+    /// averaged), m.
     band_at: [Vector3<f64>; 3],
     measured_at: Vector3<f64>,
-    /// The round's constraints on the holding force, one per band ([`Band::constraint`](super::probe::Band::constraint)), and
-    /// the directions its slips went ([`Band::slips`](super::probe::Band::slips)).
+    /// The round's constraints on the holding force, one per band
+    /// ([`Band::constraint`](super::probe::Band::constraint)), and the directions its slips went
+    /// ([`Band::slips`](super::probe::Band::slips)).
     constraints: [Option<(Vector3<f64>, f64)>; 3],
     /// The bands' constraints across one pair of faces each, whatever the mode.
     strict: [Option<(Vector3<f64>, f64)>; 3],
